@@ -1,0 +1,1 @@
+"""Runnable demos behind ``python -m gpmhe demo NAME``; each module exposes ``main(argv) -> int``."""

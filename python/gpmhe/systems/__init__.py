@@ -1,0 +1,1 @@
+"""Example plants of the two papers: simulators and training-data collection."""
