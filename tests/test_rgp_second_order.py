@@ -61,3 +61,18 @@ def test_rgp_b_baseline_learns_from_inverted_model():
     assert rmse < so.SIGMA_R
     with pytest.raises(ValueError, match="y2"):
         so.rgp_b_targets(so.simulate(seed=1, noise="low", output="y1", duration=1.0))
+
+
+def test_demo_runs_and_writes_figure(tmp_path, capsys):
+    from gpmhe.__main__ import main
+
+    out = tmp_path / "rgp.png"
+    assert main(["demo", "rgp", "--duration", "2", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "RMSE of z" in text
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert "matplotlib is not installed" in text
+    else:
+        assert out.stat().st_size > 10_000

@@ -370,8 +370,7 @@ class RGPEKF:
             not self.pure_prediction,
         )
         self.z_pred = np.zeros(q)
-        self._u: Any = None
-        self._z_arg: Any = None
+        self._x_prior: np.ndarray | None = None
 
     # -- state ---------------------------------------------------------------------------------
     @property
@@ -446,10 +445,10 @@ class RGPEKF:
         if zeta is None:
             raise ValueError("zeta: the GP input is required")
         zv = self._zeta(zeta)
-        x = self._core.x
-        mu_zp = self._core.infer(zv)
-        z_arg = float(mu_zp[0]) if self.dim_z == 1 else mu_zp
         n = self.dim_x
+        out = self._core.infer(zv)
+        x, mu_zp = out[:n], out[n:]
+        z_arg = float(mu_zp[0]) if self.dim_z == 1 else mu_zp
         xp = np.ascontiguousarray(self.f(x, u, z_arg), dtype=np.float64)
         if xp.shape != (n,):
             xp = xp.reshape(-1)
@@ -470,6 +469,7 @@ class RGPEKF:
             e = e.reshape(n, self.dim_z)
         self._core.predict(xp, A, e, self.Q_x)
         self.z_pred = mu_zp
+        self._x_prior = xp.copy()  # = the filter's x now; saves a call in update
 
     def update(self, y: ArrayLike) -> None:
         """EKF update with the measurement y (variant 4a, or 4b when ``learning`` is False).
@@ -481,7 +481,7 @@ class RGPEKF:
         p = yv.size
         if self.dim_y is not None and p != self.dim_y:
             raise ValueError(f"y: expected {self.dim_y} value(s), got {p}")
-        x = self._core.x
+        x = self._x_prior if self._x_prior is not None else self._core.x
         hx = np.asarray(self.h(x), dtype=np.float64)
         if hx.shape != (p,):
             hx = hx.reshape(-1)
@@ -497,6 +497,7 @@ class RGPEKF:
         R = self._R_full if self._R_full is not None else float(self.R_x) * np.eye(p)
         # Finiteness of y − h(x) is checked in Rust (the error names y).
         self._core.update(yv - hx, H, R, self.learning and not self.pure_prediction)
+        self._x_prior = None
 
     def __repr__(self) -> str:
         return (

@@ -240,8 +240,13 @@ impl RgpEkfCore {
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let z = slice1("zeta", &zeta)?;
         let inner = &mut self.inner;
-        let mu = py.detach(|| inner.infer(z).map(|m| m.to_vec()))?;
-        Ok(PyArray1::from_vec(py, mu))
+        // [x; μ_z^p]: the caller needs both to evaluate f, A and e
+        let out = py.detach(|| -> Result<Vec<f64>, Error> {
+            let mut out = inner.mu()[..inner.dim_x()].to_vec();
+            out.extend_from_slice(inner.infer(z)?);
+            Ok(out)
+        })?;
+        Ok(PyArray1::from_vec(py, out))
     }
 
     fn predict(

@@ -14,6 +14,7 @@
 //!   the weights are not part of the state: the trained GPs enter as noisy inputs.
 
 use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::solvers::Llt;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
@@ -862,18 +863,30 @@ impl RgpEkf {
             self.mu[i] += d;
         }
         let wm = self.pht.as_ref();
-        // C −= W Wᵀ on the rows being updated (all for 4a; the state rows for 4b)
-        matmul(
-            self.cov.as_mut().subrows_mut(0, rows),
-            Accum::Add,
-            wm.subrows(0, rows),
-            wm.transpose(),
-            -1.0,
-            Par::Seq,
-        );
         if rows == nt {
+            // 4a: C −= W Wᵀ, computed on the lower triangle only, then mirrored
+            triangular::matmul(
+                self.cov.as_mut(),
+                BlockStructure::TriangularLower,
+                Accum::Add,
+                wm,
+                BlockStructure::Rectangular,
+                wm.transpose(),
+                BlockStructure::Rectangular,
+                -1.0,
+                Par::Seq,
+            );
             symmetrize_from_lower(self.cov.as_mut());
         } else {
+            // 4b: only the state rows, C[x, ·] −= W_x Wᵀ
+            matmul(
+                self.cov.as_mut().subrows_mut(0, rows),
+                Accum::Add,
+                wm.subrows(0, rows),
+                wm.transpose(),
+                -1.0,
+                Par::Seq,
+            );
             for c in n..nt {
                 for rr in 0..n {
                     let v = self.cov[(rr, c)];
