@@ -14,7 +14,6 @@
 //!   the weights are not part of the state: the trained GPs enter as noisy inputs.
 
 use faer::linalg::matmul::matmul;
-use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::solvers::Llt;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
@@ -291,13 +290,20 @@ fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     s
 }
 
-/// Copies the lower triangle of a square matrix into its upper triangle.
-fn symmetrize_from_lower(mut c: MatMut<'_, f64>) {
-    let n = c.nrows();
-    for j in 0..n {
-        for i in j + 1..n {
-            let v = c[(i, j)];
-            c[(j, i)] = v;
+/// C −= W Wᵀ restricted to the entries (i, j) with min(i, j) < `k` (k = N: all of C; k = n: the
+/// state rows and columns, variant 4b). Column by column over contiguous memory, and exactly
+/// symmetric: C_ij and C_ji subtract the same products in the same order, so C needs no mirroring.
+fn rank_p_downdate(c: &mut Mat<f64>, w: &Mat<f64>, k: usize) {
+    let (nt, p) = (w.nrows(), w.ncols());
+    for j in 0..nt {
+        let rows = if j < k { nt } else { k };
+        let col = c.col_as_slice_mut(j);
+        for kk in 0..p {
+            let wk = w.col_as_slice(kk);
+            let wjk = wk[j];
+            for (ci, wi) in col[..rows].iter_mut().zip(&wk[..rows]) {
+                *ci -= wi * wjk;
+            }
         }
     }
 }
@@ -417,14 +423,17 @@ impl Rgp {
         for (m, g) in self.mean.iter_mut().zip(&self.g) {
             *m += g * innov;
         }
+        // C −= g gᵀ / s, column by column; (g_i g_j) / s is the same for (i, j) and (j, i), so C
+        // stays exactly symmetric
+        let inv_s = 1.0 / s;
         for jj in 0..nb {
-            let gj = self.g[jj] / s;
-            for i in jj..nb {
-                self.cov[(i, jj)] -= self.g[i] * gj;
+            let gj = self.g[jj];
+            let col = self.cov.col_as_slice_mut(jj);
+            for (ci, gi) in col.iter_mut().zip(&self.g) {
+                *ci -= (gi * gj) * inv_s;
             }
-            self.cov[(jj, jj)] += self.basis.sigma_p2;
+            col[jj] += self.basis.sigma_p2;
         }
-        symmetrize_from_lower(self.cov.as_mut());
         Ok(mu_p)
     }
 }
@@ -862,40 +871,8 @@ impl RgpEkf {
             }
             self.mu[i] += d;
         }
-        let wm = self.pht.as_ref();
-        if rows == nt {
-            // 4a: C −= W Wᵀ, computed on the lower triangle only, then mirrored
-            triangular::matmul(
-                self.cov.as_mut(),
-                BlockStructure::TriangularLower,
-                Accum::Add,
-                wm,
-                BlockStructure::Rectangular,
-                wm.transpose(),
-                BlockStructure::Rectangular,
-                -1.0,
-                Par::Seq,
-            );
-            symmetrize_from_lower(self.cov.as_mut());
-        } else {
-            // 4b: only the state rows, C[x, ·] −= W_x Wᵀ
-            matmul(
-                self.cov.as_mut().subrows_mut(0, rows),
-                Accum::Add,
-                wm.subrows(0, rows),
-                wm.transpose(),
-                -1.0,
-                Par::Seq,
-            );
-            for c in n..nt {
-                for rr in 0..n {
-                    let v = self.cov[(rr, c)];
-                    self.cov[(c, rr)] = v;
-                }
-            }
-            let mut cxx = self.cov.as_mut().submatrix_mut(0, 0, n, n);
-            symmetrize_from_lower(cxx.as_mut());
-        }
+        // 4a: C −= W Wᵀ; 4b: only the state rows and columns (C[x, ·] and C[·, x])
+        rank_p_downdate(&mut self.cov, &self.pht, if rows == nt { nt } else { n });
         self.innovation = nu.to_vec();
         self.s = s;
         self.log_likelihood =
