@@ -1010,4 +1010,49 @@ mod tests {
         assert_eq!(gp.mean(), &m[..]);
         assert_eq!(gp.cov().to_owned(), c);
     }
+
+    #[test]
+    fn covariance_stays_exactly_symmetric_and_psd() {
+        let b = RgpBasis::new(&[-2.0], &[2.0], &[11], 3.0, 2.0, 0.1, 0.01).unwrap();
+        let mut ekf =
+            RgpEkf::new(&[0.0, 0.0], &[1.0, 0.0, 0.0, 1.0], vec![Rgp::new(b)], true).unwrap();
+        let (a, e, q) = (
+            [1.0, 0.01, -0.04, 0.96],
+            [0.0, 0.01],
+            [1e-6, 0.0, 0.0, 1e-6],
+        );
+        for k in 0..200 {
+            let z = ((k * 37) % 100) as f64 / 25.0 - 2.0;
+            let mzp = ekf.infer(&[z]).unwrap()[0];
+            let x = ekf.mu()[..2].to_vec();
+            let xp = [x[0] + 0.01 * x[1], -0.04 * x[0] + 0.96 * x[1] + 0.01 * mzp];
+            ekf.predict(&xp, &a, &e, &q).unwrap();
+            let nu = [z.sin() - xp[0], 0.1 - xp[1]];
+            ekf.update(
+                &nu,
+                &[1.0, 0.0, 0.0, 1.0],
+                &[1e-2, 0.0, 0.0, 1e-2],
+                k % 3 != 0,
+            )
+            .unwrap();
+            let c = ekf.cov();
+            for i in 0..c.nrows() {
+                assert!(c[(i, i)] > 0.0);
+                for j in 0..i {
+                    assert_eq!(c[(i, j)], c[(j, i)], "step {k}, ({i}, {j})");
+                }
+            }
+        }
+        let mut gp = Rgp::new(RgpBasis::new(&[0.0], &[1.0], &[7], 1.0, 1.0, 0.0, 0.01).unwrap());
+        for k in 0..100 {
+            let z = (k as f64 * 0.137) % 1.0;
+            gp.update(&[z], z * z, 1e-3).unwrap();
+        }
+        let c = gp.cov();
+        for i in 0..7 {
+            for j in 0..i {
+                assert_eq!(c[(i, j)], c[(j, i)]);
+            }
+        }
+    }
 }
