@@ -320,3 +320,21 @@ def test_indefinite_innovation_raises_numerical_error_and_keeps_state():
         ekf.update([0.2])
     np.testing.assert_array_equal(ekf.mu, mu)
     np.testing.assert_array_equal(ekf.C, C)
+
+
+def test_batch_update_equals_sequential_and_is_atomic():
+    rng = np.random.default_rng(8)
+    zs, ys = rng.uniform(-1, 1, 50), rng.standard_normal(50)
+    a = RecursiveGP(-1, 1, 7, sigma_K=1.0, L=1.0, sigma_r=0.05)
+    b = a.copy()
+    preds = [a.update(z, y, 0.01) for z, y in zip(zs, ys)]
+    np.testing.assert_array_equal(b.update(zs, ys, 0.01), preds)
+    np.testing.assert_array_equal(b.mean, a.mean)
+    np.testing.assert_array_equal(b.cov, a.cov)
+    bad = ys.copy()
+    bad[30] = np.nan
+    with pytest.raises(ValueError, match="y"):
+        b.update(zs, bad, 0.01)
+    with pytest.raises(ValueError, match="zeta"):
+        b.update(zs[:10], ys, 0.01)
+    np.testing.assert_array_equal(b.mean, a.mean)

@@ -197,9 +197,21 @@ class RecursiveGP:
         return np.ascontiguousarray(z)
 
     # -- learning and prediction ---------------------------------------------------------------
-    def update(self, zeta: ArrayLike, y: float, var_y: float) -> float:
-        """Learn from one measurement y = z(ζ) + ε, ε ~ N(0, var_y). Returns the prediction J w̄
-        made before the update. Bad input raises ValueError and leaves the weights unchanged."""
+    def update(self, zeta: ArrayLike, y: Any, var_y: Any) -> Any:
+        """Learn from one measurement y = z(ζ) + ε, ε ~ N(0, var_y), and return the prediction J w̄
+        made before the update. With ``y`` of shape (m,) and ``zeta`` of shape (m, dim_zeta) (or
+        (m,)), the m measurements are processed in order in one call (``var_y`` a scalar or (m,))
+        and the m predictions are returned. Bad input raises ValueError and leaves the weights
+        unchanged."""
+        if np.ndim(y) > 0:
+            ys = _finite_array("y", y, ndim=1)
+            zs = self._zeta_many(zeta)
+            if zs.shape[0] != ys.size:
+                raise ValueError(f"zeta: {zs.shape[0]} inputs for {ys.size} measurements y")
+            vs = np.atleast_1d(_finite_array("var_y", var_y))
+            if vs.ndim != 1 or vs.size not in (1, ys.size) or np.any(vs < 0):
+                raise ValueError(f"var_y: expected a scalar or {ys.size} values >= 0")
+            return self._core.update_many(zs, np.ascontiguousarray(ys), np.ascontiguousarray(vs))
         z = self._zeta_one(zeta)
         yv = float(y)
         if not np.isfinite(yv):

@@ -155,6 +155,20 @@ impl RgpCore {
         Ok(py.detach(|| inner.update(z, y, var_y))?)
     }
 
+    fn update_many<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray1<'py, f64>,
+        var_y: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let (y, v) = (slice1("y", &y)?, slice1("var_y", &var_y)?);
+        let inner = &mut self.inner;
+        let out = py.detach(|| inner.update_many(z, y, v))?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
     fn predict<'py>(
         &mut self,
         py: Python<'py>,

@@ -438,6 +438,44 @@ impl Rgp {
     }
 }
 
+impl Rgp {
+    /// Sequential updates with m measurements in one call: `zetas` row-major (m × n_X), `ys` (m),
+    /// `var_y` one variance for all or one per measurement. Returns the prediction J μ_z made
+    /// before each update. All inputs are validated first; if an update fails numerically the
+    /// weights are restored to their state before the call.
+    pub fn update_many(&mut self, zetas: &[f64], ys: &[f64], var_y: &[f64]) -> Result<Vec<f64>> {
+        let (nx, m) = (self.basis.dim(), ys.len());
+        check_len("zeta", zetas, m * nx)?;
+        check_finite("zeta", zetas)?;
+        check_finite("y", ys)?;
+        if var_y.len() != 1 && var_y.len() != m {
+            return Err(Error::invalid(
+                "var_y",
+                format!("expected 1 or {m} values, got {}", var_y.len()),
+            ));
+        }
+        if let Some(v) = var_y.iter().find(|v| !(v.is_finite() && **v >= 0.0)) {
+            return Err(Error::invalid(
+                "var_y",
+                format!("must be finite and >= 0, got {v}"),
+            ));
+        }
+        let backup = (self.mean.clone(), self.cov.clone());
+        let mut out = Vec::with_capacity(m);
+        for i in 0..m {
+            let v = if var_y.len() == 1 { var_y[0] } else { var_y[i] };
+            match self.update(&zetas[i * nx..(i + 1) * nx], ys[i], v) {
+                Ok(p) => out.push(p),
+                Err(e) => {
+                    (self.mean, self.cov) = backup;
+                    return Err(e);
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
 /// pure-prediction mode, an EKF on x with the (fixed) GPs as noisy inputs.
 #[derive(Debug, Clone)]
@@ -1054,5 +1092,18 @@ mod tests {
                 assert_eq!(c[(i, j)], c[(j, i)]);
             }
         }
+    }
+
+    #[test]
+    fn batch_update_restores_weights_on_numerical_failure() {
+        // σ_r = 0, var_y = 0 and K = I (up to e^-500): a second exact observation of a basis
+        // vector has s = 0
+        let mut gp = Rgp::new(RgpBasis::new(&[0.0], &[4.0], &[5], 1.0, 1e-3, 0.0, 0.0).unwrap());
+        gp.update(&[3.0], 0.5, 0.1).unwrap();
+        let (m, c) = (gp.mean().to_vec(), gp.cov().to_owned());
+        let err = gp.update_many(&[1.0, 2.0, 2.0], &[0.1, 0.2, 0.2], &[0.0]);
+        assert!(matches!(err, Err(Error::Numerical(_))));
+        assert_eq!(gp.mean(), &m[..]);
+        assert_eq!(gp.cov().to_owned(), c);
     }
 }

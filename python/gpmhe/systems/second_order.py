@@ -173,11 +173,12 @@ def run_rgp_b(run: Run, sigma_y_gp: float, snapshots: tuple[int, ...] = ()) -> t
     targets = rgp_b_targets(run)
     var = float(sigma_y_gp) ** 2
     snaps = {}
-    want = set(snapshots)
-    for k in range(len(targets)):
-        gp.update(run.zeta[k], targets[k], var)
-        if k + 1 in want:
-            snaps[k + 1] = (gp.mean.copy(), gp.cov.copy())
+    start = 0
+    for stop in sorted(s for s in set(snapshots) if 0 < s <= len(targets)) + [len(targets)]:
+        if stop > start:
+            gp.update(run.zeta[start:stop], targets[start:stop], var)
+        snaps[stop] = (gp.mean.copy(), gp.cov.copy())
+        start = stop
     return gp, snaps
 
 
