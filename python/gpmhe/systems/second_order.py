@@ -13,7 +13,7 @@ them):
 * ζ: first-order low-pass filtered Gaussian white noise, ζ_{k+1} = a ζ_k + √(1 − a²) σ_ζ w_k,
   a = exp(−T/τ_ζ), τ_ζ = 0.5 s, stationary std σ_ζ = 0.6, ζ_0 ~ N(0, σ_ζ²);
 * u: steps every 2 s to a level drawn uniformly from [−10, 10];
-* measurement noise std: "low" 0.002, "high" 0.02 (on every measured output);
+* measurement noise std: "low" 0.01, "high" 0.1 (on every measured output);
 * x_0 = 0, known to the filter (x̂_0 = 0, P_0 = 1e-4 I); no process noise in the plant.
 
 The RGP (both estimators): ζ-grid on [−2, 2] with 25 basis vectors, σ_K = 30, L = 4 (length-scale
