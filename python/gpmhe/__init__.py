@@ -6,6 +6,7 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 """
 
 from gpmhe._core import NumericalError
+from gpmhe.rgp import RGPEKF, RecursiveGP
 
-__all__ = ["NumericalError"]
+__all__ = ["NumericalError", "RGPEKF", "RecursiveGP"]
 __version__ = "0.1.0"

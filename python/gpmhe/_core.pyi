@@ -12,3 +12,89 @@ def se_ard_kernel(
     sigma_f: float,
     lengthscales: npt.NDArray[np.float64],
 ) -> npt.NDArray[np.float64]: ...
+
+# ===== RGP =====
+# Recursive GP and RGP-dKF kernels (rust/src/rgp.rs); the public classes are gpmhe.RecursiveGP and
+# gpmhe.RGPEKF in gpmhe/rgp.py. Arrays are float64, C-contiguous.
+
+class RecursiveGPCore:
+    def __init__(
+        self,
+        lower: npt.NDArray[np.float64],
+        upper: npt.NDArray[np.float64],
+        n_points: list[int],
+        sigma_k: float,
+        l: float,
+        sigma_r: float,
+        sigma_p: float,
+    ) -> None: ...
+    def copy(self) -> RecursiveGPCore: ...
+    def update(self, zeta: npt.NDArray[np.float64], y: float, var_y: float) -> float: ...
+    def update_many(
+        self,
+        zeta: npt.NDArray[np.float64],
+        y: npt.NDArray[np.float64],
+        var_y: npt.NDArray[np.float64],
+    ) -> npt.NDArray[np.float64]: ...
+    def predict(
+        self, zeta: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def j_row(self, zeta: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+    def set_weights(
+        self, mean: npt.NDArray[np.float64], cov: npt.NDArray[np.float64]
+    ) -> None: ...
+    @property
+    def mean(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def cov(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def basis_vectors(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def kernel_matrix(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def jitter(self) -> float: ...
+
+class RGPEKFCore:
+    def __init__(
+        self,
+        x0: npt.NDArray[np.float64],
+        p0: npt.NDArray[np.float64],
+        gps: list[RecursiveGPCore],
+        augmented: bool,
+    ) -> None: ...
+    def infer(self, zeta: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """J_k of every GP; returns [x; μ_z^p] (current state, then one prediction per GP)."""
+    def predict(
+        self,
+        x_pred: npt.NDArray[np.float64],
+        a: npt.NDArray[np.float64],
+        e: npt.NDArray[np.float64],
+        q_x: npt.NDArray[np.float64],
+    ) -> None: ...
+    def update(
+        self,
+        nu: npt.NDArray[np.float64],
+        h: npt.NDArray[np.float64],
+        r: npt.NDArray[np.float64],
+        learning: bool,
+    ) -> float: ...
+    def gp_predict(
+        self, index: int, zeta: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def gp_weights(
+        self, index: int
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    @property
+    def x(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def P(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def mu(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def C(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def innovation(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def S(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def log_likelihood(self) -> float: ...

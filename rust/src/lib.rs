@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod kernel;
+pub mod rgp;
 
 #[cfg(feature = "python")]
 mod python;

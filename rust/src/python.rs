@@ -83,9 +83,288 @@ fn se_ard_kernel<'py>(
     array2(py, out, na, nb)
 }
 
+// ===== RGP =====
+// Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
+// python/gpmhe/rgp.py, which validates inputs and calls these once per step.
+
+use crate::rgp::{Rgp, RgpBasis, RgpEkf};
+use faer::MatRef;
+use numpy::PyArray1;
+
+/// A (mean, variance) pair of 1-D arrays.
+type MeanVar<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
+
+fn mat_to_array2<'py>(py: Python<'py>, m: MatRef<'_, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (r, c) = (m.nrows(), m.ncols());
+    let mut out = Vec::with_capacity(r * c);
+    for i in 0..r {
+        for j in 0..c {
+            out.push(m[(i, j)]);
+        }
+    }
+    array2(py, out, r, c)
+}
+
+/// Huber's recursive GP on a unit grid of basis vectors (see gpmhe.RecursiveGP).
+#[pyclass(name = "RecursiveGPCore", module = "gpmhe._core")]
+#[derive(Clone)]
+pub struct RgpCore {
+    inner: Rgp,
+}
+
+#[pymethods]
+impl RgpCore {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        lower: PyReadonlyArray1<'_, f64>,
+        upper: PyReadonlyArray1<'_, f64>,
+        n_points: Vec<usize>,
+        sigma_k: f64,
+        l: f64,
+        sigma_r: f64,
+        sigma_p: f64,
+    ) -> PyResult<Self> {
+        let basis = RgpBasis::new(
+            slice1("lower", &lower)?,
+            slice1("upper", &upper)?,
+            &n_points,
+            sigma_k,
+            l,
+            sigma_r,
+            sigma_p,
+        )?;
+        Ok(Self {
+            inner: Rgp::new(basis),
+        })
+    }
+
+    fn copy(&self) -> Self {
+        self.clone()
+    }
+
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        zeta: PyReadonlyArray1<'_, f64>,
+        y: f64,
+        var_y: f64,
+    ) -> PyResult<f64> {
+        let z = slice1("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        Ok(py.detach(|| inner.update(z, y, var_y))?)
+    }
+
+    fn update_many<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray1<'py, f64>,
+        var_y: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let (y, v) = (slice1("y", &y)?, slice1("var_y", &var_y)?);
+        let inner = &mut self.inner;
+        let out = py.detach(|| inner.update_many(z, y, v))?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    fn predict<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<MeanVar<'py>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        let (m, v) = py.detach(|| inner.predict(z))?;
+        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
+    }
+
+    fn j_row<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let j = self.inner.j_row(slice1("zeta", &zeta)?)?;
+        Ok(PyArray1::from_vec(py, j))
+    }
+
+    fn set_weights(
+        &mut self,
+        mean: PyReadonlyArray1<'_, f64>,
+        cov: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<()> {
+        let (c, _, _) = slice2("cov", &cov)?;
+        Ok(self.inner.set_weights(slice1("mean", &mean)?, c)?)
+    }
+
+    #[getter]
+    fn mean<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.mean())
+    }
+
+    #[getter]
+    fn cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.cov())
+    }
+
+    #[getter]
+    fn basis_vectors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let b = self.inner.basis();
+        array2(py, b.basis_vectors(), b.n_basis(), b.dim())
+    }
+
+    #[getter]
+    fn kernel_matrix<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.basis().kernel_matrix())
+    }
+
+    #[getter]
+    fn jitter(&self) -> f64 {
+        self.inner.basis().jitter()
+    }
+}
+
+/// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF).
+#[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
+pub struct RgpEkfCore {
+    inner: RgpEkf,
+}
+
+#[pymethods]
+impl RgpEkfCore {
+    #[new]
+    fn new(
+        x0: PyReadonlyArray1<'_, f64>,
+        p0: PyReadonlyArray2<'_, f64>,
+        gps: Vec<PyRef<'_, RgpCore>>,
+        augmented: bool,
+    ) -> PyResult<Self> {
+        let (p, _, _) = slice2("P0", &p0)?;
+        let gps = gps.iter().map(|g| g.inner.clone()).collect();
+        Ok(Self {
+            inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
+        })
+    }
+
+    fn infer<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let z = slice1("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        // [x; μ_z^p]: the caller needs both to evaluate f, A and e
+        let out = py.detach(|| -> Result<Vec<f64>, Error> {
+            let mut out = inner.mu()[..inner.dim_x()].to_vec();
+            out.extend_from_slice(inner.infer(z)?);
+            Ok(out)
+        })?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    fn predict(
+        &mut self,
+        py: Python<'_>,
+        x_pred: PyReadonlyArray1<'_, f64>,
+        a: PyReadonlyArray2<'_, f64>,
+        e: PyReadonlyArray2<'_, f64>,
+        q_x: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<()> {
+        let x = slice1("f(x, u, z)", &x_pred)?;
+        let (a, _, _) = slice2("A", &a)?;
+        let (e, _, _) = slice2("e", &e)?;
+        let (q, _, _) = slice2("Q_x", &q_x)?;
+        let inner = &mut self.inner;
+        Ok(py.detach(|| inner.predict(x, a, e, q))?)
+    }
+
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        nu: PyReadonlyArray1<'_, f64>,
+        h: PyReadonlyArray2<'_, f64>,
+        r: PyReadonlyArray2<'_, f64>,
+        learning: bool,
+    ) -> PyResult<f64> {
+        let nu = slice1("y", &nu)?;
+        let (h, _, _) = slice2("H", &h)?;
+        let (r, _, _) = slice2("R_x", &r)?;
+        let inner = &mut self.inner;
+        Ok(py.detach(|| inner.update(nu, h, r, learning))?)
+    }
+
+    fn gp_predict<'py>(
+        &mut self,
+        py: Python<'py>,
+        index: usize,
+        zeta: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<MeanVar<'py>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        let (m, v) = py.detach(|| inner.gp_predict(index, z))?;
+        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn gp_weights<'py>(
+        &self,
+        py: Python<'py>,
+        index: usize,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray2<f64>>)> {
+        if index >= self.inner.n_gps() {
+            return Err(PyValueError::new_err(format!(
+                "index: there are {} GPs, got {index}",
+                self.inner.n_gps()
+            )));
+        }
+        let (m, c) = self.inner.gp_weights(index);
+        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c)?))
+    }
+
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()])
+    }
+
+    #[getter(P)]
+    fn p<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let n = self.inner.dim_x();
+        mat_to_array2(py, self.inner.cov().submatrix(0, 0, n, n))
+    }
+
+    #[getter]
+    fn mu<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.mu())
+    }
+
+    #[getter(C)]
+    fn c<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.cov())
+    }
+
+    #[getter]
+    fn innovation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.innovation())
+    }
+
+    #[getter(S)]
+    fn s<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.innovation_cov())
+    }
+
+    #[getter]
+    fn log_likelihood(&self) -> f64 {
+        self.inner.log_likelihood()
+    }
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("NumericalError", m.py().get_type::<NumericalError>())?;
     m.add_function(wrap_pyfunction!(se_ard_kernel, m)?)?;
+    // RGP
+    m.add_class::<RgpCore>()?;
+    m.add_class::<RgpEkfCore>()?;
     Ok(())
 }

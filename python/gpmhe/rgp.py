@@ -1,0 +1,518 @@
+"""Recursive GP regression and the RGP-dKF (an EKF that learns a disturbance model online).
+
+After Husmann, Weishaupt & Aschemann, "Direct Integration of Recursive Gaussian Process Regression
+Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP. Two classes:
+
+* :class:`RecursiveGP` learns z(ζ) from direct noisy measurements of z on a grid of basis vectors.
+* :class:`RGPEKF` estimates the state of x_{k+1} = f(x_k, u_k, z(ζ_k)), y_k = h(x_k) + v_k when z is
+  *not* measured: the RGP's basis-vector weights are appended to the EKF state and learned from y.
+
+The per-step numerics (J_k by triangular solves with K's Cholesky factor, the structured covariance
+prediction, the EKF update) run in Rust (``gpmhe._core``) with the GIL released; this module
+validates inputs and calls the user's model functions.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence, Union
+
+import numpy as np
+
+from gpmhe._core import RecursiveGPCore, RGPEKFCore
+
+__all__ = ["RecursiveGP", "RGPEKF"]
+
+ArrayLike = Union[float, Sequence[float], np.ndarray]
+
+
+def _finite_array(name: str, value: Any, ndim: int | None = None) -> np.ndarray:
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name}: must be numeric ({err})") from None
+    if ndim is not None and a.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return a
+
+
+def _positive(name: str, value: Any, allow_zero: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a number, got {value!r}") from None
+    ok = np.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0)
+    if not ok:
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {v}")
+    return v
+
+
+def _square(name: str, value: Any, n: int) -> np.ndarray:
+    """A symmetric positive semi-definite (n, n) matrix from a matrix, or a scalar (times I)."""
+    a = _finite_array(name, value)
+    if a.ndim == 0:
+        a = a * np.eye(n)
+    if a.shape != (n, n):
+        raise ValueError(f"{name}: expected shape ({n}, {n}), got {a.shape}")
+    if not np.allclose(a, a.T, rtol=1e-10, atol=1e-14 * max(1.0, np.abs(a).max())):
+        raise ValueError(f"{name}: must be symmetric")
+    if np.linalg.eigvalsh(0.5 * (a + a.T)).min() < -1e-12 * max(1.0, np.abs(a).max()):
+        raise ValueError(f"{name}: must be positive semi-definite")
+    return np.ascontiguousarray(a)
+
+
+class RecursiveGP:
+    """Huber's recursive GP on a unit grid of basis vectors, with the RGP-dKF paper's changes.
+
+    Model: z(ζ) has a zero-mean GP prior with kernel k(x, x') = σ_K² exp(−‖x − x'‖² / (2L)) on the
+    normalised input x = f_norm(ζ) = (ζ − lower) (N_i − 1) / (upper − lower) (eq. 6), so the basis
+    vectors X form a grid with unit spacing and one L serves all axes. The GP is represented by the
+    weights w at the basis vectors, w ~ N(mean, cov), initially N(0, K), K = k(X, X). At a test
+    input, J = k(x, X) K⁻¹ (two triangular solves with K's Cholesky factor, computed once; K⁻¹ is
+    never formed), the prediction is
+
+        mean = J w̄,   var = σ_K² − J K Jᵀ + J C Jᵀ + σ_r²,
+
+    and a measurement y = z(ζ) + ε, ε ~ N(0, var_y), updates (eq. 4)
+
+        G = C Jᵀ / (σ_K² − J K Jᵀ + J C Jᵀ + σ_r² + var_y),  w̄ += G (y − J w̄),
+        C −= G J C,  C += σ_p² I.
+
+    Parameters
+    ----------
+    lower, upper : float or array of shape (dim_zeta,)
+        Bounds of the input ζ that the grid spans (inputs outside are allowed; the GP reverts to
+        its prior there).
+    n_points : int or sequence of int
+        Basis vectors per axis N_i (≥ 2); ``n_basis`` = Π N_i.
+    sigma_K : float
+        Prior standard deviation σ_K of z.
+    L : float
+        Squared length-scale in grid units (the kernel's 2L denominator); the length-scale in ζ
+        units is √L (upper − lower) / (N_i − 1).
+    sigma_r : float
+        Floor σ_r added to the prediction standard deviation (variance σ_r²) for the model error of
+        a finite basis; the paper suggests 0.01–0.1 σ_K.
+    sigma_p : float
+        Process noise σ_p of the weights (a forgetting factor: C += σ_p² I per update).
+
+    Attributes
+    ----------
+    mean : ndarray (n_basis,)      weights' mean w̄ (μ_z)
+    cov : ndarray (n_basis, n_basis)  weights' covariance C (C_z)
+    basis_vectors : ndarray (n_basis, dim_zeta)  the basis vectors in ζ units
+    K : ndarray (n_basis, n_basis)  the kernel matrix k(X, X) on the normalised grid
+    jitter : float                 diagonal jitter that was needed to factor K (0 if none)
+    """
+
+    def __init__(
+        self,
+        lower: ArrayLike,
+        upper: ArrayLike,
+        n_points: int | Sequence[int],
+        sigma_K: float = 1.0,
+        L: float = 1.0,
+        sigma_r: float = 0.0,
+        sigma_p: float = 0.0,
+    ) -> None:
+        lo = np.atleast_1d(_finite_array("lower", lower))
+        hi = np.atleast_1d(_finite_array("upper", upper))
+        if lo.ndim != 1 or lo.size == 0:
+            raise ValueError(f"lower: expected a scalar or 1-D array, got shape {lo.shape}")
+        if hi.shape != lo.shape:
+            raise ValueError(f"upper: expected shape {lo.shape} like lower, got {hi.shape}")
+        if np.any(hi <= lo):
+            raise ValueError("upper: must exceed lower on every axis")
+        npts = np.atleast_1d(np.asarray(n_points))
+        if npts.ndim != 1 or npts.size not in (1, lo.size):
+            raise ValueError(f"n_points: expected an int or {lo.size} ints, got {n_points!r}")
+        if not np.issubdtype(npts.dtype, np.integer) or np.any(npts < 2):
+            raise ValueError(f"n_points: must be integers >= 2, got {n_points!r}")
+        npts = np.broadcast_to(npts, lo.shape).astype(int)
+        self.sigma_K = _positive("sigma_K", sigma_K)
+        self.L = _positive("L", L)
+        self.sigma_r = _positive("sigma_r", sigma_r, allow_zero=True)
+        self.sigma_p = _positive("sigma_p", sigma_p, allow_zero=True)
+        self.lower, self.upper, self.n_points = lo, hi, tuple(int(n) for n in npts)
+        self.dim_zeta = lo.size
+        self._core = RecursiveGPCore(
+            lo, hi, list(self.n_points), self.sigma_K, self.L, self.sigma_r, self.sigma_p
+        )
+        self.n_basis = int(np.prod(self.n_points))
+
+    # -- state -------------------------------------------------------------------------------
+    @property
+    def mean(self) -> np.ndarray:
+        return self._core.mean
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self._core.cov
+
+    @property
+    def basis_vectors(self) -> np.ndarray:
+        return self._core.basis_vectors
+
+    @property
+    def K(self) -> np.ndarray:
+        return self._core.kernel_matrix
+
+    @property
+    def jitter(self) -> float:
+        return self._core.jitter
+
+    def set_weights(self, mean: ArrayLike, cov: ArrayLike) -> None:
+        """Replace the weights' mean and covariance (e.g. from a previous run)."""
+        m = _finite_array("mean", mean, ndim=1)
+        if m.shape != (self.n_basis,):
+            raise ValueError(f"mean: expected shape ({self.n_basis},), got {m.shape}")
+        c = _square("cov", cov, self.n_basis)
+        self._core.set_weights(np.ascontiguousarray(m), c)
+
+    def copy(self) -> "RecursiveGP":
+        """An independent copy (same grid, hyperparameters and current weights)."""
+        new = object.__new__(RecursiveGP)
+        new.__dict__.update(self.__dict__)
+        new._core = self._core.copy()
+        return new
+
+    # -- inputs --------------------------------------------------------------------------------
+    def _zeta_one(self, zeta: ArrayLike) -> np.ndarray:
+        z = np.asarray(zeta, dtype=np.float64).reshape(-1)
+        if z.size != self.dim_zeta:
+            raise ValueError(f"zeta: expected {self.dim_zeta} value(s), got {z.size}")
+        if not np.all(np.isfinite(z)):
+            raise ValueError("zeta: contains NaN or inf")
+        return z
+
+    def _zeta_many(self, zeta: ArrayLike) -> np.ndarray:
+        z = _finite_array("zeta", zeta)
+        if z.ndim <= 1 and self.dim_zeta == 1:
+            z = z.reshape(-1, 1)
+        elif z.ndim == 1 and z.size == self.dim_zeta:
+            z = z.reshape(1, -1)
+        if z.ndim != 2 or z.shape[1] != self.dim_zeta:
+            raise ValueError(f"zeta: expected shape (m, {self.dim_zeta}), got {z.shape}")
+        return np.ascontiguousarray(z)
+
+    # -- learning and prediction ---------------------------------------------------------------
+    def update(self, zeta: ArrayLike, y: Any, var_y: Any) -> Any:
+        """Learn from one measurement y = z(ζ) + ε, ε ~ N(0, var_y), and return the prediction J w̄
+        made before the update. With ``y`` of shape (m,) and ``zeta`` of shape (m, dim_zeta) (or
+        (m,)), the m measurements are processed in order in one call (``var_y`` a scalar or (m,))
+        and the m predictions are returned. Bad input raises ValueError and leaves the weights
+        unchanged."""
+        if np.ndim(y) > 0:
+            ys = _finite_array("y", y, ndim=1)
+            zs = self._zeta_many(zeta)
+            if zs.shape[0] != ys.size:
+                raise ValueError(f"zeta: {zs.shape[0]} inputs for {ys.size} measurements y")
+            vs = np.atleast_1d(_finite_array("var_y", var_y))
+            if vs.ndim != 1 or vs.size not in (1, ys.size) or np.any(vs < 0):
+                raise ValueError(f"var_y: expected a scalar or {ys.size} values >= 0")
+            return self._core.update_many(zs, np.ascontiguousarray(ys), np.ascontiguousarray(vs))
+        z = self._zeta_one(zeta)
+        yv = float(y)
+        if not np.isfinite(yv):
+            raise ValueError(f"y: must be finite, got {y!r}")
+        return self._core.update(z, yv, _positive("var_y", var_y, allow_zero=True))
+
+    def predict(
+        self, zeta: ArrayLike, return_std: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Mean (and standard deviation, σ_r floor included) of z at inputs of shape
+        (m, dim_zeta) (or (m,) when dim_zeta = 1)."""
+        mean, var = self._core.predict(self._zeta_many(zeta))
+        return (mean, np.sqrt(var)) if return_std else mean
+
+    def J(self, zeta: ArrayLike) -> np.ndarray:
+        """The inference row J = k(f_norm(ζ), X) K⁻¹ at one input."""
+        return self._core.j_row(self._zeta_one(zeta))
+
+    def __repr__(self) -> str:
+        return (
+            f"RecursiveGP(lower={self.lower.tolist()}, upper={self.upper.tolist()}, "
+            f"n_points={list(self.n_points)}, sigma_K={self.sigma_K}, L={self.L}, "
+            f"sigma_r={self.sigma_r}, sigma_p={self.sigma_p})"
+        )
+
+
+def _as_fn(name: str, value: Any, shape: tuple[int, ...]) -> Callable[..., np.ndarray] | np.ndarray:
+    """A user Jacobian: a callable, or a constant array validated now."""
+    if callable(value):
+        return value
+    a = _finite_array(name, value)
+    if a.size != int(np.prod(shape)):
+        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+    return np.ascontiguousarray(a.reshape(shape))
+
+
+class RGPEKF:
+    """The RGP-dKF: an extended Kalman filter that learns the disturbance model z(ζ) online.
+
+    System (eq. 7):  x_{k+1} = f(x_k, u_k, z_k),  z_k = z(ζ_k),  y_k = h(x_k) + v_k,
+    with v_k ~ N(0, R_x) and process noise N(0, Q_x). Each unknown z_j(ζ_j) (one per column of e)
+    is a :class:`RecursiveGP` whose weights μ_zj are appended to the state:
+    μ = [x; μ_z1; …; μ_zq] with covariance C, initially blockdiag(P0, C_z1, …) (C_z = K for a fresh
+    GP). Per step (paper §3.4):
+
+    1. ``predict(u, zeta)``: J_k and μ_z^p = J_k μ_z; x⁻ = f(x, u, μ_z^p);
+       Ã = [[A, e J_k], [0, I]], C⁻ = Ã C Ãᵀ + ẽ (σ_K² − J_k K J_kᵀ + σ_r²) ẽᵀ
+       + blockdiag(Q_x, σ_p² I), with A = ∂f/∂x and e = ∂f/∂z at (x, u, μ_z^p). Only the first n
+       rows of Ã differ from I, so this costs O(N (n² + n_b)) instead of O(N³), N = n + Σ n_b.
+    2. ``update(y)``: EKF update with H̃ = [H, 0], H = ∂h/∂x at the *predicted* state
+       (variant 4a). With ``learning = False`` (variant 4b) only the states are updated: the
+       weights' mean and covariance stay as predicted and the state rows get the consistent
+       (Schmidt) update x += K_x ν, C[x, ·] −= K_x H C[x, ·].
+
+    With ``pure_prediction=True`` (paper §3.2) the GPs are fixed, trained models: their weights are
+    not part of the state and each enters as a noisy input with variance
+    σ_K² − J K Jᵀ + J C_z Jᵀ + σ_r².
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of states n.
+    f : callable f(x, u, z) -> (n,)
+        Discrete-time transition. ``z`` is a float for one GP, an array of q values for several.
+    A : callable A(x, u, z) -> (n, n), or constant array
+        ∂f/∂x.
+    e : callable e(x, u, z) -> (n,) or (n, q), or constant array
+        ∂f/∂z.
+    h : callable h(x) -> (p,)
+        Measurement function.
+    H : callable H(x) -> (p, n), or constant array
+        ∂h/∂x.
+    Q_x : (n, n) array or scalar (times I)
+        State process-noise covariance.
+    R_x : (p, p) array or scalar (times I)
+        Measurement-noise covariance.
+    x0 : (n,) array
+        Initial state estimate.
+    P0 : (n, n) array or scalar
+        Initial state covariance.
+    gps : RecursiveGP or sequence of RecursiveGP
+        One GP per disturbance (the paper's "repeated implementation"); their grids, kernels, σ_r,
+        σ_p and *current* weights define the GP part. They are copied, not modified.
+    learning : bool
+        True: variant 4a (learn the GP); False: variant 4b (states only). Can be changed any time.
+    pure_prediction : bool
+        Paper §3.2: the GPs are used as fixed noisy inputs, nothing is learned.
+
+    Attributes
+    ----------
+    x : (n,) state estimate;  P : (n, n) its covariance (the state block of C)
+    mu : (N,) augmented mean;  C : (N, N) augmented covariance
+    z_pred : (q,) μ_z^p of the last ``predict``
+    y : (p,) last innovation y − h(x⁻);  S : (p, p) its covariance
+    log_likelihood : log N(y; h(x⁻), S) of the last update
+    """
+
+    def __init__(
+        self,
+        dim_x: int,
+        f: Callable[..., Any],
+        A: Any,
+        e: Any,
+        h: Callable[..., Any],
+        H: Any,
+        Q_x: Any,
+        R_x: Any,
+        x0: ArrayLike,
+        P0: Any,
+        gps: RecursiveGP | Sequence[RecursiveGP],
+        learning: bool = True,
+        pure_prediction: bool = False,
+    ) -> None:
+        if not isinstance(dim_x, (int, np.integer)) or dim_x < 1:
+            raise ValueError(f"dim_x: must be a positive integer, got {dim_x!r}")
+        n = int(dim_x)
+        if not callable(f):
+            raise ValueError("f: must be callable f(x, u, z)")
+        if not callable(h):
+            raise ValueError("h: must be callable h(x)")
+        gp_list = [gps] if isinstance(gps, RecursiveGP) else list(gps)
+        if not gp_list or not all(isinstance(g, RecursiveGP) for g in gp_list):
+            raise ValueError("gps: expected a RecursiveGP or a non-empty sequence of them")
+        q = len(gp_list)
+        x0a = _finite_array("x0", x0).reshape(-1)
+        if x0a.size != n:
+            raise ValueError(f"x0: expected {n} values, got {x0a.size}")
+        self.dim_x, self.dim_z = n, q
+        self.f, self.h = f, h
+        self._A = _as_fn("A", A, (n, n))
+        self._e = _as_fn("e", e, (n, q))
+        self.Q_x = _square("Q_x", Q_x, n)
+        self.R_x = _finite_array("R_x", R_x)
+        self.dim_y: int | None = None
+        if self.R_x.ndim == 2:
+            self.dim_y = self.R_x.shape[0]
+            self.R_x = _square("R_x", self.R_x, self.dim_y)
+        elif self.R_x.ndim == 0:
+            _positive("R_x", float(self.R_x))
+        else:
+            raise ValueError(f"R_x: expected a (p, p) matrix or a scalar, got shape {self.R_x.shape}")
+        self._H = H if callable(H) else None
+        if not callable(H):
+            Ha = _finite_array("H", H)
+            Ha = Ha.reshape(1, -1) if Ha.ndim == 1 else Ha
+            if Ha.ndim != 2 or Ha.shape[1] != n:
+                raise ValueError(f"H: expected shape (p, {n}), got {Ha.shape}")
+            if self.dim_y is not None and Ha.shape[0] != self.dim_y:
+                raise ValueError(f"H: has {Ha.shape[0]} rows but R_x is {self.dim_y}x{self.dim_y}")
+            self._H = np.ascontiguousarray(Ha)
+            self.dim_y = Ha.shape[0]
+        if self.R_x.ndim == 0 and self.dim_y is not None:
+            self.R_x = float(self.R_x) * np.eye(self.dim_y)
+        self.gps = [g.copy() for g in gp_list]
+        self._zeta_total = sum(g.dim_zeta for g in self.gps)
+        self._scalar_zeta = self._zeta_total == 1
+        self._zbuf = np.zeros(1)
+        self._A_const = None if callable(self._A) else self._A
+        self._e_const = None if callable(self._e) else self._e
+        self._H_const = None if callable(self._H) else self._H
+        self._R_full = self.R_x if self.R_x.ndim == 2 else None
+        self.learning = bool(learning)
+        self.pure_prediction = bool(pure_prediction)
+        self._core = RGPEKFCore(
+            np.ascontiguousarray(x0a),
+            _square("P0", P0, n),
+            [g._core for g in self.gps],
+            not self.pure_prediction,
+        )
+        self.z_pred = np.zeros(q)
+        self._x_prior: np.ndarray | None = None
+
+    # -- state ---------------------------------------------------------------------------------
+    @property
+    def x(self) -> np.ndarray:
+        return self._core.x
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._core.P
+
+    @property
+    def mu(self) -> np.ndarray:
+        return self._core.mu
+
+    @property
+    def C(self) -> np.ndarray:
+        return self._core.C
+
+    @property
+    def y(self) -> np.ndarray:
+        return self._core.innovation
+
+    @property
+    def S(self) -> np.ndarray:
+        return self._core.S
+
+    @property
+    def log_likelihood(self) -> float:
+        return self._core.log_likelihood
+
+    @property
+    def likelihood(self) -> float:
+        return float(np.exp(self._core.log_likelihood))
+
+    def gp_weights(self, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, cov) of the basis-vector weights of GP ``index``."""
+        return self._core.gp_weights(self._index(index))
+
+    def gp_predict(
+        self, zeta: ArrayLike, index: int = 0, return_std: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """The current GP ``index``'s mean (and std, σ_r floor included) of z at inputs ζ."""
+        i = self._index(index)
+        mean, var = self._core.gp_predict(i, self.gps[i]._zeta_many(zeta))
+        return (mean, np.sqrt(var)) if return_std else mean
+
+    def _index(self, index: int) -> int:
+        if not isinstance(index, (int, np.integer)) or not 0 <= index < self.dim_z:
+            raise ValueError(f"index: must be an integer in [0, {self.dim_z}), got {index!r}")
+        return int(index)
+
+    # -- filter steps --------------------------------------------------------------------------
+    def _zeta(self, zeta: Any) -> np.ndarray:
+        # Finiteness is checked in Rust (the error names zeta); only shapes are checked here.
+        if self._scalar_zeta and isinstance(zeta, (float, int, np.floating, np.integer)):
+            self._zbuf[0] = zeta
+            return self._zbuf
+        if self.dim_z == 1:
+            z = np.asarray(zeta, dtype=np.float64).reshape(-1)
+        else:
+            if len(zeta) != self.dim_z:
+                raise ValueError(f"zeta: expected one input per GP ({self.dim_z}), got {len(zeta)}")
+            z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in zeta])
+        if z.size != self._zeta_total:
+            raise ValueError(f"zeta: expected {self._zeta_total} value(s) in total, got {z.size}")
+        return np.ascontiguousarray(z)
+
+    def predict(self, u: Any = None, zeta: Any = None) -> None:
+        """Predict x and C one step with input u and the GPs' inputs ζ (one per GP: a scalar or
+        array for one GP, a sequence for several). ``u`` is passed to f, A, e untouched.
+        Bad input raises ValueError naming it and leaves the filter unchanged."""
+        if zeta is None:
+            raise ValueError("zeta: the GP input is required")
+        zv = self._zeta(zeta)
+        n = self.dim_x
+        out = self._core.infer(zv)
+        x, mu_zp = out[:n], out[n:]
+        z_arg = float(mu_zp[0]) if self.dim_z == 1 else mu_zp
+        xp = np.ascontiguousarray(self.f(x, u, z_arg), dtype=np.float64)
+        if xp.shape != (n,):
+            xp = xp.reshape(-1)
+            if xp.size != n:
+                raise ValueError(f"f: returned {xp.size} values, expected {n}")
+        if self._A_const is not None:
+            A = self._A_const
+        else:
+            A = np.ascontiguousarray(self._A(x, u, z_arg), dtype=np.float64)
+            if A.shape != (n, n):
+                raise ValueError(f"A: returned shape {A.shape}, expected ({n}, {n})")
+        if self._e_const is not None:
+            e = self._e_const
+        else:
+            e = np.ascontiguousarray(self._e(x, u, z_arg), dtype=np.float64)
+            if e.size != n * self.dim_z:
+                raise ValueError(f"e: returned shape {e.shape}, expected ({n}, {self.dim_z})")
+            e = e.reshape(n, self.dim_z)
+        self._core.predict(xp, A, e, self.Q_x)
+        self.z_pred = mu_zp
+        self._x_prior = xp.copy()  # = the filter's x now; saves a call in update
+
+    def update(self, y: ArrayLike) -> None:
+        """EKF update with the measurement y (variant 4a, or 4b when ``learning`` is False).
+        Raises ValueError for bad y (state unchanged) and gpmhe.NumericalError if the innovation
+        covariance is not positive definite (state unchanged)."""
+        yv = np.asarray(y, dtype=np.float64)
+        if yv.ndim != 1:
+            yv = yv.reshape(-1)
+        p = yv.size
+        if self.dim_y is not None and p != self.dim_y:
+            raise ValueError(f"y: expected {self.dim_y} value(s), got {p}")
+        x = self._x_prior if self._x_prior is not None else self._core.x
+        hx = np.asarray(self.h(x), dtype=np.float64)
+        if hx.shape != (p,):
+            hx = hx.reshape(-1)
+            if hx.size != p:
+                raise ValueError(f"h: returned {hx.size} values but y has {p}")
+        if self._H_const is not None:
+            H = self._H_const
+        else:
+            H = np.ascontiguousarray(self._H(x), dtype=np.float64)
+            if H.size != p * self.dim_x:
+                raise ValueError(f"H: shape {H.shape} does not match ({p}, {self.dim_x})")
+            H = H.reshape(p, self.dim_x)
+        R = self._R_full if self._R_full is not None else float(self.R_x) * np.eye(p)
+        # Finiteness of y − h(x) is checked in Rust (the error names y).
+        self._core.update(yv - hx, H, R, self.learning and not self.pure_prediction)
+        self._x_prior = None
+
+    def __repr__(self) -> str:
+        return (
+            f"RGPEKF(dim_x={self.dim_x}, gps={len(self.gps)}, learning={self.learning}, "
+            f"pure_prediction={self.pure_prediction}, x={self.x})"
+        )

@@ -1,0 +1,1109 @@
+//! Recursive GP regression (Huber 2013, with the changes of Husmann, Weishaupt & Aschemann) and the
+//! per-step kernels of the RGP-dKF, the EKF whose state is augmented by the RGP's basis-vector
+//! weights (DESIGN.md §5).
+//!
+//! * [`RgpBasis`]: the fixed part of one RGP: basis vectors on a unit grid (eq. 5, 6), the kernel
+//!   σ_K² exp(−‖x − x'‖²/(2L)) as [`SeArd`] with all length-scales √L, and the Cholesky factor of
+//!   K = k(X, X), computed once. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step; K⁻¹ is
+//!   never formed.
+//! * [`Rgp`]: Huber's recursive GP (inference eq. 3, update eq. 4 with process noise σ_p and the
+//!   prediction-variance floor σ_r²).
+//! * [`RgpEkf`]: the augmented mean μ = [x; μ_z1; …] and covariance C, the structured covariance
+//!   prediction (12)–(13) in O(N·(n² + n_b)) (N = n + Σ n_b), and the EKF update 4a (states and
+//!   weights) or 4b (states only, as a Schmidt "consider" update). In pure-prediction mode (§3.2)
+//!   the weights are not part of the state: the trained GPs enter as noisy inputs.
+
+use faer::linalg::matmul::matmul;
+use faer::linalg::solvers::Llt;
+use faer::linalg::triangular_solve::{
+    solve_lower_triangular_in_place, solve_upper_triangular_in_place,
+};
+use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
+
+use crate::error::{check_finite, check_len, Error, Result};
+use crate::kernel::SeArd;
+
+/// Largest relative jitter (times σ_K²) added to K's diagonal before giving up on its Cholesky.
+const MAX_REL_JITTER: f64 = 1e-6;
+
+fn check_positive(arg: &str, v: f64) -> Result<()> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            arg,
+            format!("must be finite and > 0, got {v}"),
+        ))
+    }
+}
+
+fn check_nonneg(arg: &str, v: f64) -> Result<()> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            arg,
+            format!("must be finite and >= 0, got {v}"),
+        ))
+    }
+}
+
+/// The fixed part of one recursive GP: grid, kernel, Cholesky factor of K, σ_r, σ_p.
+#[derive(Debug, Clone)]
+pub struct RgpBasis {
+    lower: Vec<f64>,
+    /// (N_i − 1) / (upper_i − lower_i), eq. (6).
+    scale: Vec<f64>,
+    n_points: Vec<usize>,
+    /// Normalised basis vectors, row-major (n_b × n_X).
+    basis: Vec<f64>,
+    kernel: SeArd,
+    k: Mat<f64>,
+    /// Lower Cholesky factor of K + jitter·I.
+    chol: Mat<f64>,
+    jitter: f64,
+    sigma_r2: f64,
+    sigma_p2: f64,
+    /// Scratch: the normalised test input.
+    xk: Vec<f64>,
+}
+
+impl RgpBasis {
+    /// A grid of `n_points[i]` basis vectors per axis between `lower[i]` and `upper[i]` (in ζ
+    /// units), kernel σ_K² exp(−‖x − x'‖²/(2L)) on the normalised grid, floor σ_r, process noise σ_p.
+    pub fn new(
+        lower: &[f64],
+        upper: &[f64],
+        n_points: &[usize],
+        sigma_k: f64,
+        l: f64,
+        sigma_r: f64,
+        sigma_p: f64,
+    ) -> Result<Self> {
+        let nx = lower.len();
+        if nx == 0 {
+            return Err(Error::invalid(
+                "lower",
+                "needs at least one input dimension",
+            ));
+        }
+        check_finite("lower", lower)?;
+        check_finite("upper", upper)?;
+        check_len("upper", upper, nx)?;
+        if n_points.len() != nx {
+            return Err(Error::invalid(
+                "n_points",
+                format!("expected {nx} values, got {}", n_points.len()),
+            ));
+        }
+        if let Some(i) = (0..nx).find(|&i| upper[i] <= lower[i]) {
+            return Err(Error::invalid(
+                "upper",
+                format!("must exceed lower on every axis (axis {i})"),
+            ));
+        }
+        if let Some(n) = n_points.iter().find(|&&n| n < 2) {
+            return Err(Error::invalid(
+                "n_points",
+                format!("need at least 2 points per axis, got {n}"),
+            ));
+        }
+        let nb: usize = n_points.iter().product();
+        if nb > 20_000 {
+            return Err(Error::invalid(
+                "n_points",
+                format!("{nb} basis vectors is too many for a dense recursive GP"),
+            ));
+        }
+        check_positive("sigma_K", sigma_k)?;
+        check_positive("L", l)?;
+        check_nonneg("sigma_r", sigma_r)?;
+        check_nonneg("sigma_p", sigma_p)?;
+        let kernel = SeArd::new(sigma_k, &vec![l.sqrt(); nx])?;
+        // Grid of eq. (5): the first axis varies fastest.
+        let mut basis = vec![0.0; nb * nx];
+        for b in 0..nb {
+            let mut rest = b;
+            for i in 0..nx {
+                basis[b * nx + i] = (rest % n_points[i]) as f64;
+                rest /= n_points[i];
+            }
+        }
+        let k = kernel.gram(&basis);
+        let s2 = kernel.variance();
+        let mut jitter = 0.0;
+        let chol = loop {
+            let mut kj = k.clone();
+            for i in 0..nb {
+                kj[(i, i)] += jitter;
+            }
+            if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
+                break llt.L().to_owned();
+            }
+            jitter = if jitter == 0.0 {
+                1e-12 * s2
+            } else {
+                jitter * 10.0
+            };
+            if jitter > MAX_REL_JITTER * s2 {
+                return Err(Error::numerical(format!(
+                    "the kernel matrix K of {nb} basis vectors is not positive definite even with \
+                     jitter {:.1e}·σ_K²; use a smaller L or fewer basis vectors",
+                    MAX_REL_JITTER
+                )));
+            }
+        };
+        Ok(Self {
+            lower: lower.to_vec(),
+            scale: (0..nx)
+                .map(|i| (n_points[i] - 1) as f64 / (upper[i] - lower[i]))
+                .collect(),
+            n_points: n_points.to_vec(),
+            basis,
+            kernel,
+            k,
+            chol,
+            jitter,
+            sigma_r2: sigma_r * sigma_r,
+            sigma_p2: sigma_p * sigma_p,
+            xk: vec![0.0; nx],
+        })
+    }
+
+    /// Input dimension n_X.
+    pub fn dim(&self) -> usize {
+        self.lower.len()
+    }
+
+    /// Number of basis vectors n_b.
+    pub fn n_basis(&self) -> usize {
+        self.basis.len() / self.dim()
+    }
+
+    pub fn n_points(&self) -> &[usize] {
+        &self.n_points
+    }
+
+    /// σ_K².
+    pub fn sigma_k2(&self) -> f64 {
+        self.kernel.variance()
+    }
+
+    pub fn sigma_r2(&self) -> f64 {
+        self.sigma_r2
+    }
+
+    pub fn sigma_p2(&self) -> f64 {
+        self.sigma_p2
+    }
+
+    /// The jitter added to K's diagonal for its Cholesky factor (0 unless K was near singular).
+    pub fn jitter(&self) -> f64 {
+        self.jitter
+    }
+
+    /// The kernel matrix K = k(X, X) (without jitter).
+    pub fn kernel_matrix(&self) -> MatRef<'_, f64> {
+        self.k.as_ref()
+    }
+
+    /// Basis vectors in ζ units, row-major (n_b × n_X).
+    pub fn basis_vectors(&self) -> Vec<f64> {
+        let nx = self.dim();
+        self.basis
+            .iter()
+            .enumerate()
+            .map(|(i, v)| self.lower[i % nx] + v / self.scale[i % nx])
+            .collect()
+    }
+
+    /// Writes J_k = k(X_k, X) K⁻¹ into `j` (length n_b) for the input `zeta` (ζ units, length n_X,
+    /// already validated) and returns J_k K J_kᵀ = ‖L⁻¹ k(X, X_k)‖².
+    pub fn infer(&mut self, zeta: &[f64], j: &mut [f64]) -> f64 {
+        let nx = self.dim();
+        for (((x, z), lo), sc) in self
+            .xk
+            .iter_mut()
+            .zip(zeta)
+            .zip(&self.lower)
+            .zip(&self.scale)
+        {
+            *x = (z - lo) * sc;
+        }
+        for (b, jb) in j.iter_mut().enumerate() {
+            *jb = self
+                .kernel
+                .eval(&self.xk, &self.basis[b * nx..(b + 1) * nx]);
+        }
+        let nb = j.len();
+        let mut col = MatMut::from_column_major_slice_mut(j, nb, 1);
+        solve_lower_triangular_in_place(self.chol.as_ref(), col.as_mut(), Par::Seq);
+        let jkj: f64 = col.as_ref().col(0).iter().map(|v| v * v).sum();
+        solve_upper_triangular_in_place(self.chol.transpose(), col.as_mut(), Par::Seq);
+        jkj
+    }
+
+    /// Checks one input ζ.
+    pub fn check_zeta(&self, arg: &str, zeta: &[f64]) -> Result<()> {
+        check_len(arg, zeta, self.dim())?;
+        check_finite(arg, zeta)
+    }
+
+    /// Mean and variance (σ_r² floor included) of the GP with weights (`mean`, `cov`) at the
+    /// row-major inputs `zetas`; `j` is scratch of length n_b.
+    fn predict_with(
+        &mut self,
+        mean: &[f64],
+        cov: MatRef<'_, f64>,
+        zetas: &[f64],
+        j: &mut [f64],
+        mean_out: &mut [f64],
+        var_out: &mut [f64],
+    ) {
+        let nx = self.dim();
+        let s2 = self.sigma_k2();
+        for (q, z) in zetas.chunks_exact(nx).enumerate() {
+            let jkj = self.infer(z, j);
+            mean_out[q] = dot(j, mean);
+            let jcj = quad_form(cov, j);
+            var_out[q] = (s2 - jkj).max(0.0) + jcj.max(0.0) + self.sigma_r2;
+        }
+    }
+}
+
+#[inline]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// vᵀ C v for a symmetric C.
+fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
+    let mut s = 0.0;
+    for (jj, vj) in v.iter().enumerate() {
+        let col = c.col(jj);
+        let mut t = 0.0;
+        for (i, vi) in v.iter().enumerate() {
+            t += col[i] * vi;
+        }
+        s += t * vj;
+    }
+    s
+}
+
+/// C −= W Wᵀ restricted to the entries (i, j) with min(i, j) < `k` (k = N: all of C; k = n: the
+/// state rows and columns, variant 4b). Column by column over contiguous memory, and exactly
+/// symmetric: C_ij and C_ji subtract the same products in the same order, so C needs no mirroring.
+fn rank_p_downdate(c: &mut Mat<f64>, w: &Mat<f64>, k: usize) {
+    let (nt, p) = (w.nrows(), w.ncols());
+    for j in 0..nt {
+        let rows = if j < k { nt } else { k };
+        let col = c.col_as_slice_mut(j);
+        for kk in 0..p {
+            let wk = w.col_as_slice(kk);
+            let wjk = wk[j];
+            for (ci, wi) in col[..rows].iter_mut().zip(&wk[..rows]) {
+                *ci -= wi * wjk;
+            }
+        }
+    }
+}
+
+/// Huber's recursive GP on a grid of basis vectors: weights' mean μ_z and covariance C_z.
+#[derive(Debug, Clone)]
+pub struct Rgp {
+    basis: RgpBasis,
+    mean: Vec<f64>,
+    cov: Mat<f64>,
+    j: Vec<f64>,
+    g: Vec<f64>,
+}
+
+impl Rgp {
+    /// A fresh RGP: μ_z = 0, C_z = K (eq. 2).
+    pub fn new(basis: RgpBasis) -> Self {
+        let nb = basis.n_basis();
+        Self {
+            mean: vec![0.0; nb],
+            cov: basis.k.clone(),
+            j: vec![0.0; nb],
+            g: vec![0.0; nb],
+            basis,
+        }
+    }
+
+    pub fn basis(&self) -> &RgpBasis {
+        &self.basis
+    }
+
+    pub fn mean(&self) -> &[f64] {
+        &self.mean
+    }
+
+    pub fn cov(&self) -> MatRef<'_, f64> {
+        self.cov.as_ref()
+    }
+
+    /// Replaces the weights' mean and covariance (row-major n_b × n_b, symmetrised).
+    pub fn set_weights(&mut self, mean: &[f64], cov: &[f64]) -> Result<()> {
+        let nb = self.basis.n_basis();
+        check_len("mean", mean, nb)?;
+        check_len("cov", cov, nb * nb)?;
+        check_finite("mean", mean)?;
+        check_finite("cov", cov)?;
+        self.mean.copy_from_slice(mean);
+        for i in 0..nb {
+            for jj in 0..nb {
+                self.cov[(i, jj)] = 0.5 * (cov[i * nb + jj] + cov[jj * nb + i]);
+            }
+        }
+        Ok(())
+    }
+
+    /// J_k for one input (for tests and diagnostics).
+    pub fn j_row(&mut self, zeta: &[f64]) -> Result<Vec<f64>> {
+        self.basis.check_zeta("zeta", zeta)?;
+        let mut j = vec![0.0; self.basis.n_basis()];
+        self.basis.infer(zeta, &mut j);
+        Ok(j)
+    }
+
+    /// Mean and variance (σ_r² included) at the row-major inputs `zetas`.
+    pub fn predict(&mut self, zetas: &[f64]) -> Result<(Vec<f64>, Vec<f64>)> {
+        let nx = self.basis.dim();
+        if zetas.len() % nx != 0 {
+            return Err(Error::invalid(
+                "zeta",
+                format!(
+                    "{} values do not form inputs of dimension {nx}",
+                    zetas.len()
+                ),
+            ));
+        }
+        check_finite("zeta", zetas)?;
+        let m = zetas.len() / nx;
+        let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
+        let Self {
+            basis,
+            mean,
+            cov,
+            j,
+            ..
+        } = self;
+        basis.predict_with(mean, cov.as_ref(), zetas, j, &mut mu, &mut var);
+        Ok((mu, var))
+    }
+
+    /// One measurement y of the GP output at input ζ with noise variance `var_y` (eq. 3, 4):
+    /// G = C_z Jᵀ / (C^p + σ_r² + σ_y²), μ_z += G (y − J μ_z), C_z −= G J C_z, C_z += σ_p² I.
+    /// Returns the predicted mean J μ_z before the update. On error the state is unchanged.
+    pub fn update(&mut self, zeta: &[f64], y: f64, var_y: f64) -> Result<f64> {
+        self.basis.check_zeta("zeta", zeta)?;
+        if !y.is_finite() {
+            return Err(Error::invalid("y", format!("must be finite, got {y}")));
+        }
+        check_nonneg("var_y", var_y)?;
+        let nb = self.basis.n_basis();
+        let jkj = self.basis.infer(zeta, &mut self.j);
+        // g = C_z Jᵀ
+        {
+            let jcol = MatRef::from_column_major_slice(&self.j, nb, 1);
+            let gcol = MatMut::from_column_major_slice_mut(&mut self.g, nb, 1);
+            matmul(gcol, Accum::Replace, self.cov.as_ref(), jcol, 1.0, Par::Seq);
+        }
+        let jcj = dot(&self.j, &self.g);
+        let cp = (self.basis.sigma_k2() - jkj).max(0.0) + jcj;
+        let s = cp + self.basis.sigma_r2 + var_y;
+        if !(s.is_finite() && s > 0.0) {
+            return Err(Error::numerical(format!(
+                "innovation variance {s} is not positive (set var_y > 0 or sigma_r > 0)"
+            )));
+        }
+        let mu_p = dot(&self.j, &self.mean);
+        let innov = (y - mu_p) / s;
+        for (m, g) in self.mean.iter_mut().zip(&self.g) {
+            *m += g * innov;
+        }
+        // C −= g gᵀ / s, column by column; (g_i g_j) / s is the same for (i, j) and (j, i), so C
+        // stays exactly symmetric
+        let inv_s = 1.0 / s;
+        for jj in 0..nb {
+            let gj = self.g[jj];
+            let col = self.cov.col_as_slice_mut(jj);
+            for (ci, gi) in col.iter_mut().zip(&self.g) {
+                *ci -= (gi * gj) * inv_s;
+            }
+            col[jj] += self.basis.sigma_p2;
+        }
+        Ok(mu_p)
+    }
+}
+
+impl Rgp {
+    /// Sequential updates with m measurements in one call: `zetas` row-major (m × n_X), `ys` (m),
+    /// `var_y` one variance for all or one per measurement. Returns the prediction J μ_z made
+    /// before each update. All inputs are validated first; if an update fails numerically the
+    /// weights are restored to their state before the call.
+    pub fn update_many(&mut self, zetas: &[f64], ys: &[f64], var_y: &[f64]) -> Result<Vec<f64>> {
+        let (nx, m) = (self.basis.dim(), ys.len());
+        check_len("zeta", zetas, m * nx)?;
+        check_finite("zeta", zetas)?;
+        check_finite("y", ys)?;
+        if var_y.len() != 1 && var_y.len() != m {
+            return Err(Error::invalid(
+                "var_y",
+                format!("expected 1 or {m} values, got {}", var_y.len()),
+            ));
+        }
+        if let Some(v) = var_y.iter().find(|v| !(v.is_finite() && **v >= 0.0)) {
+            return Err(Error::invalid(
+                "var_y",
+                format!("must be finite and >= 0, got {v}"),
+            ));
+        }
+        let backup = (self.mean.clone(), self.cov.clone());
+        let mut out = Vec::with_capacity(m);
+        for i in 0..m {
+            let v = if var_y.len() == 1 { var_y[0] } else { var_y[i] };
+            match self.update(&zetas[i * nx..(i + 1) * nx], ys[i], v) {
+                Ok(p) => out.push(p),
+                Err(e) => {
+                    (self.mean, self.cov) = backup;
+                    return Err(e);
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
+/// pure-prediction mode, an EKF on x with the (fixed) GPs as noisy inputs.
+#[derive(Debug, Clone)]
+pub struct RgpEkf {
+    n: usize,
+    gps: Vec<Rgp>,
+    /// Start of each GP's weight block in μ (augmented mode).
+    offsets: Vec<usize>,
+    augmented: bool,
+    nt: usize,
+    mu: Vec<f64>,
+    cov: Mat<f64>,
+    /// J_k of every GP, concatenated (Σ n_b).
+    j: Vec<f64>,
+    j_offsets: Vec<usize>,
+    /// Variance of the GP noise input per disturbance, the diagonal of the term in (12).
+    dvar: Vec<f64>,
+    /// μ_z^p per disturbance.
+    mu_zp: Vec<f64>,
+    inferred: bool,
+    /// Scratch: Ã's top rows times C (n × N); J C_z (q × N); T J (n × q); C H̃ᵀ (N × p).
+    t: Mat<f64>,
+    jc: Mat<f64>,
+    tj: Mat<f64>,
+    pht: Mat<f64>,
+    /// Last innovation, its covariance and log-likelihood.
+    innovation: Vec<f64>,
+    s: Mat<f64>,
+    log_likelihood: f64,
+}
+
+impl RgpEkf {
+    /// `x0` (n), `p0` (n × n row-major), the GPs (their current weights initialise the GP block,
+    /// C_z = K for a fresh RGP), `augmented` = false for the pure-prediction mode of §3.2.
+    pub fn new(x0: &[f64], p0: &[f64], gps: Vec<Rgp>, augmented: bool) -> Result<Self> {
+        let n = x0.len();
+        if n == 0 {
+            return Err(Error::invalid("x0", "needs at least one state"));
+        }
+        if gps.is_empty() {
+            return Err(Error::invalid("gps", "needs at least one recursive GP"));
+        }
+        check_finite("x0", x0)?;
+        check_len("P0", p0, n * n)?;
+        check_finite("P0", p0)?;
+        let q = gps.len();
+        let mut offsets = Vec::with_capacity(q);
+        let mut j_offsets = Vec::with_capacity(q);
+        let (mut off, mut joff) = (n, 0);
+        for g in &gps {
+            offsets.push(off);
+            j_offsets.push(joff);
+            joff += g.basis.n_basis();
+            if augmented {
+                off += g.basis.n_basis();
+            }
+        }
+        let nt = off;
+        let mut mu = vec![0.0; nt];
+        mu[..n].copy_from_slice(x0);
+        let mut cov = Mat::zeros(nt, nt);
+        for i in 0..n {
+            for jj in 0..n {
+                cov[(i, jj)] = 0.5 * (p0[i * n + jj] + p0[jj * n + i]);
+            }
+        }
+        if augmented {
+            for (g, &o) in gps.iter().zip(&offsets) {
+                let nb = g.basis.n_basis();
+                mu[o..o + nb].copy_from_slice(&g.mean);
+                cov.as_mut()
+                    .submatrix_mut(o, o, nb, nb)
+                    .copy_from(g.cov.as_ref());
+            }
+        }
+        Ok(Self {
+            n,
+            offsets,
+            augmented,
+            nt,
+            mu,
+            cov,
+            j: vec![0.0; joff],
+            j_offsets,
+            dvar: vec![0.0; q],
+            mu_zp: vec![0.0; q],
+            inferred: false,
+            t: Mat::zeros(n, nt),
+            jc: Mat::zeros(q, nt),
+            tj: Mat::zeros(n, q),
+            pht: Mat::zeros(nt, 0),
+            innovation: Vec::new(),
+            s: Mat::zeros(0, 0),
+            log_likelihood: 0.0,
+            gps,
+        })
+    }
+
+    pub fn dim_x(&self) -> usize {
+        self.n
+    }
+
+    /// Number of disturbances (GPs).
+    pub fn n_gps(&self) -> usize {
+        self.gps.len()
+    }
+
+    /// Total augmented dimension N.
+    pub fn dim_total(&self) -> usize {
+        self.nt
+    }
+
+    pub fn augmented(&self) -> bool {
+        self.augmented
+    }
+
+    pub fn gp_basis(&self, g: usize) -> &RgpBasis {
+        &self.gps[g].basis
+    }
+
+    pub fn mu(&self) -> &[f64] {
+        &self.mu
+    }
+
+    pub fn cov(&self) -> MatRef<'_, f64> {
+        self.cov.as_ref()
+    }
+
+    pub fn innovation(&self) -> &[f64] {
+        &self.innovation
+    }
+
+    pub fn innovation_cov(&self) -> MatRef<'_, f64> {
+        self.s.as_ref()
+    }
+
+    pub fn log_likelihood(&self) -> f64 {
+        self.log_likelihood
+    }
+
+    /// Weights' mean and covariance of GP `g` (the state block, or the fixed GP in pure mode).
+    pub fn gp_weights(&self, g: usize) -> (&[f64], MatRef<'_, f64>) {
+        if self.augmented {
+            let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+            (
+                &self.mu[o..o + nb],
+                self.cov.as_ref().submatrix(o, o, nb, nb),
+            )
+        } else {
+            (&self.gps[g].mean, self.gps[g].cov.as_ref())
+        }
+    }
+
+    /// Mean and variance (σ_r² included) of GP `g` at the row-major inputs `zetas`.
+    pub fn gp_predict(&mut self, g: usize, zetas: &[f64]) -> Result<(Vec<f64>, Vec<f64>)> {
+        if g >= self.gps.len() {
+            return Err(Error::invalid(
+                "index",
+                format!("there are {} GPs, got index {g}", self.gps.len()),
+            ));
+        }
+        if !self.augmented {
+            return self.gps[g].predict(zetas);
+        }
+        let nx = self.gps[g].basis.dim();
+        if zetas.len() % nx != 0 {
+            return Err(Error::invalid(
+                "zeta",
+                format!(
+                    "{} values do not form inputs of dimension {nx}",
+                    zetas.len()
+                ),
+            ));
+        }
+        check_finite("zeta", zetas)?;
+        let m = zetas.len() / nx;
+        let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
+        let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+        let Self {
+            gps,
+            mu: state,
+            cov,
+            ..
+        } = self;
+        let gp = &mut gps[g];
+        gp.basis.predict_with(
+            &state[o..o + nb],
+            cov.as_ref().submatrix(o, o, nb, nb),
+            zetas,
+            &mut gp.j,
+            &mut mu,
+            &mut var,
+        );
+        Ok((mu, var))
+    }
+
+    /// Step 1 (16): J_k and μ_z^p = J_k μ_z for every GP at its input ζ_j (the inputs of all GPs
+    /// concatenated). Returns μ_z^p (one per disturbance). Must precede [`Self::predict`].
+    pub fn infer(&mut self, zetas: &[f64]) -> Result<&[f64]> {
+        let total: usize = self.gps.iter().map(|g| g.basis.dim()).sum();
+        check_len("zeta", zetas, total)?;
+        check_finite("zeta", zetas)?;
+        let mut zo = 0;
+        for g in 0..self.gps.len() {
+            let (jo, nb, nx) = (
+                self.j_offsets[g],
+                self.gps[g].basis.n_basis(),
+                self.gps[g].basis.dim(),
+            );
+            let j = &mut self.j[jo..jo + nb];
+            let gp = &mut self.gps[g];
+            let jkj = gp.basis.infer(&zetas[zo..zo + nx], j);
+            zo += nx;
+            let base = (gp.basis.sigma_k2() - jkj).max(0.0) + gp.basis.sigma_r2;
+            if self.augmented {
+                let o = self.offsets[g];
+                self.mu_zp[g] = dot(j, &self.mu[o..o + nb]);
+                self.dvar[g] = base;
+            } else {
+                self.mu_zp[g] = dot(j, &gp.mean);
+                self.dvar[g] = base + quad_form(gp.cov.as_ref(), j).max(0.0);
+            }
+        }
+        self.inferred = true;
+        Ok(&self.mu_zp)
+    }
+
+    /// Steps 2–3 (17), (18) with the structured product: the caller evaluated the predicted state
+    /// `x_pred` = f(x, u, μ_z^p), A = ∂f/∂x (n × n) and e = ∂f/∂z (n × q), row-major, at
+    /// (x, u, μ_z^p); `q_x` is Q_x (n × n). C⁺ = Ã C Ãᵀ + ẽ D ẽᵀ + blockdiag(Q_x, σ_p² I) where
+    /// only the first n rows of Ã differ from the identity, so the GP block is untouched but for σ_p².
+    pub fn predict(&mut self, x_pred: &[f64], a: &[f64], e: &[f64], q_x: &[f64]) -> Result<()> {
+        let (n, q, nt) = (self.n, self.gps.len(), self.nt);
+        if !self.inferred {
+            return Err(Error::invalid(
+                "zeta",
+                "infer(zeta) must be called before predict in every step",
+            ));
+        }
+        check_len("f(x, u, z)", x_pred, n)?;
+        check_len("A", a, n * n)?;
+        check_len("e", e, n * q)?;
+        check_len("Q_x", q_x, n * n)?;
+        check_finite("f(x, u, z)", x_pred)?;
+        check_finite("A", a)?;
+        check_finite("e", e)?;
+        check_finite("Q_x", q_x)?;
+        let a = MatRef::from_row_major_slice(a, n, n);
+        let e = MatRef::from_row_major_slice(e, n, q);
+        let q_x = MatRef::from_row_major_slice(q_x, n, n);
+        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])
+        matmul(
+            self.t.as_mut(),
+            Accum::Replace,
+            a,
+            self.cov.as_ref().subrows(0, n),
+            1.0,
+            Par::Seq,
+        );
+        if self.augmented {
+            for g in 0..q {
+                let (o, jo, nb) = (
+                    self.offsets[g],
+                    self.j_offsets[g],
+                    self.gps[g].basis.n_basis(),
+                );
+                let jrow = MatRef::from_row_major_slice(&self.j[jo..jo + nb], 1, nb);
+                matmul(
+                    self.jc.as_mut().subrows_mut(g, 1),
+                    Accum::Replace,
+                    jrow,
+                    self.cov.as_ref().subrows(o, nb),
+                    1.0,
+                    Par::Seq,
+                );
+            }
+            matmul(
+                self.t.as_mut(),
+                Accum::Add,
+                e,
+                self.jc.as_ref(),
+                1.0,
+                Par::Seq,
+            );
+            // tj = T[:, z_g] J_gᵀ
+            for g in 0..q {
+                let (o, jo, nb) = (
+                    self.offsets[g],
+                    self.j_offsets[g],
+                    self.gps[g].basis.n_basis(),
+                );
+                let jcol = MatRef::from_column_major_slice(&self.j[jo..jo + nb], nb, 1);
+                matmul(
+                    self.tj.as_mut().subcols_mut(g, 1),
+                    Accum::Replace,
+                    self.t.as_ref().subcols(o, nb),
+                    jcol,
+                    1.0,
+                    Par::Seq,
+                );
+            }
+        }
+        // C[x, x] = T[:, x] Aᵀ + tj eᵀ + e D eᵀ + Q_x
+        let mut cxx = self.cov.as_mut().submatrix_mut(0, 0, n, n);
+        cxx.copy_from(q_x);
+        matmul(
+            cxx.as_mut(),
+            Accum::Add,
+            self.t.as_ref().subcols(0, n),
+            a.transpose(),
+            1.0,
+            Par::Seq,
+        );
+        if self.augmented {
+            matmul(
+                cxx.as_mut(),
+                Accum::Add,
+                self.tj.as_ref(),
+                e.transpose(),
+                1.0,
+                Par::Seq,
+            );
+        }
+        for r in 0..n {
+            for c in 0..n {
+                let mut s = 0.0;
+                for g in 0..q {
+                    s += e[(r, g)] * self.dvar[g] * e[(c, g)];
+                }
+                cxx[(r, c)] += s;
+            }
+        }
+        // exact symmetry of the state block
+        for r in 0..n {
+            for c in r + 1..n {
+                let v = 0.5 * (cxx[(r, c)] + cxx[(c, r)]);
+                cxx[(r, c)] = v;
+                cxx[(c, r)] = v;
+            }
+        }
+        if self.augmented {
+            // C[x, z] = T[:, z]; C[z, z] += σ_p² I
+            for c in n..nt {
+                for r in 0..n {
+                    let v = self.t[(r, c)];
+                    self.cov[(r, c)] = v;
+                    self.cov[(c, r)] = v;
+                }
+            }
+            for g in 0..q {
+                let (o, nb, sp2) = (
+                    self.offsets[g],
+                    self.gps[g].basis.n_basis(),
+                    self.gps[g].basis.sigma_p2,
+                );
+                for i in o..o + nb {
+                    self.cov[(i, i)] += sp2;
+                }
+            }
+        }
+        self.mu[..n].copy_from_slice(x_pred);
+        self.inferred = false;
+        Ok(())
+    }
+
+    /// Step 4 (19): EKF update with the innovation ν = y − h(x^p) (length p), H = ∂h/∂x (p × n)
+    /// and R_x (p × p), row-major. `learning` = true: 4a, states and weights; false: 4b, the
+    /// weights' mean and covariance stay as predicted and the state rows get the Schmidt update
+    /// (x += K_x ν, C[x, ·] −= K_x H C[x, ·]). Returns the log-likelihood of ν. On error the state
+    /// is unchanged.
+    pub fn update(&mut self, nu: &[f64], h: &[f64], r: &[f64], learning: bool) -> Result<f64> {
+        let (n, nt) = (self.n, self.nt);
+        let p = nu.len();
+        if p == 0 {
+            return Err(Error::invalid("y", "needs at least one output"));
+        }
+        check_finite("y - h(x)", nu)?;
+        check_len("H", h, p * n)?;
+        check_finite("H", h)?;
+        check_len("R_x", r, p * p)?;
+        check_finite("R_x", r)?;
+        let h = MatRef::from_row_major_slice(h, p, n);
+        let r = MatRef::from_row_major_slice(r, p, p);
+        if self.pht.ncols() != p {
+            self.pht = Mat::zeros(nt, p);
+        }
+        // C H̃ᵀ = C[:, x] Hᵀ
+        matmul(
+            self.pht.as_mut(),
+            Accum::Replace,
+            self.cov.as_ref().subcols(0, n),
+            h.transpose(),
+            1.0,
+            Par::Seq,
+        );
+        let mut s = r.to_owned();
+        matmul(
+            s.as_mut(),
+            Accum::Add,
+            h,
+            self.pht.as_ref().subrows(0, n),
+            1.0,
+            Par::Seq,
+        );
+        for i in 0..p {
+            for jj in i + 1..p {
+                let v = 0.5 * (s[(i, jj)] + s[(jj, i)]);
+                s[(i, jj)] = v;
+                s[(jj, i)] = v;
+            }
+        }
+        let llt = Llt::new(s.as_ref(), Side::Lower).map_err(|_| {
+            Error::numerical("the innovation covariance H P Hᵀ + R_x is not positive definite")
+        })?;
+        let ls = llt.L();
+        // W = C H̃ᵀ L_S⁻ᵀ (in place, as Wᵀ = L_S⁻¹ (C H̃ᵀ)ᵀ), w = L_S⁻¹ ν
+        solve_lower_triangular_in_place(ls, self.pht.as_mut().transpose_mut(), Par::Seq);
+        let mut w = nu.to_vec();
+        solve_lower_triangular_in_place(
+            ls,
+            MatMut::from_column_major_slice_mut(&mut w, p, 1),
+            Par::Seq,
+        );
+        let logdet: f64 = (0..p).map(|i| ls[(i, i)].ln()).sum::<f64>() * 2.0;
+        let mahal: f64 = w.iter().map(|v| v * v).sum();
+        let rows = if learning || !self.augmented { nt } else { n };
+        for i in 0..rows {
+            let mut d = 0.0;
+            for (k, wk) in w.iter().enumerate() {
+                d += self.pht[(i, k)] * wk;
+            }
+            self.mu[i] += d;
+        }
+        // 4a: C −= W Wᵀ; 4b: only the state rows and columns (C[x, ·] and C[·, x])
+        rank_p_downdate(&mut self.cov, &self.pht, if rows == nt { nt } else { n });
+        self.innovation = nu.to_vec();
+        self.s = s;
+        self.log_likelihood =
+            -0.5 * (mahal + logdet + p as f64 * (2.0 * std::f64::consts::PI).ln());
+        Ok(self.log_likelihood)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn basis(nb: usize) -> RgpBasis {
+        RgpBasis::new(&[-2.0], &[2.0], &[nb], 3.0, 2.0, 0.1, 0.0).unwrap()
+    }
+
+    /// Dense C⁺ = Ã C Ãᵀ + ẽ D ẽᵀ + blockdiag(Q_x, σ_p² I), formula (12)–(13).
+    fn dense_prediction(
+        c: &Mat<f64>,
+        a: &Mat<f64>,
+        e: &[f64],
+        j: &[f64],
+        d: f64,
+        qx: &Mat<f64>,
+        sp2: f64,
+    ) -> Mat<f64> {
+        let n = a.nrows();
+        let nt = c.nrows();
+        let mut at = Mat::<f64>::identity(nt, nt);
+        for r in 0..n {
+            for cc in 0..n {
+                at[(r, cc)] = a[(r, cc)];
+            }
+            for (b, jb) in j.iter().enumerate() {
+                at[(r, n + b)] = e[r] * jb;
+            }
+        }
+        let mut out = &at * c * at.transpose();
+        for r in 0..nt {
+            for cc in 0..nt {
+                let er = if r < n { e[r] } else { 0.0 };
+                let ec = if cc < n { e[cc] } else { 0.0 };
+                out[(r, cc)] += er * d * ec;
+                if r < n && cc < n {
+                    out[(r, cc)] += qx[(r, cc)];
+                }
+            }
+            if r >= n {
+                out[(r, r)] += sp2;
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn structured_prediction_equals_dense_formula() {
+        let nb = 7;
+        let b = RgpBasis::new(&[-1.0], &[3.0], &[nb], 2.0, 1.5, 0.2, 0.05).unwrap();
+        let gp = Rgp::new(b);
+        let n = 3;
+        let nt = n + nb;
+        // a random SPD covariance
+        let mut seed = 12345u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        let g = Mat::<f64>::from_fn(nt, nt, |_, _| rnd());
+        let c0 = &g * g.transpose() + Mat::<f64>::identity(nt, nt);
+        let a = Mat::<f64>::from_fn(n, n, |_, _| rnd());
+        let e: Vec<f64> = (0..n).map(|_| rnd()).collect();
+        let qx = Mat::<f64>::from_fn(n, n, |r, c| if r == c { 0.01 } else { 0.0 });
+        let mut x0 = vec![0.0; n];
+        x0[0] = 0.3;
+        let p0: Vec<f64> = (0..n * n)
+            .map(|i| if i % (n + 1) == 0 { 1.0 } else { 0.0 })
+            .collect();
+        let mut ekf = RgpEkf::new(&x0, &p0, vec![gp], true).unwrap();
+        ekf.cov.copy_from(&c0);
+        ekf.infer(&[0.7]).unwrap();
+        let j = ekf.j.clone();
+        let d = ekf.dvar[0];
+        let a_rm: Vec<f64> = (0..n * n).map(|i| a[(i / n, i % n)]).collect();
+        let q_rm: Vec<f64> = (0..n * n).map(|i| qx[(i / n, i % n)]).collect();
+        ekf.predict(&[1.0, 2.0, 3.0], &a_rm, &e, &q_rm).unwrap();
+        let dense = dense_prediction(&c0, &a, &e, &j, d, &qx, 0.05 * 0.05);
+        for r in 0..nt {
+            for c in 0..nt {
+                assert!(
+                    (dense[(r, c)] - ekf.cov[(r, c)]).abs() < 1e-12 * (1.0 + dense[(r, c)].abs()),
+                    "({r},{c}): {} vs {}",
+                    dense[(r, c)],
+                    ekf.cov[(r, c)]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn j_solves_the_kernel_system() {
+        let mut b = basis(9);
+        let mut j = vec![0.0; 9];
+        b.infer(&[0.37], &mut j);
+        // J K = k(x, X)
+        let k = b.kernel_matrix().to_owned();
+        let xk = [(0.37 + 2.0) * 8.0 / 4.0];
+        for c in 0..9 {
+            let lhs: f64 = (0..9).map(|i| j[i] * k[(i, c)]).sum();
+            let rhs = b.kernel.eval(&xk, &[c as f64]);
+            assert!((lhs - rhs).abs() < 1e-9, "{lhs} vs {rhs}");
+        }
+        // at a basis vector J is the unit vector
+        b.infer(&[-2.0 + 3.0 * 0.5], &mut j);
+        for (i, v) in j.iter().enumerate() {
+            let want = if i == 3 { 1.0 } else { 0.0 };
+            assert!((v - want).abs() < 1e-8);
+        }
+    }
+
+    #[test]
+    fn bad_input_is_rejected_and_leaves_state() {
+        assert!(RgpBasis::new(&[0.0], &[0.0], &[5], 1.0, 1.0, 0.0, 0.0).is_err());
+        assert!(RgpBasis::new(&[0.0], &[1.0], &[1], 1.0, 1.0, 0.0, 0.0).is_err());
+        assert!(RgpBasis::new(&[0.0], &[1.0], &[5], -1.0, 1.0, 0.0, 0.0).is_err());
+        assert!(RgpBasis::new(&[0.0], &[1.0], &[5], 1.0, f64::NAN, 0.0, 0.0).is_err());
+        let mut gp = Rgp::new(basis(5));
+        gp.update(&[0.1], 1.0, 0.01).unwrap();
+        let (m, c) = (gp.mean().to_vec(), gp.cov().to_owned());
+        assert!(gp.update(&[f64::NAN], 1.0, 0.01).is_err());
+        assert!(gp.update(&[0.1, 0.2], 1.0, 0.01).is_err());
+        assert!(gp.update(&[0.1], f64::INFINITY, 0.01).is_err());
+        assert!(gp.update(&[0.1], 1.0, -1.0).is_err());
+        assert_eq!(gp.mean(), &m[..]);
+        assert_eq!(gp.cov().to_owned(), c);
+    }
+
+    #[test]
+    fn covariance_stays_exactly_symmetric_and_psd() {
+        let b = RgpBasis::new(&[-2.0], &[2.0], &[11], 3.0, 2.0, 0.1, 0.01).unwrap();
+        let mut ekf =
+            RgpEkf::new(&[0.0, 0.0], &[1.0, 0.0, 0.0, 1.0], vec![Rgp::new(b)], true).unwrap();
+        let (a, e, q) = (
+            [1.0, 0.01, -0.04, 0.96],
+            [0.0, 0.01],
+            [1e-6, 0.0, 0.0, 1e-6],
+        );
+        for k in 0..200 {
+            let z = ((k * 37) % 100) as f64 / 25.0 - 2.0;
+            let mzp = ekf.infer(&[z]).unwrap()[0];
+            let x = ekf.mu()[..2].to_vec();
+            let xp = [x[0] + 0.01 * x[1], -0.04 * x[0] + 0.96 * x[1] + 0.01 * mzp];
+            ekf.predict(&xp, &a, &e, &q).unwrap();
+            let nu = [z.sin() - xp[0], 0.1 - xp[1]];
+            ekf.update(
+                &nu,
+                &[1.0, 0.0, 0.0, 1.0],
+                &[1e-2, 0.0, 0.0, 1e-2],
+                k % 3 != 0,
+            )
+            .unwrap();
+            let c = ekf.cov();
+            for i in 0..c.nrows() {
+                assert!(c[(i, i)] > 0.0);
+                for j in 0..i {
+                    assert_eq!(c[(i, j)], c[(j, i)], "step {k}, ({i}, {j})");
+                }
+            }
+        }
+        let mut gp = Rgp::new(RgpBasis::new(&[0.0], &[1.0], &[7], 1.0, 1.0, 0.0, 0.01).unwrap());
+        for k in 0..100 {
+            let z = (k as f64 * 0.137) % 1.0;
+            gp.update(&[z], z * z, 1e-3).unwrap();
+        }
+        let c = gp.cov();
+        for i in 0..7 {
+            for j in 0..i {
+                assert_eq!(c[(i, j)], c[(j, i)]);
+            }
+        }
+    }
+
+    #[test]
+    fn batch_update_restores_weights_on_numerical_failure() {
+        // σ_r = 0, var_y = 0 and K = I (up to e^-500): a second exact observation of a basis
+        // vector has s = 0
+        let mut gp = Rgp::new(RgpBasis::new(&[0.0], &[4.0], &[5], 1.0, 1e-3, 0.0, 0.0).unwrap());
+        gp.update(&[3.0], 0.5, 0.1).unwrap();
+        let (m, c) = (gp.mean().to_vec(), gp.cov().to_owned());
+        let err = gp.update_many(&[1.0, 2.0, 2.0], &[0.1, 0.2, 0.2], &[0.0]);
+        assert!(matches!(err, Err(Error::Numerical(_))));
+        assert_eq!(gp.mean(), &m[..]);
+        assert_eq!(gp.cov().to_owned(), c);
+    }
+}
