@@ -6,6 +6,14 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 """
 
 from gpmhe._core import NumericalError
+from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 
-__all__ = ["NumericalError"]
+__all__ = [
+    "NumericalError",
+    # GP
+    "GaussianProcess",
+    "MultiOutputGP",
+    "ConvergenceWarning",
+    "NotFittedError",
+]
 __version__ = "0.1.0"
