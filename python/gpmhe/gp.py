@@ -170,7 +170,7 @@ def _maximise_lml(
             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9},
         )
         if np.isfinite(res.fun) and (best is None or -res.fun > best[1]):
-            best = (np.asarray(res.x, dtype=np.float64), float(-res.fun), bool(res.success))
+            best = (np.asarray(res.x, dtype=np.float64), float(-res.fun), _converged(res, log_bounds))
     if best is None:
         raise NumericalError(
             "fit: no optimiser run reached a finite log marginal likelihood; "
@@ -178,12 +178,26 @@ def _maximise_lml(
         )
     if not best[2]:
         warnings.warn(
-            "fit: L-BFGS-B stopped before convergence (maxiter reached or line search failed); "
-            "the best hyperparameters found are used",
+            "fit: L-BFGS-B stopped before convergence (iteration limit, or a failed line search "
+            "with a large projected gradient); the best hyperparameters found are used",
             ConvergenceWarning,
             stacklevel=3,
         )
     return best[0], best[1]
+
+
+def _converged(res: Any, log_bounds: np.ndarray) -> bool:
+    """Whether an L-BFGS-B result is an optimum. A failed line search (status 2) counts as
+    converged when the projected gradient is tiny relative to the LML: on ill-conditioned data the
+    LML is only accurate to ~1e-9 relative and the line search cannot make further progress."""
+    if res.status == 0:
+        return True
+    if res.status != 2 or res.jac is None:
+        return False
+    x, g = np.asarray(res.x), np.asarray(res.jac)
+    at_bound = ((x <= log_bounds[:, 0]) & (g > 0)) | ((x >= log_bounds[:, 1]) & (g < 0))
+    projected = np.where(at_bound, 0.0, g)
+    return bool(np.max(np.abs(projected)) <= 1e-3 * max(1.0, abs(res.fun)))
 
 
 # ----------------------------------------------------------------------------- single output

@@ -40,6 +40,12 @@ pub(crate) fn slice2<'a>(
 ) -> PyResult<(&'a [f64], usize, usize)> {
     let shape = a.shape();
     let (rows, cols) = (shape[0], shape[1]);
+    // as_slice also accepts Fortran order, which would be read transposed here.
+    if !a.is_c_contiguous() {
+        return Err(PyValueError::new_err(format!(
+            "{arg}: must be a C-contiguous float64 array"
+        )));
+    }
     let data = a.as_slice().map_err(|_| {
         PyValueError::new_err(format!("{arg}: must be a C-contiguous float64 array"))
     })?;
