@@ -188,7 +188,7 @@ def test_core_rejects_non_contiguous_and_mismatched_arrays(data):
     with pytest.raises(TypeError):
         _core.GP(D.astype(np.float32), y, theta)
     gp = _core.GP(D, y, theta)
-    with pytest.raises(ValueError, match="d"):
+    with pytest.raises(ValueError, match="D"):
         gp.predict(np.zeros((2, 3)))
 
 

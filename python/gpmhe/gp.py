@@ -77,9 +77,16 @@ def _check_training(D: Any, y: Any, y_ndim: int) -> Tuple[np.ndarray, np.ndarray
 
 
 def _check_points(D: Any, nd: int) -> np.ndarray:
-    D = _as_float_array(D, "D", 2)
-    if D.shape[1] != nd:
-        raise ValueError(f"D: expected {nd} columns (input dimension), got {D.shape[1]}")
+    """Test points as a C-contiguous float64 (k, nd) array. The NaN/inf check is done by the Rust
+    binding (ValueError naming D), which scans the array anyway, to keep the per-call overhead of
+    one-point predictions small."""
+    if not (type(D) is np.ndarray and D.dtype == np.float64 and D.flags.c_contiguous):
+        try:
+            D = np.ascontiguousarray(D, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"D: cannot be converted to a float64 array ({exc})") from None
+    if D.ndim != 2 or D.shape[1] != nd:
+        raise ValueError(f"D: expected shape (k, {nd}), got {D.shape}")
     return D
 
 

@@ -95,7 +95,7 @@ fn se_ard_kernel<'py>(
 // gpmhe/gp.py convert and validate first); the numerics run with the GIL released.
 
 use crate::gp::{log_marginal_likelihood, Gp, GpWorkspace, MultiGp};
-use numpy::{PyArray1, PyArrayDyn};
+use numpy::{IntoPyArray, PyArray1, PyArrayDyn};
 
 /// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
 fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
@@ -108,13 +108,15 @@ fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
     }
 }
 
-/// A numpy array of the given shape from a row-major vector.
+/// A numpy array of the given shape that takes over a row-major vector (no copy, no reshape).
 fn array_nd<'py, const D: usize>(
     py: Python<'py>,
     data: Vec<f64>,
     shape: [usize; D],
 ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-    numpy::PyArray1::from_vec(py, data).reshape(&shape[..])
+    let arr = numpy::ndarray::ArrayD::from_shape_vec(&shape[..], data)
+        .map_err(|e| PyRuntimeError::new_err(format!("internal: output shape: {e}")))?;
+    Ok(arr.into_pyarray(py))
 }
 
 type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
@@ -128,9 +130,11 @@ fn predict_arrays<'py>(
     gradients: bool,
     squeeze: bool,
 ) -> PyResult<Vec<Arr<'py>>> {
-    let (d, k, cols) = slice2("d", d)?;
+    // Named "D" as in the Python API; the wrappers leave the NaN/inf scan to this O(k) check.
+    let (d, k, cols) = slice2("D", d)?;
     let (q, nd) = (model.n_outputs(), model.dim());
-    check_cols("d", cols, nd)?;
+    check_cols("D", cols, nd)?;
+    crate::error::check_finite("D", d)?;
     let (mean, var, dmean, dvar) = py.detach(|| {
         let mut ws = GpWorkspace::default();
         let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
