@@ -321,3 +321,14 @@ def test_save_load_roundtrip(tmp_path):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="path"):
         GaussianProcess.load(tmp_path / "mgp.npz")
+
+
+def test_per_dimension_bounds_are_respected():
+    D, y, *_ = random_problem(50, 2, 13)
+    bounds = [(0.1, 10.0), (0.5, 0.5), (0.1, 10.0), (0.2, 0.2)]  # phi_1 and sigma_eps fixed
+    gp = GaussianProcess(bounds=bounds, random_state=0).fit(D, y)
+    assert gp.lengthscales[0] == pytest.approx(0.5, rel=1e-12)
+    assert gp.sigma_eps == pytest.approx(0.2, rel=1e-12)
+    assert 0.1 <= gp.lengthscales[1] <= 10.0
+    with pytest.raises(ValueError, match="bounds"):
+        GaussianProcess(bounds=bounds).fit(D[:, :1], y)  # 4 rows do not fit n_d = 1

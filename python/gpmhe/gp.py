@@ -107,20 +107,22 @@ def _positive_scalar(value: Any, name: str) -> float:
     return float(arr)
 
 
-def _log_bounds(bounds: Any, nd: int) -> np.ndarray:
-    """Natural-unit bounds -> (nd + 2, 2) bounds on theta."""
+def _log_bounds(bounds: Any, nd: Optional[int]) -> np.ndarray:
+    """Natural-unit bounds -> (nd + 2, 2) bounds on theta. With nd None (n_d not known yet) only
+    the form is checked and the rows are returned as given."""
     try:
         b = np.asarray(bounds, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError("bounds: must be a sequence of (low, high) pairs") from None
-    if b.ndim != 2 or b.shape[1] != 2 or b.shape[0] not in (3, nd + 2):
+    rows_ok = b.ndim == 2 and (b.shape[0] == 3 or (b.shape[0] > 3 if nd is None else b.shape[0] == nd + 2))
+    if not rows_ok or b.shape[1] != 2:
+        expected = "(n_d + 2, 2)" if nd is None else f"({nd + 2}, 2)"
         raise ValueError(
-            f"bounds: expected shape (3, 2) (sigma_f, lengthscales, sigma_eps) or "
-            f"({nd + 2}, 2), got {b.shape}"
+            f"bounds: expected shape (3, 2) (sigma_f, lengthscales, sigma_eps) or {expected}, got {b.shape}"
         )
     if not np.all(np.isfinite(b)) or np.any(b <= 0) or np.any(b[:, 0] > b[:, 1]):
         raise ValueError("bounds: need finite 0 < low <= high in every row")
-    if b.shape[0] == 3:
+    if b.shape[0] == 3 and nd is not None:
         b = np.vstack([b[0], np.repeat(b[1:2], nd, axis=0), b[2]])
     return np.log(b)
 
@@ -265,7 +267,7 @@ class GaussianProcess:
         self.sigma_eps = _positive_scalar(sigma_eps, "sigma_eps")
         self.optimizer = _check_optimizer(optimizer)
         self.n_restarts = _check_restarts(n_restarts)
-        _log_bounds(bounds, 1)  # validate the shape now; re-expanded once n_d is known
+        _log_bounds(bounds, None)  # validate the form now; expanded once n_d is known
         self.bounds = bounds
         self.random_state = random_state
         self.maxiter = int(maxiter)
@@ -296,8 +298,9 @@ class GaussianProcess:
     @property
     def theta(self) -> np.ndarray:
         """log([sigma_f, lengthscales..., sigma_eps])."""
-        nd = self._core_model.dim if self._core_model is not None else np.size(self.lengthscales)
-        return self._theta_for(nd)
+        if self._core_model is not None:
+            return self._core_model.theta
+        return self._theta_for(np.size(self.lengthscales))
 
     @theta.setter
     def theta(self, value: Any) -> None:
@@ -484,7 +487,7 @@ class MultiOutputGP:
             raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
         self.optimizer = _check_optimizer(optimizer)
         self.n_restarts = _check_restarts(n_restarts)
-        _log_bounds(bounds, 1)
+        _log_bounds(bounds, None)
         self.bounds = bounds
         self.random_state = random_state
         self.maxiter = int(maxiter)

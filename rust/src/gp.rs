@@ -15,11 +15,12 @@
 //! later prediction and in the LML; if the largest jitter still fails, a `Numerical` error is
 //! returned.
 
-use faer::linalg::solvers::{DenseSolveCore, Llt};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
-use faer::{Mat, MatMut, MatRef, Par, Side};
+use faer::{Mat, MatMut, Par};
 
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
@@ -62,8 +63,11 @@ pub struct Gp {
     kernel: SeArd,
     sigma_eps: f64,
     jitter: f64,
-    /// Cholesky factorisation L Lᵀ of K + (σ_ε² + jitter) I.
-    chol: Llt<f64>,
+    /// The Cholesky factor L of K + (σ_ε² + jitter) I in its lower triangle and Lᵀ in its strict
+    /// upper triangle (faer's triangular solves read one triangle only). The second copy costs no
+    /// memory (the upper half would be zeros) and makes the Lᵀ solve column-major, which faer
+    /// runs ~1.4× faster than on the transposed view of L at N = 150.
+    chol: Mat<f64>,
     /// (K + (σ_ε² + jitter) I)⁻¹ y.
     alpha: Vec<f64>,
     lml: f64,
@@ -126,10 +130,16 @@ fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
     Ok(n)
 }
 
-/// Cholesky factor of `gram` + noise_var·I under the jitter policy; returns (L, jitter).
-fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Result<(Llt<f64>, f64)> {
+/// Cholesky factor of `gram` + noise_var·I under the jitter policy; returns (S, jitter) with L in
+/// the lower and Lᵀ in the strict upper triangle of S.
+fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Result<(Mat<f64>, f64)> {
     let n = gram.nrows();
-    let mut a = gram.clone();
+    let mut a = Mat::<f64>::zeros(n, n);
+    let mut mem = MemBuffer::new(llt::factor::cholesky_in_place_scratch::<f64>(
+        n,
+        Par::Seq,
+        Default::default(),
+    ));
     let scale = signal_var + noise_var;
     // Attempt 0 without jitter, then JITTER_START·scale growing tenfold up to JITTER_MAX·scale.
     for attempt in 0..=JITTER_STEPS {
@@ -138,11 +148,24 @@ fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Resul
         } else {
             JITTER_START * scale * 10f64.powi(attempt - 1)
         };
+        a.copy_from(gram);
         for i in 0..n {
-            a[(i, i)] = gram[(i, i)] + noise_var + jitter;
+            a[(i, i)] += noise_var + jitter;
         }
-        if let Ok(llt) = Llt::new(a.as_ref(), Side::Lower) {
-            return Ok((llt, jitter));
+        let factored = llt::factor::cholesky_in_place(
+            a.as_mut(),
+            Default::default(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+            Default::default(),
+        );
+        if factored.is_ok() {
+            for j in 0..n {
+                for i in 0..j {
+                    a[(i, j)] = a[(j, i)];
+                }
+            }
+            return Ok((a, jitter));
         }
     }
     Err(Error::numerical(format!(
@@ -164,12 +187,12 @@ impl Gp {
         let n = check_training(x, y, nd)?;
         let gram = kernel.gram(x);
         let (chol, jitter) = factor_with_jitter(&gram, sigma_eps * sigma_eps, kernel.variance())?;
-        let l = chol.L();
+        let l = chol.as_ref();
         let mut alpha = y.to_vec();
         {
             let mut rhs = MatMut::from_column_major_slice_mut(&mut alpha[..], n, 1);
             solve_lower_triangular_in_place(l, rhs.as_mut(), Par::Seq);
-            solve_upper_triangular_in_place(l.transpose(), rhs.as_mut(), Par::Seq);
+            solve_upper_triangular_in_place(l, rhs.as_mut(), Par::Seq);
         }
         let half_logdet: f64 = (0..n).map(|i| l[(i, i)].ln()).sum();
         let data_fit: f64 = y.iter().zip(&alpha).map(|(a, b)| a * b).sum();
@@ -235,9 +258,10 @@ impl Gp {
         &self.alpha
     }
 
-    /// The lower Cholesky factor L of K + (σ_ε² + jitter) I.
-    pub fn cholesky(&self) -> MatRef<'_, f64> {
-        self.chol.L()
+    /// A copy of the lower Cholesky factor L of K + (σ_ε² + jitter) I (zeros above the diagonal).
+    pub fn cholesky(&self) -> Mat<f64> {
+        let n = self.n_train();
+        Mat::from_fn(n, n, |i, j| if i >= j { self.chol[(i, j)] } else { 0.0 })
     }
 
     /// log p(y | D, θ) at this GP's θ.
@@ -251,8 +275,16 @@ impl Gp {
     pub fn log_marginal_likelihood_gradient(&self) -> Vec<f64> {
         let n = self.n_train();
         let nd = self.dim();
-        // K⁻¹ from the cached factor (faer's Cholesky inverse).
-        let kinv = self.chol.inverse();
+        // K⁻¹ from the cached factor (faer's Cholesky inverse; it reads the lower triangle of
+        // `chol` and writes the lower triangle of `kinv`, the only part used below).
+        let mut kinv = Mat::<f64>::zeros(n, n);
+        let mut mem = MemBuffer::new(llt::inverse::inverse_scratch::<f64>(n, Par::Seq));
+        llt::inverse::inverse(
+            kinv.as_mut(),
+            self.chol.as_ref(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+        );
         let w = self.kernel.inv_lengthscales_sq();
         let s2 = self.kernel.variance();
         let a = &self.alpha;
@@ -361,7 +393,7 @@ impl Gp {
         let Some(var) = var else { return };
         v.copy_from_slice(kstar);
         let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
-        solve_lower_triangular_in_place(self.chol.L(), vm.as_mut(), Par::Seq);
+        solve_lower_triangular_in_place(self.chol.as_ref(), vm.as_mut(), Par::Seq);
         let s2 = self.kernel.variance();
         for j in 0..k {
             let vj = &v[j * n..(j + 1) * n];
@@ -372,7 +404,7 @@ impl Gp {
         let Some((_, dvar)) = grads else { return };
         // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_l = 2 w_l Σ_i β_i k_i (d_l − x_il).
         let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
-        solve_upper_triangular_in_place(self.chol.L().transpose(), vm.as_mut(), Par::Seq);
+        solve_upper_triangular_in_place(self.chol.as_ref(), vm.as_mut(), Par::Seq);
         for (j, dj) in d.chunks_exact(nd).enumerate() {
             let col = &kstar[j * n..(j + 1) * n];
             let beta = &v[j * n..(j + 1) * n];
@@ -726,10 +758,21 @@ mod tests {
         });
         let yv = DVector::from_column_slice(&y);
         let logdet = km.clone().cholesky().unwrap().determinant().ln();
-        let want = -0.5 * yv.dot(&(&km.try_inverse().unwrap() * &yv))
+        let want = -0.5 * yv.dot(&(&km.clone().try_inverse().unwrap() * &yv))
             - 0.5 * logdet
             - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
         assert!((gp.log_marginal_likelihood() - want).abs() < 1e-9 * want.abs());
+        // The exposed factor is lower triangular and reproduces K + σ_ε² I.
+        let l = gp.cholesky();
+        let llt = &l * l.transpose();
+        for i in 0..n {
+            for j in 0..n {
+                assert!((llt[(i, j)] - km[(i, j)]).abs() < 1e-12);
+                if j > i {
+                    assert_eq!(l[(i, j)], 0.0);
+                }
+            }
+        }
     }
 
     #[test]
