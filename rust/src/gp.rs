@@ -511,7 +511,9 @@ impl MultiGp {
     /// n_d is taken from `x.len() / N` with N = `y.len() / q` and q = `thetas.len() / (n_d + 2)`;
     /// they must be consistent.
     pub fn new(x: &[f64], y: &[f64], thetas: &[f64]) -> Result<Self> {
-        // q · (nd + 2) = thetas.len(), N · q = y.len(), N · nd = x.len(): solve for q by trial.
+        // q · (nd + 2) = thetas.len(), N · q = y.len(), N · nd = x.len() give
+        // x.len()·q² + 2·y.len()·q − y.len()·thetas.len() = 0, which has exactly one positive root,
+        // so the first q found by trial is the only one.
         let (q, nd, n) = (1..=thetas.len())
             .filter(|q| thetas.len() % q == 0 && y.len() % q == 0)
             .filter_map(|q| {
