@@ -32,7 +32,8 @@ const JITTER_MAX: f64 = 1e-6;
 const JITTER_STEPS: i32 = 5;
 
 /// Scratch memory for batch predictions: two N × k column-major buffers. It only grows, so once
-/// it has been sized for the largest (N, k) in use, predictions allocate nothing.
+/// it has been sized for the largest (N, k) in use, the GP code allocates nothing per prediction
+/// (faer's triangular-solve kernels manage their own small scratch).
 #[derive(Default, Clone, Debug)]
 pub struct GpWorkspace {
     kstar: Vec<f64>,

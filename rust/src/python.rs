@@ -169,9 +169,14 @@ fn predict_arrays<'py>(
 /// One exact zero-mean GP with the SE-ARD kernel; the Cholesky factor is cached at construction.
 #[pyclass(name = "GP", module = "gpmhe._core", frozen)]
 pub(crate) struct PyGp {
-    pub(crate) inner: Gp,
-    /// The same GP as a one-output MultiGp, so predictions share one code path.
-    single: MultiGp,
+    /// The GP as a one-output MultiGp, so predictions share one code path (see `gp()`).
+    pub(crate) inner: MultiGp,
+}
+
+impl PyGp {
+    pub(crate) fn gp(&self) -> &Gp {
+        &self.inner.gps()[0]
+    }
 }
 
 #[pymethods]
@@ -187,51 +192,52 @@ impl PyGp {
         let (x, _, cols) = slice2("x", &x)?;
         let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
         check_cols("x", cols, theta.len().saturating_sub(2))?;
-        let inner = py.detach(|| Gp::new(x, y, theta))?;
-        let single = MultiGp::from_gps(vec![inner.clone()])?;
-        Ok(Self { inner, single })
+        let gp = py.detach(|| Gp::new(x, y, theta))?;
+        Ok(Self {
+            inner: MultiGp::from_gps(vec![gp])?,
+        })
     }
 
     #[getter]
     fn dim(&self) -> usize {
-        self.inner.dim()
+        self.gp().dim()
     }
     #[getter]
     fn n_train(&self) -> usize {
-        self.inner.n_train()
+        self.gp().n_train()
     }
     #[getter]
     fn theta<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_vec(py, self.inner.theta())
+        PyArray1::from_vec(py, self.gp().theta())
     }
     #[getter]
     fn sigma_f(&self) -> f64 {
-        self.inner.kernel().sigma_f()
+        self.gp().kernel().sigma_f()
     }
     #[getter]
     fn lengthscales<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.kernel().lengthscales())
+        PyArray1::from_slice(py, self.gp().kernel().lengthscales())
     }
     #[getter]
     fn sigma_eps(&self) -> f64 {
-        self.inner.sigma_eps()
+        self.gp().sigma_eps()
     }
     #[getter]
     fn jitter(&self) -> f64 {
-        self.inner.jitter()
+        self.gp().jitter()
     }
     #[getter]
     fn alpha<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.alpha())
+        PyArray1::from_slice(py, self.gp().alpha())
     }
     #[getter]
     fn x_train<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let g = &self.inner;
+        let g = self.gp();
         array2(py, g.x_train().to_vec(), g.n_train(), g.dim())
     }
     #[getter]
     fn y_train<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.y_train())
+        PyArray1::from_slice(py, self.gp().y_train())
     }
 
     /// (lml, grad) at this GP's theta; grad is empty unless eval_gradient.
@@ -242,12 +248,12 @@ impl PyGp {
         eval_gradient: bool,
     ) -> (f64, Bound<'py, PyArray1<f64>>) {
         let grad = if eval_gradient {
-            py.detach(|| self.inner.log_marginal_likelihood_gradient())
+            py.detach(|| self.gp().log_marginal_likelihood_gradient())
         } else {
             Vec::new()
         };
         (
-            self.inner.log_marginal_likelihood(),
+            self.gp().log_marginal_likelihood(),
             PyArray1::from_vec(py, grad),
         )
     }
@@ -258,7 +264,7 @@ impl PyGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.single, &d, false, true)?.into_iter();
+        let mut out = predict_arrays(py, &self.inner, &d, false, true)?.into_iter();
         match (out.next(), out.next()) {
             (Some(m), Some(v)) => Ok((m, v)),
             _ => Err(PyRuntimeError::new_err(
@@ -273,7 +279,7 @@ impl PyGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.single, &d, true, true)?.into_iter();
+        let mut out = predict_arrays(py, &self.inner, &d, true, true)?.into_iter();
         match (out.next(), out.next(), out.next(), out.next()) {
             (Some(m), Some(v), Some(dm), Some(dv)) => Ok((m, v, dm, dv)),
             _ => Err(PyRuntimeError::new_err(
@@ -320,7 +326,7 @@ impl PyMultiGp {
     /// Bundles fitted GPs that share their training inputs.
     #[staticmethod]
     fn from_gps(gps: Vec<PyRef<'_, PyGp>>) -> PyResult<Self> {
-        let inner = MultiGp::from_gps(gps.iter().map(|g| g.inner.clone()).collect())?;
+        let inner = MultiGp::from_gps(gps.iter().map(|g| g.gp().clone()).collect())?;
         Ok(Self { inner })
     }
 
