@@ -6,7 +6,18 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 """
 
 from gpmhe._core import NumericalError
+from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 from gpmhe.rgp import RGPEKF, RecursiveGP
 
-__all__ = ["NumericalError", "RGPEKF", "RecursiveGP"]
+__all__ = [
+    "NumericalError",
+    # GP
+    "GaussianProcess",
+    "MultiOutputGP",
+    "ConvergenceWarning",
+    "NotFittedError",
+    # RGP-dKF
+    "RecursiveGP",
+    "RGPEKF",
+]
 __version__ = "0.1.0"
