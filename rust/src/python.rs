@@ -205,7 +205,7 @@ impl RgpCore {
 
     #[getter]
     fn cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.cov())
+        mat_to_array2(py, self.inner.cov().as_ref())
     }
 
     #[getter]
@@ -407,7 +407,7 @@ impl RgpEkfCore {
             )));
         }
         let (m, c) = self.inner.gp_weights(index);
-        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c)?))
+        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c.as_ref())?))
     }
 
     #[getter]
@@ -428,7 +428,7 @@ impl RgpEkfCore {
 
     #[getter(C)]
     fn c<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.cov())
+        mat_to_array2(py, self.inner.cov().as_ref())
     }
 
     #[getter]

@@ -386,22 +386,29 @@ fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     s
 }
 
-/// C −= W Wᵀ restricted to the entries (i, j) with min(i, j) < `k` (k = N: all of C; k = n: the
-/// state rows and columns, variant 4b). Column by column over contiguous memory, and exactly
-/// symmetric: C_ij and C_ji subtract the same products in the same order, so C needs no mirroring.
+/// C −= W Wᵀ (W: N × p, column-major) on the stored part of the augmented covariance (see
+/// [`RgpEkf`]): columns 0..n completely and, if `all` (variant 4a), the lower triangle of the other
+/// columns; with `all` false (variant 4b) only the states' rows and columns change. C_ij and C_ji
+/// of the state block subtract the same products in the same order, so it stays exactly symmetric.
 #[inline(always)]
-fn rank_p_downdate(c: &mut Mat<f64>, w: &[f64], p: usize, k: usize) {
+fn rank_p_downdate(c: &mut Mat<f64>, w: &[f64], p: usize, n: usize, all: bool) {
     let nt = c.nrows();
     let wcol = |kk: usize| &w[kk * nt..(kk + 1) * nt];
     for j in 0..nt {
-        let rows = if j < k { nt } else { k };
-        let col = &mut c.col_as_slice_mut(j)[..rows];
+        let lo = if j < n {
+            0
+        } else if all {
+            j
+        } else {
+            break;
+        };
+        let col = &mut c.col_as_slice_mut(j)[lo..];
         match p {
             // the common small cases in one pass over the column (same operations, same order)
-            1 => axpy(col, -wcol(0)[j], &wcol(0)[..rows]),
+            1 => axpy(col, -wcol(0)[j], &wcol(0)[lo..]),
             2 => {
                 let (a0, a1) = (wcol(0)[j], wcol(1)[j]);
-                let (w0, w1) = (&wcol(0)[..rows], &wcol(1)[..rows]);
+                let (w0, w1) = (&wcol(0)[lo..], &wcol(1)[lo..]);
                 for ((ci, x0), x1) in col.iter_mut().zip(w0).zip(w1) {
                     *ci = (*ci - x0 * a0) - x1 * a1;
                 }
@@ -410,13 +417,25 @@ fn rank_p_downdate(c: &mut Mat<f64>, w: &[f64], p: usize, k: usize) {
                 for kk in 0..p {
                     let wk = wcol(kk);
                     let wjk = wk[j];
-                    for (ci, wi) in col.iter_mut().zip(&wk[..rows]) {
+                    for (ci, wi) in col.iter_mut().zip(&wk[lo..]) {
                         *ci -= wi * wjk;
                     }
                 }
             }
         }
     }
+}
+
+/// The full symmetric matrix from its stored part: the lower triangle, plus the complete first
+/// columns of the state block (the upper triangle elsewhere may be stale).
+fn symmetric_from_lower(c: MatRef<'_, f64>) -> Mat<f64> {
+    Mat::from_fn(c.nrows(), c.ncols(), |i, j| {
+        if i >= j {
+            c[(i, j)]
+        } else {
+            c[(j, i)]
+        }
+    })
 }
 
 /// Huber's recursive GP on a grid of basis vectors: weights' mean μ_z and covariance C_z.
@@ -594,6 +613,11 @@ impl Rgp {
 
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
 /// pure-prediction mode, an EKF on x with the (fixed) GPs as noisy inputs.
+///
+/// Storage of the symmetric covariance C: the per-step kernels keep only its lower triangle and
+/// the complete first n columns (the state block and C[z, x]) up to date, which halves the work of
+/// the rank-p update and of J C_z; the entries above the diagonal right of column n are stale.
+/// [`Self::cov`] and [`Self::gp_weights`] return symmetric copies.
 #[derive(Debug, Clone)]
 pub struct RgpEkf {
     n: usize,
@@ -752,8 +776,9 @@ impl RgpEkf {
         &self.mu
     }
 
-    pub fn cov(&self) -> MatRef<'_, f64> {
-        self.cov.as_ref()
+    /// The augmented covariance C (a symmetric copy of the stored part).
+    pub fn cov(&self) -> Mat<f64> {
+        symmetric_from_lower(self.cov.as_ref())
     }
 
     pub fn innovation(&self) -> &[f64] {
@@ -769,15 +794,15 @@ impl RgpEkf {
     }
 
     /// Weights' mean and covariance of GP `g` (the state block, or the fixed GP in pure mode).
-    pub fn gp_weights(&self, g: usize) -> (&[f64], MatRef<'_, f64>) {
+    pub fn gp_weights(&self, g: usize) -> (&[f64], Mat<f64>) {
         if self.augmented {
             let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
             (
                 &self.mu[o..o + nb],
-                self.cov.as_ref().submatrix(o, o, nb, nb),
+                symmetric_from_lower(self.cov.as_ref().submatrix(o, o, nb, nb)),
             )
         } else {
-            (&self.gps[g].mean, self.gps[g].cov.as_ref())
+            (&self.gps[g].mean, self.gps[g].cov.clone())
         }
     }
 
@@ -813,9 +838,10 @@ impl RgpEkf {
             ..
         } = self;
         let gp = &mut gps[g];
+        let cz = symmetric_from_lower(cov.as_ref().submatrix(o, o, nb, nb));
         gp.basis.predict_with(
             &state[o..o + nb],
-            cov.as_ref().submatrix(o, o, nb, nb),
+            cz.as_ref(),
             zetas,
             &mut gp.j,
             &mut mu,
@@ -892,8 +918,8 @@ impl RgpEkf {
         check_finite("Q_x", q_x)?;
         // The products below involve an n-row block and vectors of length N; at these sizes plain
         // loops over C's contiguous columns beat faer's matmul dispatch.
-        // jc[g, :] = J_g C[z_g, :] = (C[:, z_g] J_gᵀ)ᵀ (C is exactly symmetric), q × N row-major,
-        // accumulated column by column (axpy over C's contiguous columns)
+        // jc[g, :] = J_g C[z_g, :] = (C J̃_g)ᵀ with J̃_g = J_g on the block z_g, 0 elsewhere: a
+        // symmetric matrix-vector product from the stored lower triangle (see the struct's doc)
         if self.augmented {
             for g in 0..q {
                 let (o, jo, nb) = (
@@ -901,26 +927,49 @@ impl RgpEkf {
                     self.j_offsets[g],
                     self.gps[g].basis.n_basis(),
                 );
+                let jg = &self.j[jo..jo + nb];
                 let out = &mut self.jc[g * nt..(g + 1) * nt];
-                out.fill(0.0);
-                for (b, &jb) in self.j[jo..jo + nb].iter().enumerate() {
+                // columns before the block: C[i, z_g] = C[z_g, i], stored in column i
+                for (i, v) in out[..o].iter_mut().enumerate() {
+                    *v = dot(&self.cov.col_as_slice(i)[o..o + nb], jg);
+                }
+                out[o..].fill(0.0);
+                for (b, &jb) in jg.iter().enumerate() {
+                    let k = o + b;
+                    let col = self.cov.col_as_slice(k);
+                    // C[k, k+1..] J (the upper part of row k, stored as column k below k)
+                    out[k] += dot(&col[k + 1..o + nb], &jg[b + 1..]);
                     if jb != 0.0 {
-                        axpy(out, jb, self.cov.col_as_slice(o + b));
+                        axpy(&mut out[k..], jb, &col[k..]);
                     }
                 }
             }
         }
         // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, column-major: t[c n + r])
-        for c in 0..nt {
+        // C[x, c] for c < n is stored in column c, for c ≥ n as C[c, x] in columns 0..n
+        for c in 0..n {
             let cc = &self.cov.col_as_slice(c)[..n];
             for r in 0..n {
-                let mut s = dot(&a[r * n..(r + 1) * n], cc);
-                if self.augmented {
+                self.t[c * n + r] = dot(&a[r * n..(r + 1) * n], cc);
+            }
+        }
+        self.t[n * n..].fill(0.0);
+        for k in 0..n {
+            let colk = self.cov.col_as_slice(k);
+            for (c, tc) in self.t.chunks_exact_mut(n).enumerate().skip(n) {
+                let v = colk[c];
+                for (r, t) in tc.iter_mut().enumerate() {
+                    *t += a[r * n + k] * v;
+                }
+            }
+        }
+        if self.augmented {
+            for (c, tc) in self.t.chunks_exact_mut(n).enumerate() {
+                for (r, t) in tc.iter_mut().enumerate() {
                     for g in 0..q {
-                        s += e[r * q + g] * self.jc[g * nt + c];
+                        *t += e[r * q + g] * self.jc[g * nt + c];
                     }
                 }
-                self.t[c * n + r] = s;
             }
         }
         // tj[r, g] = T[r, z_g] J_gᵀ   (n × q, row-major)
@@ -959,10 +1008,7 @@ impl RgpEkf {
             }
         }
         if self.augmented {
-            // C[x, z] = T[:, z] and C[z, x] = T[:, z]ᵀ; C[z, z] += σ_p² I
-            for c in n..nt {
-                self.cov.col_as_slice_mut(c)[..n].copy_from_slice(&self.t[c * n..(c + 1) * n]);
-            }
+            // C[z, x] = T[:, z]ᵀ (C[x, z] above the diagonal is not stored); C[z, z] += σ_p² I
             for r in 0..n {
                 let col = self.cov.col_as_slice_mut(r);
                 for (c, v) in col.iter_mut().enumerate().skip(n) {
@@ -1061,7 +1107,7 @@ impl RgpEkf {
             axpy(&mut self.mu[..rows], *wk, &self.pht[k * nt..k * nt + rows]);
         }
         // 4a: C −= W Wᵀ; 4b: only the state rows and columns (C[x, ·] and C[·, x])
-        rank_p_downdate(&mut self.cov, &self.pht, p, if rows == nt { nt } else { n });
+        rank_p_downdate(&mut self.cov, &self.pht, p, n, rows == nt);
         self.innovation.clear();
         self.innovation.extend_from_slice(nu);
         self.s = s;
@@ -1151,13 +1197,14 @@ mod tests {
         let q_rm: Vec<f64> = (0..n * n).map(|i| qx[(i / n, i % n)]).collect();
         ekf.predict(&[1.0, 2.0, 3.0], &a_rm, &e, &q_rm).unwrap();
         let dense = dense_prediction(&c0, &a, &e, &j, d, &qx, 0.05 * 0.05);
+        let cov = ekf.cov();
         for r in 0..nt {
             for c in 0..nt {
                 assert!(
-                    (dense[(r, c)] - ekf.cov[(r, c)]).abs() < 1e-12 * (1.0 + dense[(r, c)].abs()),
+                    (dense[(r, c)] - cov[(r, c)]).abs() < 1e-12 * (1.0 + dense[(r, c)].abs()),
                     "({r},{c}): {} vs {}",
                     dense[(r, c)],
-                    ekf.cov[(r, c)]
+                    cov[(r, c)]
                 );
             }
         }
@@ -1248,6 +1295,13 @@ mod tests {
                 k % 3 != 0,
             )
             .unwrap();
+            for i in 0..2 {
+                assert_eq!(
+                    ekf.cov[(i, 1 - i)],
+                    ekf.cov[(1 - i, i)],
+                    "stored state block"
+                );
+            }
             let c = ekf.cov();
             for i in 0..c.nrows() {
                 assert!(c[(i, i)] > 0.0);
