@@ -478,7 +478,9 @@ class RGPEKF:
         if zeta is None:
             raise ValueError("zeta: the GP input is required")
         # Finiteness of ζ is checked in Rust (the error names zeta); only shapes are checked here.
-        if self._scalar_zeta and isinstance(zeta, (float, int, np.floating, np.integer)):
+        if self._scalar_zeta and (
+            isinstance(zeta, float) or isinstance(zeta, (int, np.floating, np.integer))
+        ):
             x, z_arg = self._core.infer_scalar(zeta)
         else:
             x, z_arg = self._core.infer(self._zeta(zeta))

@@ -340,6 +340,31 @@ fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
     }
 }
 
+/// y += α x and returns x · v, in one pass (one column of a symmetric matrix-vector product).
+#[inline(always)]
+fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
+    let n = y.len().min(x.len()).min(v.len());
+    let (y, x, v) = (&mut y[..n], &x[..n], &v[..n]);
+    let mut acc = [0.0; 4];
+    let m = n / 4 * 4;
+    for ((yc, xc), vc) in y[..m]
+        .chunks_exact_mut(4)
+        .zip(x[..m].chunks_exact(4))
+        .zip(v[..m].chunks_exact(4))
+    {
+        for l in 0..4 {
+            yc[l] += alpha * xc[l];
+            acc[l] += xc[l] * vc[l];
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for i in m..n {
+        y[i] += alpha * x[i];
+        s += x[i] * v[i];
+    }
+    s
+}
+
 // The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
 // right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
 // multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so the
@@ -937,11 +962,16 @@ impl RgpEkf {
                 for (b, &jb) in jg.iter().enumerate() {
                     let k = o + b;
                     let col = self.cov.col_as_slice(k);
-                    // C[k, k+1..] J (the upper part of row k, stored as column k below k)
-                    out[k] += dot(&col[k + 1..o + nb], &jg[b + 1..]);
-                    if jb != 0.0 {
-                        axpy(&mut out[k..], jb, &col[k..]);
-                    }
+                    // one pass over column k below the diagonal: out[i] += J_b C[i, k] (lower
+                    // part) and out[k] += C[k, i] J_i (upper part of row k, = column k by symmetry)
+                    let up = symv_column(
+                        &mut out[k + 1..o + nb],
+                        jb,
+                        &col[k + 1..o + nb],
+                        &jg[b + 1..],
+                    );
+                    out[k] += up + jb * col[k];
+                    axpy(&mut out[o + nb..], jb, &col[o + nb..]);
                 }
             }
         }
