@@ -8,7 +8,8 @@ Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP. Two 
   *not* measured: the RGP's basis-vector weights are appended to the EKF state and learned from y.
 
 The per-step numerics (J_k by triangular solves with K's Cholesky factor, the structured covariance
-prediction, the EKF update) run in Rust (``gpmhe._core``) with the GIL released; this module
+prediction, the EKF update) run in Rust (``gpmhe._core``), with the GIL released when n + Σ n_b ≥ 200
+(smaller steps take a few µs, less than releasing the GIL costs under contention); this module
 validates inputs and calls the user's model functions.
 """
 

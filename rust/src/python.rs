@@ -1,6 +1,7 @@
 //! The pyo3 binding: the only file that knows Python. It turns numpy arrays into slices
 //! (zero-copy when C-contiguous float64; the Python wrappers convert anything else first), releases
-//! the GIL around the numerics, and maps core errors to exceptions: `InvalidInput` to `ValueError`,
+//! the GIL around the numerics (the RGP-dKF's per-step calls only for large problems, see
+//! `RGP_STEP_GIL_RELEASE_MIN_DIM`), and maps core errors to exceptions: `InvalidInput` to `ValueError`,
 //! `Numerical` to `gpmhe.NumericalError`.
 
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -225,6 +226,20 @@ impl RgpCore {
     }
 }
 
+/// Dimension n + Σ n_b (N in augmented mode) from which the per-step calls of `RGPEKFCore` release the GIL.
+/// Below it a step's kernels take a few µs, less than a release and re-acquisition of the GIL costs
+/// when other threads contend for it (numpy likewise keeps the GIL for small arrays).
+const RGP_STEP_GIL_RELEASE_MIN_DIM: usize = 200;
+
+/// Runs `f` with the GIL released if `release`, else holding it.
+fn detach_if<T: Send>(py: Python<'_>, release: bool, f: impl FnOnce() -> T + Send) -> T {
+    if release {
+        py.detach(f)
+    } else {
+        f()
+    }
+}
+
 /// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF). Constant Jacobians A, e, H are
 /// stored once (`set_constant_jacobians`) so that a step passes only what changes.
 #[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
@@ -311,8 +326,10 @@ impl RgpEkfCore {
         zeta: PyReadonlyArray1<'py, f64>,
     ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
         let z = slice1("zeta", &zeta)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        py.detach(|| inner.infer(z).map(|_| ()))?;
+        detach_if(py, release, || inner.infer(z).map(|_| ()))?;
         self.x_and_z(py)
     }
 
@@ -322,8 +339,10 @@ impl RgpEkfCore {
         py: Python<'py>,
         zeta: f64,
     ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        py.detach(|| inner.infer(&[zeta]).map(|_| ()))?;
+        detach_if(py, release, || inner.infer(&[zeta]).map(|_| ()))?;
         self.x_and_z(py)
     }
 
@@ -340,8 +359,10 @@ impl RgpEkfCore {
         let a = given_or_const("A", &a, &self.a_const)?;
         let e = given_or_const("e", &e, &self.e_const)?;
         let (q, _, _) = slice2("Q_x", &q_x)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        Ok(py.detach(|| inner.predict(x, a, e, q))?)
+        Ok(detach_if(py, release, || inner.predict(x, a, e, q))?)
     }
 
     /// EKF update with the measurement y and h(x⁻) (ν = y − h(x⁻) is formed here).
@@ -366,8 +387,12 @@ impl RgpEkfCore {
         let nu: Vec<f64> = y.iter().zip(hx).map(|(a, b)| a - b).collect();
         let h = given_or_const("H", &h, &self.h_const)?;
         let (r, _, _) = slice2("R_x", &r)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        Ok(py.detach(|| inner.update(&nu, h, r, learning))?)
+        Ok(detach_if(py, release, || {
+            inner.update(&nu, h, r, learning)
+        })?)
     }
 
     #[getter]

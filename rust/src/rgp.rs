@@ -749,6 +749,11 @@ impl RgpEkf {
         self.gps.len()
     }
 
+    /// Σ n_b over the GPs.
+    pub fn n_basis_total(&self) -> usize {
+        self.j.len()
+    }
+
     /// Total augmented dimension N.
     pub fn dim_total(&self) -> usize {
         self.nt
