@@ -1,7 +1,6 @@
 //! The pyo3 binding: the only file that knows Python. It turns numpy arrays into slices
 //! (zero-copy when C-contiguous float64; the Python wrappers convert anything else first), releases
-//! the GIL around the numerics (the RGP-dKF's per-step calls only for large problems, see
-//! `RGP_STEP_GIL_RELEASE_MIN_DIM`), and maps core errors to exceptions: `InvalidInput` to `ValueError`,
+//! the GIL around the numerics, and maps core errors to exceptions: `InvalidInput` to `ValueError`,
 //! `Numerical` to `gpmhe.NumericalError`.
 
 use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -206,7 +205,7 @@ impl RgpCore {
 
     #[getter]
     fn cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.cov().as_ref())
+        mat_to_array2(py, self.inner.cov())
     }
 
     #[getter]
