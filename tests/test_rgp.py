@@ -309,6 +309,45 @@ def test_bad_inputs_raise_and_leave_state():
                Q_x=0.0, R_x=0.1, x0=[0, 0], P0=1.0, gps=[])
 
 
+def test_x_and_P_are_settable_filterpy_style():
+    ekf = _bad_filter()
+    ekf.predict(None, 0.5)
+    ekf.update([0.1, 0.2])
+    mu, C = ekf.mu, ekf.C
+    for value, arg in [([1.0, np.nan], "x"), ([1.0, 2.0, 3.0], "x"), ("a", "x")]:
+        with pytest.raises(ValueError, match=arg):
+            ekf.x = value
+    for value, arg in [(np.array([[1.0, 2.0], [0.0, 1.0]]), "P"), (-np.eye(2), "P"),
+                       (np.eye(3), "P"), ([[np.inf, 0], [0, 1]], "P")]:
+        with pytest.raises(ValueError, match=arg):
+            ekf.P = value
+    np.testing.assert_array_equal(ekf.mu, mu)
+    np.testing.assert_array_equal(ekf.C, C)
+
+    ekf.x = np.array([0.3, -0.7])
+    np.testing.assert_array_equal(ekf.x, [0.3, -0.7])
+    np.testing.assert_array_equal(ekf.mu[2:], mu[2:])  # the GP weights are untouched
+    P = np.array([[2.0, 0.5], [0.5, 1.0]])
+    ekf.P = P
+    np.testing.assert_array_equal(ekf.P, P)
+    C2 = ekf.C
+    np.testing.assert_array_equal(C2[2:, 2:], C[2:, 2:])
+    np.testing.assert_array_equal(C2[:2, 2:], 0.0)  # cross-covariance reset: C stays PSD
+    np.testing.assert_array_equal(C2[2:, :2], 0.0)
+    ekf.P = 3.0  # a scalar means 3 I, as in the constructor
+    np.testing.assert_array_equal(ekf.P, 3.0 * np.eye(2))
+    # the next step starts from the assigned state: f(x, u, z) = x + z, A = I, e = [1, 0]
+    ekf.x = [1.0, 2.0]
+    ekf.predict(None, 0.5)
+    z = float(ekf.z_pred[0])
+    np.testing.assert_allclose(ekf.x, [1.0 + z, 2.0 + z], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(ekf.P[1, 1], 3.0 + 0.01, rtol=1e-14)
+    # update evaluates h at the assigned state
+    ekf.x = [5.0, 6.0]
+    ekf.update([5.0, 6.0])
+    np.testing.assert_array_equal(ekf.y, [0.0, 0.0])
+
+
 def test_indefinite_innovation_raises_numerical_error_and_keeps_state():
     ekf = RGPEKF(1, f=lambda x, u, z: x, A=[[1.0]], e=[0.0], h=lambda x: x, H=lambda x: [[1.0]],
                  Q_x=0.0, R_x=np.array([[1e-3]]), x0=[0.0], P0=0.0, gps=RecursiveGP(0, 1, 3))

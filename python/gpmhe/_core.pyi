@@ -149,22 +149,39 @@ class RGPEKFCore:
         gps: list[RecursiveGPCore],
         augmented: bool,
     ) -> None: ...
-    def infer(self, zeta: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """J_k of every GP; returns [x; μ_z^p] (current state, then one prediction per GP)."""
+    def set_constant_jacobians(
+        self,
+        a: npt.NDArray[np.float64] | None = None,
+        e: npt.NDArray[np.float64] | None = None,
+        h: npt.NDArray[np.float64] | None = None,
+    ) -> None:
+        """Stores constant A, e, H; predict/update then take None for them."""
+    def infer(
+        self, zeta: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], float | npt.NDArray[np.float64]]:
+        """J_k of every GP; returns (x, μ_z^p) (a float for one GP, else an array)."""
+    def infer_scalar(self, zeta: float) -> tuple[npt.NDArray[np.float64], float]:
+        """``infer`` for one GP with a scalar input."""
     def predict(
         self,
         x_pred: npt.NDArray[np.float64],
-        a: npt.NDArray[np.float64],
-        e: npt.NDArray[np.float64],
+        a: npt.NDArray[np.float64] | None,
+        e: npt.NDArray[np.float64] | None,
         q_x: npt.NDArray[np.float64],
     ) -> None: ...
     def update(
         self,
-        nu: npt.NDArray[np.float64],
-        h: npt.NDArray[np.float64],
+        y: npt.NDArray[np.float64],
+        hx: npt.NDArray[np.float64],
+        h: npt.NDArray[np.float64] | None,
         r: npt.NDArray[np.float64],
         learning: bool,
     ) -> float: ...
+    def set_x(self, x: npt.NDArray[np.float64]) -> None: ...
+    def set_p(self, p: npt.NDArray[np.float64]) -> None:
+        """Replaces the state covariance; the states' cross-covariance with the weights is reset to 0."""
+    @property
+    def z_pred(self) -> npt.NDArray[np.float64]: ...
     def gp_predict(
         self, index: int, zeta: npt.NDArray[np.float64]
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...

@@ -8,7 +8,8 @@ Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP. Two 
   *not* measured: the RGP's basis-vector weights are appended to the EKF state and learned from y.
 
 The per-step numerics (J_k by triangular solves with K's Cholesky factor, the structured covariance
-prediction, the EKF update) run in Rust (``gpmhe._core``) with the GIL released; this module
+prediction, the EKF update) run in Rust (``gpmhe._core``), with the GIL released when n + Σ n_b ≥ 200
+(smaller steps take a few µs, less than releasing the GIL costs under contention); this module
 validates inputs and calls the user's model functions.
 """
 
@@ -302,7 +303,10 @@ class RGPEKF:
 
     Attributes
     ----------
-    x : (n,) state estimate;  P : (n, n) its covariance (the state block of C)
+    x : (n,) state estimate;  P : (n, n) its covariance (the state block of C). Both can be
+        assigned as in filterpy (``kf.x = ...``, ``kf.P = ...``; validated, ValueError and no
+        change on bad input); assigning P resets the states' cross-covariance with the GP weights
+        to zero so that C stays positive semi-definite.
     mu : (N,) augmented mean;  C : (N, N) augmented covariance
     z_pred : (q,) μ_z^p of the last ``predict``
     y : (p,) last innovation y − h(x⁻);  S : (p, p) its covariance
@@ -381,17 +385,35 @@ class RGPEKF:
             [g._core for g in self.gps],
             not self.pure_prediction,
         )
-        self.z_pred = np.zeros(q)
-        self._x_prior: np.ndarray | None = None
+        # constant Jacobians are stored in the core once; the steps then pass None for them
+        self._core.set_constant_jacobians(self._A_const, self._e_const, self._H_const)
 
     # -- state ---------------------------------------------------------------------------------
     @property
     def x(self) -> np.ndarray:
         return self._core.x
 
+    @x.setter
+    def x(self, value: ArrayLike) -> None:
+        """Replace the state estimate (n values; ValueError and no change on bad input)."""
+        a = _finite_array("x", value).reshape(-1)
+        if a.size != self.dim_x:
+            raise ValueError(f"x: expected {self.dim_x} values, got {a.size}")
+        self._core.set_x(np.ascontiguousarray(a))
+
     @property
     def P(self) -> np.ndarray:
         return self._core.P
+
+    @P.setter
+    def P(self, value: Any) -> None:
+        """Replace the state covariance (symmetric PSD (n, n) or a scalar times I; ValueError and
+        no change on bad input). The states' cross-covariance with the GP weights is reset to 0."""
+        self._core.set_p(_square("P", value, self.dim_x))
+
+    @property
+    def z_pred(self) -> np.ndarray:
+        return self._core.z_pred
 
     @property
     def mu(self) -> np.ndarray:
@@ -456,60 +478,56 @@ class RGPEKF:
         Bad input raises ValueError naming it and leaves the filter unchanged."""
         if zeta is None:
             raise ValueError("zeta: the GP input is required")
-        zv = self._zeta(zeta)
+        # Finiteness of ζ is checked in Rust (the error names zeta); only shapes are checked here.
+        if self._scalar_zeta and (
+            isinstance(zeta, float) or isinstance(zeta, (int, np.floating, np.integer))
+        ):
+            x, z_arg = self._core.infer_scalar(zeta)
+        else:
+            x, z_arg = self._core.infer(self._zeta(zeta))
         n = self.dim_x
-        out = self._core.infer(zv)
-        x, mu_zp = out[:n], out[n:]
-        z_arg = float(mu_zp[0]) if self.dim_z == 1 else mu_zp
         xp = np.ascontiguousarray(self.f(x, u, z_arg), dtype=np.float64)
         if xp.shape != (n,):
             xp = xp.reshape(-1)
             if xp.size != n:
                 raise ValueError(f"f: returned {xp.size} values, expected {n}")
-        if self._A_const is not None:
-            A = self._A_const
-        else:
+        A = e = None  # None: the constants stored in the core
+        if self._A_const is None:
             A = np.ascontiguousarray(self._A(x, u, z_arg), dtype=np.float64)
             if A.shape != (n, n):
                 raise ValueError(f"A: returned shape {A.shape}, expected ({n}, {n})")
-        if self._e_const is not None:
-            e = self._e_const
-        else:
+        if self._e_const is None:
             e = np.ascontiguousarray(self._e(x, u, z_arg), dtype=np.float64)
             if e.size != n * self.dim_z:
                 raise ValueError(f"e: returned shape {e.shape}, expected ({n}, {self.dim_z})")
             e = e.reshape(n, self.dim_z)
         self._core.predict(xp, A, e, self.Q_x)
-        self.z_pred = mu_zp
-        self._x_prior = xp.copy()  # = the filter's x now; saves a call in update
 
     def update(self, y: ArrayLike) -> None:
         """EKF update with the measurement y (variant 4a, or 4b when ``learning`` is False).
         Raises ValueError for bad y (state unchanged) and gpmhe.NumericalError if the innovation
         covariance is not positive definite (state unchanged)."""
-        yv = np.asarray(y, dtype=np.float64)
+        yv = np.ascontiguousarray(y, dtype=np.float64)
         if yv.ndim != 1:
             yv = yv.reshape(-1)
         p = yv.size
         if self.dim_y is not None and p != self.dim_y:
             raise ValueError(f"y: expected {self.dim_y} value(s), got {p}")
-        x = self._x_prior if self._x_prior is not None else self._core.x
-        hx = np.asarray(self.h(x), dtype=np.float64)
+        x = self._core.x  # the predicted state x⁻ (or whatever was assigned to x since)
+        hx = np.ascontiguousarray(self.h(x), dtype=np.float64)
         if hx.shape != (p,):
             hx = hx.reshape(-1)
             if hx.size != p:
                 raise ValueError(f"h: returned {hx.size} values but y has {p}")
-        if self._H_const is not None:
-            H = self._H_const
-        else:
+        H = None  # None: the constant stored in the core
+        if self._H_const is None:
             H = np.ascontiguousarray(self._H(x), dtype=np.float64)
             if H.size != p * self.dim_x:
                 raise ValueError(f"H: shape {H.shape} does not match ({p}, {self.dim_x})")
             H = H.reshape(p, self.dim_x)
         R = self._R_full if self._R_full is not None else float(self.R_x) * np.eye(p)
         # Finiteness of y − h(x) is checked in Rust (the error names y).
-        self._core.update(yv - hx, H, R, self.learning and not self.pure_prediction)
-        self._x_prior = None
+        self._core.update(yv, hx, H, R, self.learning and not self.pure_prediction)
 
     def __repr__(self) -> str:
         return (

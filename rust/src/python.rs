@@ -555,10 +555,60 @@ impl RgpCore {
     }
 }
 
-/// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF).
+/// Dimension n + Σ n_b (N in augmented mode) from which the per-step calls of `RGPEKFCore` release the GIL.
+/// Below it a step's kernels take a few µs, less than a release and re-acquisition of the GIL costs
+/// when other threads contend for it (numpy likewise keeps the GIL for small arrays).
+const RGP_STEP_GIL_RELEASE_MIN_DIM: usize = 200;
+
+/// Runs `f` with the GIL released if `release`, else holding it.
+fn detach_if<T: Send>(py: Python<'_>, release: bool, f: impl FnOnce() -> T + Send) -> T {
+    if release {
+        py.detach(f)
+    } else {
+        f()
+    }
+}
+
+/// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF). Constant Jacobians A, e, H are
+/// stored once (`set_constant_jacobians`) so that a step passes only what changes.
 #[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
 pub struct RgpEkfCore {
     inner: RgpEkf,
+    a_const: Option<Vec<f64>>,
+    e_const: Option<Vec<f64>>,
+    h_const: Option<Vec<f64>>,
+}
+
+/// The argument `given`, else the stored constant, else a `ValueError` naming `arg`.
+fn given_or_const<'a>(
+    arg: &str,
+    given: &'a Option<PyReadonlyArray2<'_, f64>>,
+    stored: &'a Option<Vec<f64>>,
+) -> PyResult<&'a [f64]> {
+    match (given, stored) {
+        (Some(a), _) => Ok(slice2(arg, a)?.0),
+        (None, Some(c)) => Ok(c),
+        (None, None) => Err(PyValueError::new_err(format!(
+            "{arg}: not given and no constant {arg} was stored"
+        ))),
+    }
+}
+
+impl RgpEkfCore {
+    /// [x; μ_z^p] after `infer`: x as an array, μ_z^p as a float for one GP, else an array.
+    fn x_and_z<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
+        let x = PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()]);
+        let z = self.inner.z_pred();
+        let z = if z.len() == 1 {
+            z[0].into_pyobject(py)?.into_any()
+        } else {
+            PyArray1::from_slice(py, z).into_any()
+        };
+        Ok((x, z))
+    }
 }
 
 #[pymethods]
@@ -574,56 +624,118 @@ impl RgpEkfCore {
         let gps = gps.iter().map(|g| g.inner.clone()).collect();
         Ok(Self {
             inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
+            a_const: None,
+            e_const: None,
+            h_const: None,
         })
     }
 
+    /// Stores constant A (n × n), e (n × q), H (p × n) (None: given at every step).
+    #[pyo3(signature = (a=None, e=None, h=None))]
+    fn set_constant_jacobians(
+        &mut self,
+        a: Option<PyReadonlyArray2<'_, f64>>,
+        e: Option<PyReadonlyArray2<'_, f64>>,
+        h: Option<PyReadonlyArray2<'_, f64>>,
+    ) -> PyResult<()> {
+        let copy = |arg: &str, m: &Option<PyReadonlyArray2<'_, f64>>| -> PyResult<_> {
+            m.as_ref()
+                .map(|m| slice2(arg, m).map(|s| s.0.to_vec()))
+                .transpose()
+        };
+        let (a, e, h) = (copy("A", &a)?, copy("e", &e)?, copy("H", &h)?);
+        (self.a_const, self.e_const, self.h_const) = (a, e, h);
+        Ok(())
+    }
+
+    /// J_k of every GP at the inputs ζ (concatenated); returns (x, μ_z^p).
     fn infer<'py>(
         &mut self,
         py: Python<'py>,
         zeta: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
         let z = slice1("zeta", &zeta)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        // [x; μ_z^p]: the caller needs both to evaluate f, A and e
-        let out = py.detach(|| -> Result<Vec<f64>, Error> {
-            let mut out = inner.mu()[..inner.dim_x()].to_vec();
-            out.extend_from_slice(inner.infer(z)?);
-            Ok(out)
-        })?;
-        Ok(PyArray1::from_vec(py, out))
+        detach_if(py, release, || inner.infer(z).map(|_| ()))?;
+        self.x_and_z(py)
     }
 
+    /// `infer` for a single GP with a scalar input.
+    fn infer_scalar<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: f64,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
+        let inner = &mut self.inner;
+        detach_if(py, release, || inner.infer(&[zeta]).map(|_| ()))?;
+        self.x_and_z(py)
+    }
+
+    #[pyo3(signature = (x_pred, a, e, q_x))]
     fn predict(
         &mut self,
         py: Python<'_>,
         x_pred: PyReadonlyArray1<'_, f64>,
-        a: PyReadonlyArray2<'_, f64>,
-        e: PyReadonlyArray2<'_, f64>,
+        a: Option<PyReadonlyArray2<'_, f64>>,
+        e: Option<PyReadonlyArray2<'_, f64>>,
         q_x: PyReadonlyArray2<'_, f64>,
     ) -> PyResult<()> {
         let x = slice1("f(x, u, z)", &x_pred)?;
-        let (a, _, _) = slice2("A", &a)?;
-        let (e, _, _) = slice2("e", &e)?;
+        let a = given_or_const("A", &a, &self.a_const)?;
+        let e = given_or_const("e", &e, &self.e_const)?;
         let (q, _, _) = slice2("Q_x", &q_x)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        Ok(py.detach(|| inner.predict(x, a, e, q))?)
+        Ok(detach_if(py, release, || inner.predict(x, a, e, q))?)
     }
 
+    /// EKF update with the measurement y and h(x⁻) (ν = y − h(x⁻) is formed here).
+    #[pyo3(signature = (y, hx, h, r, learning))]
     fn update(
         &mut self,
         py: Python<'_>,
-        nu: PyReadonlyArray1<'_, f64>,
-        h: PyReadonlyArray2<'_, f64>,
+        y: PyReadonlyArray1<'_, f64>,
+        hx: PyReadonlyArray1<'_, f64>,
+        h: Option<PyReadonlyArray2<'_, f64>>,
         r: PyReadonlyArray2<'_, f64>,
         learning: bool,
     ) -> PyResult<f64> {
-        let nu = slice1("y", &nu)?;
-        let (h, _, _) = slice2("H", &h)?;
+        let (y, hx) = (slice1("y", &y)?, slice1("h(x)", &hx)?);
+        if hx.len() != y.len() {
+            return Err(PyValueError::new_err(format!(
+                "h: returned {} values but y has {}",
+                hx.len(),
+                y.len()
+            )));
+        }
+        let nu: Vec<f64> = y.iter().zip(hx).map(|(a, b)| a - b).collect();
+        let h = given_or_const("H", &h, &self.h_const)?;
         let (r, _, _) = slice2("R_x", &r)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
         let inner = &mut self.inner;
-        Ok(py.detach(|| inner.update(nu, h, r, learning))?)
+        Ok(detach_if(py, release, || {
+            inner.update(&nu, h, r, learning)
+        })?)
     }
 
+    #[getter]
+    fn z_pred<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.z_pred())
+    }
+
+    fn set_x(&mut self, x: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
+        Ok(self.inner.set_x(slice1("x", &x)?)?)
+    }
+
+    fn set_p(&mut self, p: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
+        Ok(self.inner.set_p(slice2("P", &p)?.0)?)
+    }
     fn gp_predict<'py>(
         &mut self,
         py: Python<'py>,
@@ -649,7 +761,7 @@ impl RgpEkfCore {
             )));
         }
         let (m, c) = self.inner.gp_weights(index);
-        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c)?))
+        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c.as_ref())?))
     }
 
     #[getter]
@@ -670,7 +782,7 @@ impl RgpEkfCore {
 
     #[getter(C)]
     fn c<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.cov())
+        mat_to_array2(py, self.inner.cov().as_ref())
     }
 
     #[getter]

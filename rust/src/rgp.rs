@@ -15,9 +15,6 @@
 
 use faer::linalg::matmul::matmul;
 use faer::linalg::solvers::Llt;
-use faer::linalg::triangular_solve::{
-    solve_lower_triangular_in_place, solve_upper_triangular_in_place,
-};
 use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
 
 use crate::error::{check_finite, check_len, Error, Result};
@@ -25,6 +22,27 @@ use crate::kernel::SeArd;
 
 /// Largest relative jitter (times σ_K²) added to K's diagonal before giving up on its Cholesky.
 const MAX_REL_JITTER: f64 = 1e-6;
+
+/// Runs `self.method(args)` compiled for AVX2 when the CPU has it (detected at run time, cached by
+/// std), else the baseline (SSE2) build a portable wheel is compiled for. The per-step loops are
+/// short and contiguous; AVX2 doubles their SIMD width. Both builds perform the same operations in
+/// the same order (no fused multiply-add), so the results are identical.
+macro_rules! with_avx2 {
+    ($ty:ty, $self:ident . $method:ident ( $($arg:ident : $argty:ty),* ) -> $ret:ty) => {{
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2")]
+            fn avx2(this: &mut $ty, $($arg: $argty),*) -> $ret {
+                this.$method($($arg),*)
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2, checked just above.
+                return unsafe { avx2($self, $($arg),*) };
+            }
+        }
+        $self.$method($($arg),*)
+    }};
+}
 
 fn check_positive(arg: &str, v: f64) -> Result<()> {
     if v.is_finite() && v > 0.0 {
@@ -61,6 +79,8 @@ pub struct RgpBasis {
     k: Mat<f64>,
     /// Lower Cholesky factor of K + jitter·I.
     chol: Mat<f64>,
+    /// Its transpose Lᵀ, stored so that the back substitution runs over contiguous columns too.
+    chol_t: Mat<f64>,
     jitter: f64,
     sigma_r2: f64,
     sigma_p2: f64,
@@ -138,7 +158,20 @@ impl RgpBasis {
                 kj[(i, i)] += jitter;
             }
             if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
-                break llt.L().to_owned();
+                let mut l = llt.L().to_owned();
+                // Far from the diagonal the factor of a squared-exponential K decays like the
+                // kernel, down to subnormal numbers, and every product with those (in each
+                // step's triangular solves) is ~100 times slower than normal arithmetic. Entries
+                // below 1e-250 σ_K contribute nothing above rounding error; they are set to 0.
+                let tiny = 1e-250 * s2.sqrt();
+                for c in 0..nb {
+                    for v in l.col_as_slice_mut(c) {
+                        if v.abs() < tiny {
+                            *v = 0.0;
+                        }
+                    }
+                }
+                break l;
             }
             jitter = if jitter == 0.0 {
                 1e-12 * s2
@@ -162,6 +195,7 @@ impl RgpBasis {
             basis,
             kernel,
             k,
+            chol_t: chol.transpose().to_owned(),
             chol,
             jitter,
             sigma_r2: sigma_r * sigma_r,
@@ -219,6 +253,7 @@ impl RgpBasis {
 
     /// Writes J_k = k(X_k, X) K⁻¹ into `j` (length n_b) for the input `zeta` (ζ units, length n_X,
     /// already validated) and returns J_k K J_kᵀ = ‖L⁻¹ k(X, X_k)‖².
+    #[inline(always)]
     pub fn infer(&mut self, zeta: &[f64], j: &mut [f64]) -> f64 {
         let nx = self.dim();
         for (((x, z), lo), sc) in self
@@ -230,16 +265,22 @@ impl RgpBasis {
         {
             *x = (z - lo) * sc;
         }
+        // k(x, X); values below e^-575 σ_K² ≈ 1e-250 σ_K² are set to 0 without calling exp (as in
+        // K's factor: nothing above rounding error, and no slow subnormal arithmetic)
+        let s2 = self.kernel.variance();
         for (b, jb) in j.iter_mut().enumerate() {
-            *jb = self
+            let r2 = self
                 .kernel
-                .eval(&self.xk, &self.basis[b * nx..(b + 1) * nx]);
+                .scaled_sq_dist(&self.xk, &self.basis[b * nx..(b + 1) * nx]);
+            *jb = if r2 > 1150.0 {
+                0.0
+            } else {
+                s2 * (-0.5 * r2).exp()
+            };
         }
-        let nb = j.len();
-        let mut col = MatMut::from_column_major_slice_mut(j, nb, 1);
-        solve_lower_triangular_in_place(self.chol.as_ref(), col.as_mut(), Par::Seq);
-        let jkj: f64 = col.as_ref().col(0).iter().map(|v| v * v).sum();
-        solve_upper_triangular_in_place(self.chol.transpose(), col.as_mut(), Par::Seq);
+        forward_substitution(&self.chol, j);
+        let jkj = dot(j, j);
+        back_substitution(&self.chol_t, j);
         jkj
     }
 
@@ -271,12 +312,92 @@ impl RgpBasis {
     }
 }
 
-#[inline]
+/// a · b with four independent partial sums (so that it vectorises).
+#[inline(always)]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            acc[l] += x[l] * y[l];
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
+    }
+    s
+}
+
+/// y += α x.
+#[inline(always)]
+fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
+    for (yi, xi) in y.iter_mut().zip(x) {
+        *yi += alpha * xi;
+    }
+}
+
+/// y += α x and returns x · v, in one pass (one column of a symmetric matrix-vector product).
+#[inline(always)]
+fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
+    let n = y.len().min(x.len()).min(v.len());
+    let (y, x, v) = (&mut y[..n], &x[..n], &v[..n]);
+    let mut acc = [0.0; 4];
+    let m = n / 4 * 4;
+    for ((yc, xc), vc) in y[..m]
+        .chunks_exact_mut(4)
+        .zip(x[..m].chunks_exact(4))
+        .zip(v[..m].chunks_exact(4))
+    {
+        for l in 0..4 {
+            yc[l] += alpha * xc[l];
+            acc[l] += xc[l] * vc[l];
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for i in m..n {
+        y[i] += alpha * x[i];
+        s += x[i] * v[i];
+    }
+    s
+}
+
+// The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
+// right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
+// multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so the
+// column-oriented textbook loops (contiguous axpy / dot over the factor's columns) are used.
+
+/// Solves L v = b in place (L lower triangular, column-major).
+#[inline(always)]
+fn forward_substitution(l: &Mat<f64>, v: &mut [f64]) {
+    for jj in 0..v.len() {
+        let col = l.col_as_slice(jj);
+        let vj = v[jj] / col[jj];
+        v[jj] = vj;
+        if vj != 0.0 {
+            axpy(&mut v[jj + 1..], -vj, &col[jj + 1..]);
+        }
+    }
+}
+
+/// Solves U v = b in place (U upper triangular, column-major), column by column (axpy form).
+#[inline(always)]
+fn back_substitution(u: &Mat<f64>, v: &mut [f64]) {
+    for jj in (0..v.len()).rev() {
+        let col = u.col_as_slice(jj);
+        let vj = v[jj] / col[jj];
+        v[jj] = vj;
+        if vj != 0.0 {
+            axpy(&mut v[..jj], -vj, &col[..jj]);
+        }
+    }
 }
 
 /// vᵀ C v for a symmetric C.
+#[inline(always)]
 fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     let mut s = 0.0;
     for (jj, vj) in v.iter().enumerate() {
@@ -290,22 +411,56 @@ fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     s
 }
 
-/// C −= W Wᵀ restricted to the entries (i, j) with min(i, j) < `k` (k = N: all of C; k = n: the
-/// state rows and columns, variant 4b). Column by column over contiguous memory, and exactly
-/// symmetric: C_ij and C_ji subtract the same products in the same order, so C needs no mirroring.
-fn rank_p_downdate(c: &mut Mat<f64>, w: &Mat<f64>, k: usize) {
-    let (nt, p) = (w.nrows(), w.ncols());
+/// C −= W Wᵀ (W: N × p, column-major) on the stored part of the augmented covariance (see
+/// [`RgpEkf`]): columns 0..n completely and, if `all` (variant 4a), the lower triangle of the other
+/// columns; with `all` false (variant 4b) only the states' rows and columns change. C_ij and C_ji
+/// of the state block subtract the same products in the same order, so it stays exactly symmetric.
+#[inline(always)]
+fn rank_p_downdate(c: &mut Mat<f64>, w: &[f64], p: usize, n: usize, all: bool) {
+    let nt = c.nrows();
+    let wcol = |kk: usize| &w[kk * nt..(kk + 1) * nt];
     for j in 0..nt {
-        let rows = if j < k { nt } else { k };
-        let col = c.col_as_slice_mut(j);
-        for kk in 0..p {
-            let wk = w.col_as_slice(kk);
-            let wjk = wk[j];
-            for (ci, wi) in col[..rows].iter_mut().zip(&wk[..rows]) {
-                *ci -= wi * wjk;
+        let lo = if j < n {
+            0
+        } else if all {
+            j
+        } else {
+            break;
+        };
+        let col = &mut c.col_as_slice_mut(j)[lo..];
+        match p {
+            // the common small cases in one pass over the column (same operations, same order)
+            1 => axpy(col, -wcol(0)[j], &wcol(0)[lo..]),
+            2 => {
+                let (a0, a1) = (wcol(0)[j], wcol(1)[j]);
+                let (w0, w1) = (&wcol(0)[lo..], &wcol(1)[lo..]);
+                for ((ci, x0), x1) in col.iter_mut().zip(w0).zip(w1) {
+                    *ci = (*ci - x0 * a0) - x1 * a1;
+                }
+            }
+            _ => {
+                for kk in 0..p {
+                    let wk = wcol(kk);
+                    let wjk = wk[j];
+                    for (ci, wi) in col.iter_mut().zip(&wk[lo..]) {
+                        *ci -= wi * wjk;
+                    }
+                }
             }
         }
     }
+}
+
+/// The full symmetric matrix from its stored part: the lower triangle, plus the complete first
+/// columns of the state block (the upper triangle elsewhere may be stale).
+fn symmetric_from_lower(c: MatRef<'_, f64>) -> Mat<f64> {
+    Mat::from_fn(c.nrows(), c.ncols(), |i, j| {
+        if i >= j {
+            c[(i, j)]
+        } else {
+            c[(j, i)]
+        }
+    })
 }
 
 /// Huber's recursive GP on a grid of basis vectors: weights' mean μ_z and covariance C_z.
@@ -397,6 +552,11 @@ impl Rgp {
     /// G = C_z Jᵀ / (C^p + σ_r² + σ_y²), μ_z += G (y − J μ_z), C_z −= G J C_z, C_z += σ_p² I.
     /// Returns the predicted mean J μ_z before the update. On error the state is unchanged.
     pub fn update(&mut self, zeta: &[f64], y: f64, var_y: f64) -> Result<f64> {
+        with_avx2!(Rgp, self.update_impl(zeta: &[f64], y: f64, var_y: f64) -> Result<f64>)
+    }
+
+    #[inline(always)]
+    fn update_impl(&mut self, zeta: &[f64], y: f64, var_y: f64) -> Result<f64> {
         self.basis.check_zeta("zeta", zeta)?;
         if !y.is_finite() {
             return Err(Error::invalid("y", format!("must be finite, got {y}")));
@@ -478,6 +638,11 @@ impl Rgp {
 
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
 /// pure-prediction mode, an EKF on x with the (fixed) GPs as noisy inputs.
+///
+/// Storage of the symmetric covariance C: the per-step kernels keep only its lower triangle and
+/// the complete first n columns (the state block and C[z, x]) up to date, which halves the work of
+/// the rank-p update and of J C_z; the entries above the diagonal right of column n are stale.
+/// [`Self::cov`] and [`Self::gp_weights`] return symmetric copies.
 #[derive(Debug, Clone)]
 pub struct RgpEkf {
     n: usize,
@@ -496,11 +661,12 @@ pub struct RgpEkf {
     /// μ_z^p per disturbance.
     mu_zp: Vec<f64>,
     inferred: bool,
-    /// Scratch: Ã's top rows times C (n × N); J C_z (q × N); T J (n × q); C H̃ᵀ (N × p).
-    t: Mat<f64>,
-    jc: Mat<f64>,
-    tj: Mat<f64>,
-    pht: Mat<f64>,
+    /// Scratch: Ã's top rows times C (n × N, column-major); J C_z (q × N, row-major); T J
+    /// (n × q, row-major); C H̃ᵀ, then W (N × p, column-major).
+    t: Vec<f64>,
+    jc: Vec<f64>,
+    tj: Vec<f64>,
+    pht: Vec<f64>,
     /// Last innovation, its covariance and log-likelihood.
     innovation: Vec<f64>,
     s: Mat<f64>,
@@ -563,10 +729,10 @@ impl RgpEkf {
             dvar: vec![0.0; q],
             mu_zp: vec![0.0; q],
             inferred: false,
-            t: Mat::zeros(n, nt),
-            jc: Mat::zeros(q, nt),
-            tj: Mat::zeros(n, q),
-            pht: Mat::zeros(nt, 0),
+            t: vec![0.0; n * nt],
+            jc: vec![0.0; q * nt],
+            tj: vec![0.0; n * q],
+            pht: Vec::new(),
             innovation: Vec::new(),
             s: Mat::zeros(0, 0),
             log_likelihood: 0.0,
@@ -583,6 +749,11 @@ impl RgpEkf {
         self.gps.len()
     }
 
+    /// Σ n_b over the GPs.
+    pub fn n_basis_total(&self) -> usize {
+        self.j.len()
+    }
+
     /// Total augmented dimension N.
     pub fn dim_total(&self) -> usize {
         self.nt
@@ -596,12 +767,48 @@ impl RgpEkf {
         &self.gps[g].basis
     }
 
+    /// Replaces the state estimate x (the first n entries of μ). On error nothing changes.
+    pub fn set_x(&mut self, x: &[f64]) -> Result<()> {
+        check_len("x", x, self.n)?;
+        check_finite("x", x)?;
+        self.mu[..self.n].copy_from_slice(x);
+        Ok(())
+    }
+
+    /// Replaces the state covariance P (n × n row-major, symmetrised; the caller checks that it is
+    /// positive semi-definite). The cross-covariance between the states and the GP weights is
+    /// reset to zero, so that C stays positive semi-definite whatever P is. On error nothing
+    /// changes.
+    pub fn set_p(&mut self, p: &[f64]) -> Result<()> {
+        let n = self.n;
+        check_len("P", p, n * n)?;
+        check_finite("P", p)?;
+        for c in 0..self.nt {
+            for r in 0..n {
+                let v = if c < n {
+                    0.5 * (p[r * n + c] + p[c * n + r])
+                } else {
+                    0.0
+                };
+                self.cov[(r, c)] = v;
+                self.cov[(c, r)] = v;
+            }
+        }
+        Ok(())
+    }
+
+    /// μ_z^p of the last [`Self::infer`] (one per disturbance).
+    pub fn z_pred(&self) -> &[f64] {
+        &self.mu_zp
+    }
+
     pub fn mu(&self) -> &[f64] {
         &self.mu
     }
 
-    pub fn cov(&self) -> MatRef<'_, f64> {
-        self.cov.as_ref()
+    /// The augmented covariance C (a symmetric copy of the stored part).
+    pub fn cov(&self) -> Mat<f64> {
+        symmetric_from_lower(self.cov.as_ref())
     }
 
     pub fn innovation(&self) -> &[f64] {
@@ -617,15 +824,15 @@ impl RgpEkf {
     }
 
     /// Weights' mean and covariance of GP `g` (the state block, or the fixed GP in pure mode).
-    pub fn gp_weights(&self, g: usize) -> (&[f64], MatRef<'_, f64>) {
+    pub fn gp_weights(&self, g: usize) -> (&[f64], Mat<f64>) {
         if self.augmented {
             let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
             (
                 &self.mu[o..o + nb],
-                self.cov.as_ref().submatrix(o, o, nb, nb),
+                symmetric_from_lower(self.cov.as_ref().submatrix(o, o, nb, nb)),
             )
         } else {
-            (&self.gps[g].mean, self.gps[g].cov.as_ref())
+            (&self.gps[g].mean, self.gps[g].cov.clone())
         }
     }
 
@@ -661,9 +868,10 @@ impl RgpEkf {
             ..
         } = self;
         let gp = &mut gps[g];
+        let cz = symmetric_from_lower(cov.as_ref().submatrix(o, o, nb, nb));
         gp.basis.predict_with(
             &state[o..o + nb],
-            cov.as_ref().submatrix(o, o, nb, nb),
+            cz.as_ref(),
             zetas,
             &mut gp.j,
             &mut mu,
@@ -675,6 +883,16 @@ impl RgpEkf {
     /// Step 1 (16): J_k and μ_z^p = J_k μ_z for every GP at its input ζ_j (the inputs of all GPs
     /// concatenated). Returns μ_z^p (one per disturbance). Must precede [`Self::predict`].
     pub fn infer(&mut self, zetas: &[f64]) -> Result<&[f64]> {
+        self.infer_dispatch(zetas)?;
+        Ok(&self.mu_zp)
+    }
+
+    fn infer_dispatch(&mut self, zetas: &[f64]) -> Result<()> {
+        with_avx2!(RgpEkf, self.infer_impl(zetas: &[f64]) -> Result<()>)
+    }
+
+    #[inline(always)]
+    fn infer_impl(&mut self, zetas: &[f64]) -> Result<()> {
         let total: usize = self.gps.iter().map(|g| g.basis.dim()).sum();
         check_len("zeta", zetas, total)?;
         check_finite("zeta", zetas)?;
@@ -700,7 +918,7 @@ impl RgpEkf {
             }
         }
         self.inferred = true;
-        Ok(&self.mu_zp)
+        Ok(())
     }
 
     /// Steps 2–3 (17), (18) with the structured product: the caller evaluated the predicted state
@@ -708,6 +926,11 @@ impl RgpEkf {
     /// (x, u, μ_z^p); `q_x` is Q_x (n × n). C⁺ = Ã C Ãᵀ + ẽ D ẽᵀ + blockdiag(Q_x, σ_p² I) where
     /// only the first n rows of Ã differ from the identity, so the GP block is untouched but for σ_p².
     pub fn predict(&mut self, x_pred: &[f64], a: &[f64], e: &[f64], q_x: &[f64]) -> Result<()> {
+        with_avx2!(RgpEkf, self.predict_impl(x_pred: &[f64], a: &[f64], e: &[f64], q_x: &[f64]) -> Result<()>)
+    }
+
+    #[inline(always)]
+    fn predict_impl(&mut self, x_pred: &[f64], a: &[f64], e: &[f64], q_x: &[f64]) -> Result<()> {
         let (n, q, nt) = (self.n, self.gps.len(), self.nt);
         if !self.inferred {
             return Err(Error::invalid(
@@ -723,18 +946,10 @@ impl RgpEkf {
         check_finite("A", a)?;
         check_finite("e", e)?;
         check_finite("Q_x", q_x)?;
-        let a = MatRef::from_row_major_slice(a, n, n);
-        let e = MatRef::from_row_major_slice(e, n, q);
-        let q_x = MatRef::from_row_major_slice(q_x, n, n);
-        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])
-        matmul(
-            self.t.as_mut(),
-            Accum::Replace,
-            a,
-            self.cov.as_ref().subrows(0, n),
-            1.0,
-            Par::Seq,
-        );
+        // The products below involve an n-row block and vectors of length N; at these sizes plain
+        // loops over C's contiguous columns beat faer's matmul dispatch.
+        // jc[g, :] = J_g C[z_g, :] = (C J̃_g)ᵀ with J̃_g = J_g on the block z_g, 0 elsewhere: a
+        // symmetric matrix-vector product from the stored lower triangle (see the struct's doc)
         if self.augmented {
             for g in 0..q {
                 let (o, jo, nb) = (
@@ -742,87 +957,97 @@ impl RgpEkf {
                     self.j_offsets[g],
                     self.gps[g].basis.n_basis(),
                 );
-                let jrow = MatRef::from_row_major_slice(&self.j[jo..jo + nb], 1, nb);
-                matmul(
-                    self.jc.as_mut().subrows_mut(g, 1),
-                    Accum::Replace,
-                    jrow,
-                    self.cov.as_ref().subrows(o, nb),
-                    1.0,
-                    Par::Seq,
-                );
-            }
-            matmul(
-                self.t.as_mut(),
-                Accum::Add,
-                e,
-                self.jc.as_ref(),
-                1.0,
-                Par::Seq,
-            );
-            // tj = T[:, z_g] J_gᵀ
-            for g in 0..q {
-                let (o, jo, nb) = (
-                    self.offsets[g],
-                    self.j_offsets[g],
-                    self.gps[g].basis.n_basis(),
-                );
-                let jcol = MatRef::from_column_major_slice(&self.j[jo..jo + nb], nb, 1);
-                matmul(
-                    self.tj.as_mut().subcols_mut(g, 1),
-                    Accum::Replace,
-                    self.t.as_ref().subcols(o, nb),
-                    jcol,
-                    1.0,
-                    Par::Seq,
-                );
-            }
-        }
-        // C[x, x] = T[:, x] Aᵀ + tj eᵀ + e D eᵀ + Q_x
-        let mut cxx = self.cov.as_mut().submatrix_mut(0, 0, n, n);
-        cxx.copy_from(q_x);
-        matmul(
-            cxx.as_mut(),
-            Accum::Add,
-            self.t.as_ref().subcols(0, n),
-            a.transpose(),
-            1.0,
-            Par::Seq,
-        );
-        if self.augmented {
-            matmul(
-                cxx.as_mut(),
-                Accum::Add,
-                self.tj.as_ref(),
-                e.transpose(),
-                1.0,
-                Par::Seq,
-            );
-        }
-        for r in 0..n {
-            for c in 0..n {
-                let mut s = 0.0;
-                for g in 0..q {
-                    s += e[(r, g)] * self.dvar[g] * e[(c, g)];
+                let jg = &self.j[jo..jo + nb];
+                let out = &mut self.jc[g * nt..(g + 1) * nt];
+                // columns before the block: C[i, z_g] = C[z_g, i], stored in column i
+                for (i, v) in out[..o].iter_mut().enumerate() {
+                    *v = dot(&self.cov.col_as_slice(i)[o..o + nb], jg);
                 }
-                cxx[(r, c)] += s;
+                out[o..].fill(0.0);
+                for (b, &jb) in jg.iter().enumerate() {
+                    let k = o + b;
+                    let col = self.cov.col_as_slice(k);
+                    // one pass over column k below the diagonal: out[i] += J_b C[i, k] (lower
+                    // part) and out[k] += C[k, i] J_i (upper part of row k, = column k by symmetry)
+                    let up = symv_column(
+                        &mut out[k + 1..o + nb],
+                        jb,
+                        &col[k + 1..o + nb],
+                        &jg[b + 1..],
+                    );
+                    out[k] += up + jb * col[k];
+                    axpy(&mut out[o + nb..], jb, &col[o + nb..]);
+                }
             }
         }
-        // exact symmetry of the state block
-        for r in 0..n {
-            for c in r + 1..n {
-                let v = 0.5 * (cxx[(r, c)] + cxx[(c, r)]);
-                cxx[(r, c)] = v;
-                cxx[(c, r)] = v;
+        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, column-major: t[c n + r])
+        // C[x, c] for c < n is stored in column c, for c ≥ n as C[c, x] in columns 0..n
+        for c in 0..n {
+            let cc = &self.cov.col_as_slice(c)[..n];
+            for r in 0..n {
+                self.t[c * n + r] = dot(&a[r * n..(r + 1) * n], cc);
+            }
+        }
+        self.t[n * n..].fill(0.0);
+        for k in 0..n {
+            let colk = self.cov.col_as_slice(k);
+            for (c, tc) in self.t.chunks_exact_mut(n).enumerate().skip(n) {
+                let v = colk[c];
+                for (r, t) in tc.iter_mut().enumerate() {
+                    *t += a[r * n + k] * v;
+                }
             }
         }
         if self.augmented {
-            // C[x, z] = T[:, z]; C[z, z] += σ_p² I
-            for c in n..nt {
+            for (c, tc) in self.t.chunks_exact_mut(n).enumerate() {
+                for (r, t) in tc.iter_mut().enumerate() {
+                    for g in 0..q {
+                        *t += e[r * q + g] * self.jc[g * nt + c];
+                    }
+                }
+            }
+        }
+        // tj[r, g] = T[r, z_g] J_gᵀ   (n × q, row-major)
+        if self.augmented {
+            for g in 0..q {
+                let (o, jo, nb) = (
+                    self.offsets[g],
+                    self.j_offsets[g],
+                    self.gps[g].basis.n_basis(),
+                );
                 for r in 0..n {
-                    let v = self.t[(r, c)];
-                    self.cov[(r, c)] = v;
-                    self.cov[(c, r)] = v;
+                    let mut s = 0.0;
+                    for (b, jb) in self.j[jo..jo + nb].iter().enumerate() {
+                        s += self.t[(o + b) * n + r] * jb;
+                    }
+                    self.tj[r * q + g] = s;
+                }
+            }
+        }
+        // C[x, x] = T[:, x] Aᵀ + tj eᵀ + e D eᵀ + Q_x: the lower half, mirrored (exactly
+        // symmetric); T and tj hold everything needed from the old C
+        for c in 0..n {
+            for r in c..n {
+                let mut s = 0.5 * (q_x[r * n + c] + q_x[c * n + r]);
+                for k in 0..n {
+                    s += self.t[k * n + r] * a[c * n + k];
+                }
+                for g in 0..q {
+                    if self.augmented {
+                        s += self.tj[r * q + g] * e[c * q + g];
+                    }
+                    s += e[r * q + g] * self.dvar[g] * e[c * q + g];
+                }
+                self.cov[(r, c)] = s;
+                self.cov[(c, r)] = s;
+            }
+        }
+        if self.augmented {
+            // C[z, x] = T[:, z]ᵀ (C[x, z] above the diagonal is not stored); C[z, z] += σ_p² I
+            for r in 0..n {
+                let col = self.cov.col_as_slice_mut(r);
+                for (c, v) in col.iter_mut().enumerate().skip(n) {
+                    *v = self.t[c * n + r];
                 }
             }
             for g in 0..q {
@@ -847,6 +1072,11 @@ impl RgpEkf {
     /// (x += K_x ν, C[x, ·] −= K_x H C[x, ·]). Returns the log-likelihood of ν. On error the state
     /// is unchanged.
     pub fn update(&mut self, nu: &[f64], h: &[f64], r: &[f64], learning: bool) -> Result<f64> {
+        with_avx2!(RgpEkf, self.update_impl(nu: &[f64], h: &[f64], r: &[f64], learning: bool) -> Result<f64>)
+    }
+
+    #[inline(always)]
+    fn update_impl(&mut self, nu: &[f64], h: &[f64], r: &[f64], learning: bool) -> Result<f64> {
         let (n, nt) = (self.n, self.nt);
         let p = nu.len();
         if p == 0 {
@@ -857,32 +1087,28 @@ impl RgpEkf {
         check_finite("H", h)?;
         check_len("R_x", r, p * p)?;
         check_finite("R_x", r)?;
-        let h = MatRef::from_row_major_slice(h, p, n);
-        let r = MatRef::from_row_major_slice(r, p, p);
-        if self.pht.ncols() != p {
-            self.pht = Mat::zeros(nt, p);
+        if self.pht.len() != nt * p {
+            self.pht = vec![0.0; nt * p];
         }
-        // C H̃ᵀ = C[:, x] Hᵀ
-        matmul(
-            self.pht.as_mut(),
-            Accum::Replace,
-            self.cov.as_ref().subcols(0, n),
-            h.transpose(),
-            1.0,
-            Par::Seq,
-        );
-        let mut s = r.to_owned();
-        matmul(
-            s.as_mut(),
-            Accum::Add,
-            h,
-            self.pht.as_ref().subrows(0, n),
-            1.0,
-            Par::Seq,
-        );
+        // C H̃ᵀ = C[:, x] Hᵀ (N × p, column-major): column k = Σ_j H[k, j] C[:, j]
+        for k in 0..p {
+            let col = &mut self.pht[k * nt..(k + 1) * nt];
+            col.fill(0.0);
+            for jj in 0..n {
+                let hkj = h[k * n + jj];
+                if hkj != 0.0 {
+                    axpy(col, hkj, self.cov.col_as_slice(jj));
+                }
+            }
+        }
+        // S = H C[x, :] H̃ᵀ + R_x, exactly symmetric
+        let mut s = Mat::<f64>::zeros(p, p);
         for i in 0..p {
-            for jj in i + 1..p {
-                let v = 0.5 * (s[(i, jj)] + s[(jj, i)]);
+            for jj in 0..=i {
+                let v = 0.5
+                    * (dot(&h[i * n..(i + 1) * n], &self.pht[jj * nt..jj * nt + n])
+                        + dot(&h[jj * n..(jj + 1) * n], &self.pht[i * nt..i * nt + n]))
+                    + 0.5 * (r[i * p + jj] + r[jj * p + i]);
                 s[(i, jj)] = v;
                 s[(jj, i)] = v;
             }
@@ -891,27 +1117,34 @@ impl RgpEkf {
             Error::numerical("the innovation covariance H P Hᵀ + R_x is not positive definite")
         })?;
         let ls = llt.L();
-        // W = C H̃ᵀ L_S⁻ᵀ (in place, as Wᵀ = L_S⁻¹ (C H̃ᵀ)ᵀ), w = L_S⁻¹ ν
-        solve_lower_triangular_in_place(ls, self.pht.as_mut().transpose_mut(), Par::Seq);
+        // W = C H̃ᵀ L_S⁻ᵀ, row by row in place (each row solves L_S wᵀ = row), w = L_S⁻¹ ν
+        for i in 0..nt {
+            for k in 0..p {
+                let mut v = self.pht[k * nt + i];
+                for m in 0..k {
+                    v -= ls[(k, m)] * self.pht[m * nt + i];
+                }
+                self.pht[k * nt + i] = v / ls[(k, k)];
+            }
+        }
         let mut w = nu.to_vec();
-        solve_lower_triangular_in_place(
-            ls,
-            MatMut::from_column_major_slice_mut(&mut w, p, 1),
-            Par::Seq,
-        );
+        for k in 0..p {
+            let mut v = w[k];
+            for m in 0..k {
+                v -= ls[(k, m)] * w[m];
+            }
+            w[k] = v / ls[(k, k)];
+        }
         let logdet: f64 = (0..p).map(|i| ls[(i, i)].ln()).sum::<f64>() * 2.0;
         let mahal: f64 = w.iter().map(|v| v * v).sum();
         let rows = if learning || !self.augmented { nt } else { n };
-        for i in 0..rows {
-            let mut d = 0.0;
-            for (k, wk) in w.iter().enumerate() {
-                d += self.pht[(i, k)] * wk;
-            }
-            self.mu[i] += d;
+        for (k, wk) in w.iter().enumerate() {
+            axpy(&mut self.mu[..rows], *wk, &self.pht[k * nt..k * nt + rows]);
         }
         // 4a: C −= W Wᵀ; 4b: only the state rows and columns (C[x, ·] and C[·, x])
-        rank_p_downdate(&mut self.cov, &self.pht, if rows == nt { nt } else { n });
-        self.innovation = nu.to_vec();
+        rank_p_downdate(&mut self.cov, &self.pht, p, n, rows == nt);
+        self.innovation.clear();
+        self.innovation.extend_from_slice(nu);
         self.s = s;
         self.log_likelihood =
             -0.5 * (mahal + logdet + p as f64 * (2.0 * std::f64::consts::PI).ln());
@@ -999,15 +1232,39 @@ mod tests {
         let q_rm: Vec<f64> = (0..n * n).map(|i| qx[(i / n, i % n)]).collect();
         ekf.predict(&[1.0, 2.0, 3.0], &a_rm, &e, &q_rm).unwrap();
         let dense = dense_prediction(&c0, &a, &e, &j, d, &qx, 0.05 * 0.05);
+        let cov = ekf.cov();
         for r in 0..nt {
             for c in 0..nt {
                 assert!(
-                    (dense[(r, c)] - ekf.cov[(r, c)]).abs() < 1e-12 * (1.0 + dense[(r, c)].abs()),
+                    (dense[(r, c)] - cov[(r, c)]).abs() < 1e-12 * (1.0 + dense[(r, c)].abs()),
                     "({r},{c}): {} vs {}",
                     dense[(r, c)],
-                    ekf.cov[(r, c)]
+                    cov[(r, c)]
                 );
             }
+        }
+    }
+
+    #[test]
+    fn substitutions_match_faer_triangular_solves() {
+        use faer::linalg::triangular_solve::{
+            solve_lower_triangular_in_place, solve_upper_triangular_in_place,
+        };
+        let b = RgpBasis::new(&[0.0], &[1.0], &[40], 2.0, 3.0, 0.0, 0.0).unwrap();
+        let rhs: Vec<f64> = (0..40).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+        let (mut ours, mut theirs) = (rhs.clone(), rhs.clone());
+        forward_substitution(&b.chol, &mut ours);
+        let mut col = MatMut::from_column_major_slice_mut(&mut theirs, 40, 1);
+        solve_lower_triangular_in_place(b.chol.as_ref(), col.as_mut(), Par::Seq);
+        for (o, t) in ours.iter().zip(&theirs) {
+            assert!((o - t).abs() <= 1e-10 * (1.0 + t.abs()), "{o} vs {t}");
+        }
+        let (mut ours, mut theirs) = (rhs.clone(), rhs);
+        back_substitution(&b.chol_t, &mut ours);
+        let mut col = MatMut::from_column_major_slice_mut(&mut theirs, 40, 1);
+        solve_upper_triangular_in_place(b.chol.transpose(), col.as_mut(), Par::Seq);
+        for (o, t) in ours.iter().zip(&theirs) {
+            assert!((o - t).abs() <= 1e-8 * (1.0 + t.abs()), "{o} vs {t}");
         }
     }
 
@@ -1073,6 +1330,13 @@ mod tests {
                 k % 3 != 0,
             )
             .unwrap();
+            for i in 0..2 {
+                assert_eq!(
+                    ekf.cov[(i, 1 - i)],
+                    ekf.cov[(1 - i, i)],
+                    "stored state block"
+                );
+            }
             let c = ekf.cov();
             for i in 0..c.nrows() {
                 assert!(c[(i, i)] > 0.0);
