@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod kernel;
+pub mod solver;
 
 #[cfg(feature = "python")]
 mod python;
