@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod kernel;
+pub mod window;
 
 #[cfg(feature = "python")]
 mod python;
