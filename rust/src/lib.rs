@@ -5,6 +5,7 @@
 pub mod error;
 pub mod kernel;
 pub mod solver;
+pub mod window;
 
 #[cfg(feature = "python")]
 mod python;
