@@ -3,6 +3,7 @@
 //! `python` cargo feature, so `cargo test` needs no Python.
 
 pub mod error;
+pub mod gp;
 pub mod kernel;
 pub mod window;
 

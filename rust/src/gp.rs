@@ -1,0 +1,812 @@
+//! Exact Gaussian-process regression with the SE-ARD kernel (DESIGN.md §2).
+//!
+//! [`Gp`] is one zero-mean output: built once from training inputs D (N × n_d, row-major), targets
+//! y (N) and log-hyperparameters θ = log([σ_f, φ_1..φ_nd, σ_ε]); it caches the Cholesky factor L of
+//! K + σ_ε² I (faer) and α = L⁻ᵀ L⁻¹ y. [`MultiGp`] holds q independent GPs on shared inputs, one
+//! per output column, each with its own θ. Predictions for a batch of k test points give the
+//! posterior mean m(d*) = k*ᵀ α, the latent (noise-free) variance σ²(d*) = σ_f² − ‖L⁻¹ k*‖² and
+//! their analytic gradients w.r.t. d*, written into caller buffers with a reusable [`GpWorkspace`].
+//! [`log_marginal_likelihood`] returns the LML and its gradient w.r.t. θ.
+//!
+//! **Jitter policy.** K + σ_ε² I is first factored as is. If the Cholesky factorisation fails
+//! (a non-positive pivot), a diagonal jitter δ = 10⁻¹⁰·(σ_f² + σ_ε²) is added and multiplied by
+//! ten on every further failure, up to 10⁻⁶·(σ_f² + σ_ε²) (five attempts). The jitter that worked
+//! is recorded ([`Gp::jitter`], 0 when none was needed) and acts as extra noise variance in every
+//! later prediction and in the LML; if the largest jitter still fails, a `Numerical` error is
+//! returned.
+
+use faer::linalg::solvers::{DenseSolveCore, Llt};
+use faer::linalg::triangular_solve::{
+    solve_lower_triangular_in_place, solve_upper_triangular_in_place,
+};
+use faer::{Mat, MatMut, MatRef, Par, Side};
+
+use crate::error::{check_finite, check_len, Error, Result};
+use crate::kernel::SeArd;
+
+/// Relative size of the first jitter tried, and of the largest (see the module docs).
+const JITTER_START: f64 = 1e-10;
+const JITTER_MAX: f64 = 1e-6;
+
+/// Scratch memory for batch predictions: two N × k column-major buffers. It only grows, so once
+/// it has been sized for the largest (N, k) in use, predictions allocate nothing.
+#[derive(Default, Clone, Debug)]
+pub struct GpWorkspace {
+    kstar: Vec<f64>,
+    v: Vec<f64>,
+}
+
+impl GpWorkspace {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    fn buffers(&mut self, len: usize) -> (&mut [f64], &mut [f64]) {
+        if self.kstar.len() < len {
+            self.kstar.resize(len, 0.0);
+            self.v.resize(len, 0.0);
+        }
+        (&mut self.kstar[..len], &mut self.v[..len])
+    }
+}
+
+/// One exact zero-mean GP with the SE-ARD kernel and a cached Cholesky factor.
+#[derive(Clone, Debug)]
+pub struct Gp {
+    /// Training inputs, N × n_d row-major.
+    x: Vec<f64>,
+    y: Vec<f64>,
+    theta: Vec<f64>,
+    kernel: SeArd,
+    sigma_eps: f64,
+    jitter: f64,
+    /// Cholesky factorisation L Lᵀ of K + (σ_ε² + jitter) I.
+    chol: Llt<f64>,
+    /// (K + (σ_ε² + jitter) I)⁻¹ y.
+    alpha: Vec<f64>,
+    lml: f64,
+}
+
+/// Splits θ = log([σ_f, φ_1..φ_nd, σ_ε]) into a kernel and σ_ε, naming `theta` on bad values.
+fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
+    if theta.len() < 3 {
+        return Err(Error::invalid(
+            "theta",
+            format!(
+                "needs n_d + 2 >= 3 values log([sigma_f, lengthscales.., sigma_eps]), got {}",
+                theta.len()
+            ),
+        ));
+    }
+    check_finite("theta", theta)?;
+    let p: Vec<f64> = theta.iter().map(|t| t.exp()).collect();
+    if let Some(i) = p.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+        return Err(Error::invalid(
+            "theta",
+            format!(
+                "exp(theta[{i}]) = exp({}) is not a finite positive number",
+                theta[i]
+            ),
+        ));
+    }
+    let nd = theta.len() - 2;
+    let kernel = SeArd::new(p[0], &p[1..=nd])?;
+    Ok((kernel, p[nd + 1]))
+}
+
+/// Checks the training set against the input dimension `nd` and returns N.
+fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
+    let n = y.len();
+    if n < 2 {
+        return Err(Error::invalid(
+            "y",
+            format!("needs at least 2 training points, got {n}"),
+        ));
+    }
+    check_len("x", x, n * nd).map_err(|_| {
+        Error::invalid(
+            "x",
+            format!(
+                "expected {n} points of dimension {nd} ({} values), got {} values",
+                n * nd,
+                x.len()
+            ),
+        )
+    })?;
+    check_finite("x", x)?;
+    check_finite("y", y)?;
+    Ok(n)
+}
+
+/// Cholesky factor of `gram` + noise_var·I under the jitter policy; returns (L, jitter).
+fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Result<(Llt<f64>, f64)> {
+    let n = gram.nrows();
+    let mut a = gram.clone();
+    let scale = signal_var + noise_var;
+    let mut jitter = 0.0;
+    loop {
+        for i in 0..n {
+            a[(i, i)] = gram[(i, i)] + noise_var + jitter;
+        }
+        if let Ok(llt) = Llt::new(a.as_ref(), Side::Lower) {
+            return Ok((llt, jitter));
+        }
+        jitter = if jitter == 0.0 {
+            JITTER_START * scale
+        } else {
+            jitter * 10.0
+        };
+        if jitter > JITTER_MAX * scale * (1.0 + 1e-12) {
+            return Err(Error::numerical(format!(
+                "K + sigma_eps^2 I is not positive definite even with a diagonal jitter of {:.3e} \
+                 (N = {n}, sigma_f^2 = {signal_var:.3e}, sigma_eps^2 = {noise_var:.3e}); \
+                 check for duplicated inputs or increase sigma_eps",
+                JITTER_MAX * scale
+            )));
+        }
+    }
+}
+
+impl Gp {
+    /// Fits the posterior cache. `x`: N × n_d row-major training inputs, `y`: N targets,
+    /// `theta` = log([σ_f, φ_1..φ_nd, σ_ε]) (n_d is `theta.len() - 2`). Bad input gives
+    /// `InvalidInput` naming the argument; a matrix that stays indefinite under the jitter policy
+    /// (module docs) gives `Numerical`.
+    pub fn new(x: &[f64], y: &[f64], theta: &[f64]) -> Result<Gp> {
+        let (kernel, sigma_eps) = hyperparameters(theta)?;
+        let nd = kernel.dim();
+        let n = check_training(x, y, nd)?;
+        let gram = kernel.gram(x);
+        let (chol, jitter) = factor_with_jitter(&gram, sigma_eps * sigma_eps, kernel.variance())?;
+        let l = chol.L();
+        let mut alpha = y.to_vec();
+        {
+            let mut rhs = MatMut::from_column_major_slice_mut(&mut alpha[..], n, 1);
+            solve_lower_triangular_in_place(l, rhs.as_mut(), Par::Seq);
+            solve_upper_triangular_in_place(l.transpose(), rhs.as_mut(), Par::Seq);
+        }
+        let half_logdet: f64 = (0..n).map(|i| l[(i, i)].ln()).sum();
+        let data_fit: f64 = y.iter().zip(&alpha).map(|(a, b)| a * b).sum();
+        let lml =
+            -0.5 * data_fit - half_logdet - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
+        if !lml.is_finite() {
+            return Err(Error::numerical(
+                "the log marginal likelihood is not finite (ill-conditioned K + sigma_eps^2 I)",
+            ));
+        }
+        Ok(Gp {
+            x: x.to_vec(),
+            y: y.to_vec(),
+            theta: theta.to_vec(),
+            kernel,
+            sigma_eps,
+            jitter,
+            chol,
+            alpha,
+            lml,
+        })
+    }
+
+    /// Input dimension n_d.
+    pub fn dim(&self) -> usize {
+        self.kernel.dim()
+    }
+
+    /// Number of training points N.
+    pub fn n_train(&self) -> usize {
+        self.y.len()
+    }
+
+    /// θ = log([σ_f, φ_1..φ_nd, σ_ε]).
+    pub fn theta(&self) -> Vec<f64> {
+        self.theta.clone()
+    }
+
+    pub fn kernel(&self) -> &SeArd {
+        &self.kernel
+    }
+
+    pub fn sigma_eps(&self) -> f64 {
+        self.sigma_eps
+    }
+
+    /// Diagonal jitter added by the jitter policy (0 if none was needed).
+    pub fn jitter(&self) -> f64 {
+        self.jitter
+    }
+
+    /// Training inputs (N × n_d row-major) and targets.
+    pub fn x_train(&self) -> &[f64] {
+        &self.x
+    }
+
+    pub fn y_train(&self) -> &[f64] {
+        &self.y
+    }
+
+    /// α = (K + σ_ε² I)⁻¹ y.
+    pub fn alpha(&self) -> &[f64] {
+        &self.alpha
+    }
+
+    /// The lower Cholesky factor L of K + (σ_ε² + jitter) I.
+    pub fn cholesky(&self) -> MatRef<'_, f64> {
+        self.chol.L()
+    }
+
+    /// log p(y | D, θ) at this GP's θ.
+    pub fn log_marginal_likelihood(&self) -> f64 {
+        self.lml
+    }
+
+    /// log p(y | D, θ) and its gradient w.r.t. θ = log([σ_f, φ.., σ_ε]):
+    /// ∂/∂θ_j = ½ tr((α αᵀ − K⁻¹) ∂K/∂θ_j), with ∂K/∂log σ_f = 2 K_f,
+    /// ∂K/∂log φ_l = K_f ∘ (x_il − x_jl)²/φ_l², ∂K/∂log σ_ε = 2 σ_ε² I. O(N³) for K⁻¹.
+    pub fn log_marginal_likelihood_gradient(&self) -> Vec<f64> {
+        let n = self.n_train();
+        let nd = self.dim();
+        // K⁻¹ from the cached factor (faer's Cholesky inverse).
+        let kinv = self.chol.inverse();
+        let w = self.kernel.inv_lengthscales_sq();
+        let s2 = self.kernel.variance();
+        let a = &self.alpha;
+        let x = &self.x;
+        let mut g = vec![0.0; nd + 2];
+        let mut trace_w = 0.0;
+        for j in 0..n {
+            let xj = &x[j * nd..(j + 1) * nd];
+            // Diagonal: K_f = σ_f², no length-scale term.
+            let wjj = a[j] * a[j] - kinv[(j, j)];
+            trace_w += wjj;
+            g[0] += wjj * s2;
+            for i in j + 1..n {
+                let xi = &x[i * nd..(i + 1) * nd];
+                let kf = self.kernel.eval(xi, xj);
+                // Both (i, j) and (j, i): factor 2.
+                let wij = 2.0 * (a[i] * a[j] - kinv[(i, j)]) * kf;
+                g[0] += wij;
+                for l in 0..nd {
+                    let d = xi[l] - xj[l];
+                    g[1 + l] += 0.5 * wij * d * d * w[l];
+                }
+            }
+        }
+        g[nd + 1] = self.sigma_eps * self.sigma_eps * trace_w;
+        g
+    }
+
+    /// Posterior means and latent variances at k test points `d` (k × n_d row-major) into
+    /// `mean` (k) and `var` (k).
+    pub fn predict_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        var: &mut [f64],
+        ws: &mut GpWorkspace,
+    ) -> Result<()> {
+        let k = self.kernel.count_points("d", d)?;
+        check_out("mean", mean, k)?;
+        check_out("var", var, k)?;
+        self.predict_block(d, k, 0, 1, mean, Some(var), None, ws);
+        Ok(())
+    }
+
+    /// Means, latent variances and their gradients w.r.t. the test point: `dmean`, `dvar` are
+    /// k × n_d row-major.
+    pub fn predict_with_gradients_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        var: &mut [f64],
+        dmean: &mut [f64],
+        dvar: &mut [f64],
+        ws: &mut GpWorkspace,
+    ) -> Result<()> {
+        let k = self.kernel.count_points("d", d)?;
+        let nd = self.dim();
+        check_out("mean", mean, k)?;
+        check_out("var", var, k)?;
+        check_out("dmean", dmean, k * nd)?;
+        check_out("dvar", dvar, k * nd)?;
+        self.predict_block(d, k, 0, 1, mean, Some(var), Some((dmean, dvar)), ws);
+        Ok(())
+    }
+
+    /// The numerics of every prediction: for k points `d`, writes output `o` of `q` into
+    /// `mean[j*q + o]`, `var[j*q + o]` and the gradients at `[(j*q + o)*nd ..]`. With `var` None
+    /// only means (and mean gradients if asked) are computed, O(N) per point; variances cost two
+    /// (with gradients) or one triangular solve with k right-hand sides.
+    #[allow(clippy::too_many_arguments)]
+    fn predict_block(
+        &self,
+        d: &[f64],
+        k: usize,
+        o: usize,
+        q: usize,
+        mean: &mut [f64],
+        var: Option<&mut [f64]>,
+        mut grads: Option<(&mut [f64], &mut [f64])>,
+        ws: &mut GpWorkspace,
+    ) {
+        let n = self.n_train();
+        let nd = self.dim();
+        let w = self.kernel.inv_lengthscales_sq();
+        let (kstar, v) = ws.buffers(n * k);
+        // k*: column j holds k(x_i, d_j) for i = 0..N.
+        for (j, dj) in d.chunks_exact(nd).enumerate() {
+            let col = &mut kstar[j * n..(j + 1) * n];
+            for (c, xi) in col.iter_mut().zip(self.x.chunks_exact(nd)) {
+                *c = self.kernel.eval(dj, xi);
+            }
+            // m = k*ᵀ α; ∂m/∂d_l = −w_l Σ_i α_i k_i (d_l − x_il).
+            let mut m = 0.0;
+            for (c, a) in col.iter().zip(&self.alpha) {
+                m += c * a;
+            }
+            mean[j * q + o] = m;
+            if let Some((dmean, _)) = grads.as_mut() {
+                let g = &mut dmean[(j * q + o) * nd..(j * q + o + 1) * nd];
+                weighted_offset_sum(col, &self.alpha, &self.x, dj, g);
+                for (gl, wl) in g.iter_mut().zip(w) {
+                    *gl *= -wl;
+                }
+            }
+        }
+        let Some(var) = var else { return };
+        v.copy_from_slice(kstar);
+        let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
+        solve_lower_triangular_in_place(self.chol.L(), vm.as_mut(), Par::Seq);
+        let s2 = self.kernel.variance();
+        for j in 0..k {
+            let vj = &v[j * n..(j + 1) * n];
+            let sq: f64 = vj.iter().map(|t| t * t).sum();
+            // Clamp round-off negatives (test points on top of noise-free data) at 0.
+            var[j * q + o] = (s2 - sq).max(0.0);
+        }
+        let Some((_, dvar)) = grads else { return };
+        // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_l = 2 w_l Σ_i β_i k_i (d_l − x_il).
+        let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
+        solve_upper_triangular_in_place(self.chol.L().transpose(), vm.as_mut(), Par::Seq);
+        for (j, dj) in d.chunks_exact(nd).enumerate() {
+            let col = &kstar[j * n..(j + 1) * n];
+            let beta = &v[j * n..(j + 1) * n];
+            let g = &mut dvar[(j * q + o) * nd..(j * q + o + 1) * nd];
+            weighted_offset_sum(col, beta, &self.x, dj, g);
+            for (gl, wl) in g.iter_mut().zip(w) {
+                *gl *= 2.0 * wl;
+            }
+        }
+    }
+}
+
+/// g_l = Σ_i c_i b_i (d_l − x_il) for training points x (N × n_d row-major).
+#[inline]
+fn weighted_offset_sum(c: &[f64], b: &[f64], x: &[f64], d: &[f64], g: &mut [f64]) {
+    let nd = d.len();
+    g.iter_mut().for_each(|v| *v = 0.0);
+    let mut s = 0.0;
+    for ((ci, bi), xi) in c.iter().zip(b).zip(x.chunks_exact(nd)) {
+        let cb = ci * bi;
+        s += cb;
+        for (gl, xl) in g.iter_mut().zip(xi) {
+            *gl += cb * xl;
+        }
+    }
+    for (gl, dl) in g.iter_mut().zip(d) {
+        *gl = s * dl - *gl;
+    }
+}
+
+fn check_out(arg: &str, out: &[f64], expected: usize) -> Result<()> {
+    if out.len() == expected {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            arg,
+            format!("output buffer needs {expected} values, has {}", out.len()),
+        ))
+    }
+}
+
+/// log p(y | D, θ) and, if `eval_gradient`, its gradient w.r.t. θ = log([σ_f, φ_1..φ_nd, σ_ε])
+/// (empty otherwise). `x` is N × n_d row-major with n_d = `theta.len() - 2`.
+pub fn log_marginal_likelihood(
+    x: &[f64],
+    y: &[f64],
+    theta: &[f64],
+    eval_gradient: bool,
+) -> Result<(f64, Vec<f64>)> {
+    let gp = Gp::new(x, y, theta)?;
+    let grad = if eval_gradient {
+        gp.log_marginal_likelihood_gradient()
+    } else {
+        Vec::new()
+    };
+    Ok((gp.lml, grad))
+}
+
+/// q independent GPs on shared inputs, one per output, each with its own θ.
+#[derive(Clone, Debug)]
+pub struct MultiGp {
+    gps: Vec<Gp>,
+}
+
+impl MultiGp {
+    /// `x`: N × n_d row-major, `y`: N × q row-major, `thetas`: q × (n_d + 2) row-major.
+    /// n_d is taken from `x.len() / N` with N = `y.len() / q` and q = `thetas.len() / (n_d + 2)`;
+    /// they must be consistent.
+    pub fn new(x: &[f64], y: &[f64], thetas: &[f64]) -> Result<Self> {
+        // q · (nd + 2) = thetas.len(), N · q = y.len(), N · nd = x.len(): solve for q by trial.
+        let (q, nd, n) = (1..=thetas.len())
+            .filter(|q| thetas.len() % q == 0 && y.len() % q == 0)
+            .filter_map(|q| {
+                let nd = (thetas.len() / q).checked_sub(2)?;
+                let n = y.len() / q;
+                (nd >= 1 && n > 0 && x.len() == n * nd).then_some((q, nd, n))
+            })
+            .next()
+            .ok_or_else(|| {
+                Error::invalid(
+                    "thetas",
+                    format!(
+                        "no q, n_d with x = N*n_d ({}), y = N*q ({}) and thetas = q*(n_d+2) ({}) values",
+                        x.len(),
+                        y.len(),
+                        thetas.len()
+                    ),
+                )
+            })?;
+        let mut col = vec![0.0; n];
+        let gps = (0..q)
+            .map(|o| {
+                for (c, row) in col.iter_mut().zip(y.chunks_exact(q)) {
+                    *c = row[o];
+                }
+                Gp::new(x, &col, &thetas[o * (nd + 2)..(o + 1) * (nd + 2)]).map_err(|e| match e {
+                    Error::InvalidInput { arg, msg } => {
+                        Error::invalid(arg, format!("output {o}: {msg}"))
+                    }
+                    Error::Numerical(msg) => Error::numerical(format!("output {o}: {msg}")),
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(MultiGp { gps })
+    }
+
+    /// Bundles fitted GPs; they must share the input dimension and the training inputs.
+    pub fn from_gps(gps: Vec<Gp>) -> Result<Self> {
+        let Some(first) = gps.first() else {
+            return Err(Error::invalid("gps", "needs at least one GP"));
+        };
+        if let Some(o) = gps.iter().position(|g| g.x != first.x) {
+            return Err(Error::invalid(
+                "gps",
+                format!("GP {o} has other training inputs than GP 0"),
+            ));
+        }
+        Ok(MultiGp { gps })
+    }
+
+    /// Number of outputs q.
+    pub fn n_outputs(&self) -> usize {
+        self.gps.len()
+    }
+
+    /// Input dimension n_d.
+    pub fn dim(&self) -> usize {
+        self.gps[0].dim()
+    }
+
+    pub fn gps(&self) -> &[Gp] {
+        &self.gps
+    }
+
+    fn check_io(&self, d: &[f64], outs: &[(&str, &[f64], usize)]) -> Result<usize> {
+        let k = self.gps[0].kernel.count_points("d", d)?;
+        for (arg, buf, per_point) in outs {
+            check_out(arg, buf, k * per_point)?;
+        }
+        Ok(k)
+    }
+
+    /// For k test points `d` (k × n_d row-major) writes means and latent variances (k × q), and
+    /// ∂mean/∂d, ∂var/∂d (k × q × n_d), all row-major. `ws` is reused across calls.
+    pub fn predict_with_gradients_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        var: &mut [f64],
+        dmean: &mut [f64],
+        dvar: &mut [f64],
+        ws: &mut GpWorkspace,
+    ) -> Result<()> {
+        let (q, nd) = (self.n_outputs(), self.dim());
+        let k = self.check_io(
+            d,
+            &[
+                ("mean", mean, q),
+                ("var", var, q),
+                ("dmean", dmean, q * nd),
+                ("dvar", dvar, q * nd),
+            ],
+        )?;
+        for (o, gp) in self.gps.iter().enumerate() {
+            gp.predict_block(d, k, o, q, mean, Some(var), Some((dmean, dvar)), ws);
+        }
+        Ok(())
+    }
+
+    /// Means and latent variances only (k × q each).
+    pub fn predict_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        var: &mut [f64],
+        ws: &mut GpWorkspace,
+    ) -> Result<()> {
+        let q = self.n_outputs();
+        let k = self.check_io(d, &[("mean", mean, q), ("var", var, q)])?;
+        for (o, gp) in self.gps.iter().enumerate() {
+            gp.predict_block(d, k, o, q, mean, Some(var), None, ws);
+        }
+        Ok(())
+    }
+
+    /// Means only (k × q), O(N) per point and output.
+    pub fn predict_mean_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        ws: &mut GpWorkspace,
+    ) -> Result<()> {
+        let q = self.n_outputs();
+        let k = self.check_io(d, &[("mean", mean, q)])?;
+        for (o, gp) in self.gps.iter().enumerate() {
+            gp.predict_block(d, k, o, q, mean, None, None, ws);
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{DMatrix, DVector};
+
+    /// A deterministic pseudo-random data set (LCG), N points in n_d dimensions.
+    fn data(n: usize, nd: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
+        let mut s = seed;
+        let mut r = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) * 4.0 - 2.0
+        };
+        let x: Vec<f64> = (0..n * nd).map(|_| r()).collect();
+        let y = x
+            .chunks_exact(nd)
+            .map(|p| p.iter().map(|v| v.sin()).sum::<f64>() + 0.05 * r())
+            .collect();
+        (x, y)
+    }
+
+    fn theta(nd: usize) -> Vec<f64> {
+        let mut t = vec![1.3f64.ln()];
+        t.extend((0..nd).map(|l| (0.7 + 0.4 * l as f64).ln()));
+        t.push(0.1f64.ln());
+        t
+    }
+
+    /// Mean and variance by an independent dense computation (nalgebra Cholesky solve).
+    fn dense_posterior(x: &[f64], y: &[f64], th: &[f64], d: &[f64]) -> (f64, f64) {
+        let nd = th.len() - 2;
+        let n = y.len();
+        let k = SeArd::new(
+            th[0].exp(),
+            &th[1..=nd].iter().map(|t| t.exp()).collect::<Vec<_>>(),
+        )
+        .unwrap();
+        let s2e = (2.0 * th[nd + 1]).exp();
+        let km = DMatrix::from_fn(n, n, |i, j| {
+            k.eval(&x[i * nd..(i + 1) * nd], &x[j * nd..(j + 1) * nd])
+                + if i == j { s2e } else { 0.0 }
+        });
+        let ks = DVector::from_fn(n, |i, _| k.eval(d, &x[i * nd..(i + 1) * nd]));
+        let chol = km.cholesky().unwrap();
+        let a = chol.solve(&DVector::from_column_slice(y));
+        let b = chol.solve(&ks);
+        (ks.dot(&a), k.variance() - ks.dot(&b))
+    }
+
+    #[test]
+    fn posterior_matches_dense_computation() {
+        for nd in 1..=3 {
+            let (x, y) = data(40, nd, nd as u64);
+            let th = theta(nd);
+            let gp = Gp::new(&x, &y, &th).unwrap();
+            assert_eq!(gp.jitter(), 0.0);
+            let (d, _) = data(5, nd, 99);
+            let mut ws = GpWorkspace::default();
+            let (mut m, mut v) = (vec![0.0; 5], vec![0.0; 5]);
+            gp.predict_into(&d, &mut m, &mut v, &mut ws).unwrap();
+            for j in 0..5 {
+                let (me, ve) = dense_posterior(&x, &y, &th, &d[j * nd..(j + 1) * nd]);
+                assert!(
+                    (m[j] - me).abs() < 1e-10 * (1.0 + me.abs()),
+                    "{} {}",
+                    m[j],
+                    me
+                );
+                assert!((v[j] - ve).abs() < 1e-10, "{} {}", v[j], ve);
+            }
+        }
+    }
+
+    #[test]
+    fn input_gradients_match_finite_differences() {
+        let nd = 3;
+        let (x, y) = data(30, nd, 7);
+        let gp = Gp::new(&x, &y, &theta(nd)).unwrap();
+        let (d, _) = data(4, nd, 11);
+        let k = 4;
+        let mut ws = GpWorkspace::default();
+        let (mut m, mut v) = (vec![0.0; k], vec![0.0; k]);
+        let (mut dm, mut dv) = (vec![0.0; k * nd], vec![0.0; k * nd]);
+        gp.predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
+            .unwrap();
+        let h = 1e-6;
+        for l in 0..nd {
+            let (mut dp, mut dmi) = (d.clone(), d.clone());
+            for j in 0..k {
+                dp[j * nd + l] += h;
+                dmi[j * nd + l] -= h;
+            }
+            let (mut mp, mut vp, mut mm, mut vm) =
+                (vec![0.0; k], vec![0.0; k], vec![0.0; k], vec![0.0; k]);
+            gp.predict_into(&dp, &mut mp, &mut vp, &mut ws).unwrap();
+            gp.predict_into(&dmi, &mut mm, &mut vm, &mut ws).unwrap();
+            for j in 0..k {
+                let fm = (mp[j] - mm[j]) / (2.0 * h);
+                let fv = (vp[j] - vm[j]) / (2.0 * h);
+                assert!(
+                    (fm - dm[j * nd + l]).abs() < 1e-7,
+                    "mean {fm} {}",
+                    dm[j * nd + l]
+                );
+                assert!(
+                    (fv - dv[j * nd + l]).abs() < 1e-7,
+                    "var {fv} {}",
+                    dv[j * nd + l]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn lml_gradient_matches_finite_differences() {
+        let nd = 2;
+        let (x, y) = data(25, nd, 3);
+        let th = theta(nd);
+        let (f0, g) = log_marginal_likelihood(&x, &y, &th, true).unwrap();
+        assert!(f0.is_finite());
+        let h = 1e-6;
+        for i in 0..th.len() {
+            let (mut tp, mut tm) = (th.clone(), th.clone());
+            tp[i] += h;
+            tm[i] -= h;
+            let fp = log_marginal_likelihood(&x, &y, &tp, false).unwrap().0;
+            let fm = log_marginal_likelihood(&x, &y, &tm, false).unwrap().0;
+            let fd = (fp - fm) / (2.0 * h);
+            assert!(
+                (fd - g[i]).abs() < 1e-6 * (1.0 + fd.abs()),
+                "theta[{i}]: {fd} vs {}",
+                g[i]
+            );
+        }
+    }
+
+    #[test]
+    fn lml_matches_dense_formula() {
+        let nd = 2;
+        let (x, y) = data(20, nd, 5);
+        let th = theta(nd);
+        let gp = Gp::new(&x, &y, &th).unwrap();
+        let n = y.len();
+        let s2e = (2.0 * th[nd + 1]).exp();
+        let km = DMatrix::from_fn(n, n, |i, j| {
+            gp.kernel()
+                .eval(&x[i * nd..(i + 1) * nd], &x[j * nd..(j + 1) * nd])
+                + if i == j { s2e } else { 0.0 }
+        });
+        let yv = DVector::from_column_slice(&y);
+        let logdet = km.clone().cholesky().unwrap().determinant().ln();
+        let want = -0.5 * yv.dot(&(&km.try_inverse().unwrap() * &yv))
+            - 0.5 * logdet
+            - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
+        assert!((gp.log_marginal_likelihood() - want).abs() < 1e-9 * want.abs());
+    }
+
+    #[test]
+    fn multi_gp_matches_single_gps_and_layout() {
+        let (nd, q, n, k) = (2, 3, 30, 5);
+        let (x, y0) = data(n, nd, 1);
+        let ys: Vec<Vec<f64>> = (0..q)
+            .map(|o| y0.iter().map(|v| v * (o as f64 + 1.0) + o as f64).collect())
+            .collect();
+        let thetas: Vec<Vec<f64>> = (0..q)
+            .map(|o| theta(nd).iter().map(|t| t + 0.1 * o as f64).collect())
+            .collect();
+        let ymat: Vec<f64> = (0..n)
+            .flat_map(|i| (0..q).map(|o| ys[o][i]).collect::<Vec<_>>())
+            .collect();
+        let multi = MultiGp::new(&x, &ymat, &thetas.concat()).unwrap();
+        assert_eq!((multi.n_outputs(), multi.dim()), (q, nd));
+        let (d, _) = data(k, nd, 4);
+        let mut ws = GpWorkspace::default();
+        let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
+        let (mut dm, mut dv) = (vec![0.0; k * q * nd], vec![0.0; k * q * nd]);
+        multi
+            .predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
+            .unwrap();
+        let mut mean_only = vec![0.0; k * q];
+        multi
+            .predict_mean_into(&d, &mut mean_only, &mut ws)
+            .unwrap();
+        assert_eq!(mean_only, m);
+        for o in 0..q {
+            let gp = Gp::new(&x, &ys[o], &thetas[o]).unwrap();
+            let (mut m1, mut v1) = (vec![0.0; k], vec![0.0; k]);
+            let (mut dm1, mut dv1) = (vec![0.0; k * nd], vec![0.0; k * nd]);
+            gp.predict_with_gradients_into(&d, &mut m1, &mut v1, &mut dm1, &mut dv1, &mut ws)
+                .unwrap();
+            for j in 0..k {
+                assert_eq!(m[j * q + o], m1[j]);
+                assert_eq!(v[j * q + o], v1[j]);
+                for l in 0..nd {
+                    assert_eq!(dm[(j * q + o) * nd + l], dm1[j * nd + l]);
+                    assert_eq!(dv[(j * q + o) * nd + l], dv1[j * nd + l]);
+                }
+            }
+        }
+        let again = MultiGp::from_gps(multi.gps().to_vec()).unwrap();
+        assert_eq!(again.n_outputs(), q);
+    }
+
+    #[test]
+    fn duplicated_inputs_use_jitter_and_stay_finite() {
+        // Five copies of one point, noise-free: K + σ_ε² I is singular to machine precision.
+        let x = vec![0.5; 5];
+        let y = vec![1.0; 5];
+        let th = [0.0, 0.0, -40.0];
+        let gp = Gp::new(&x, &y, &th).unwrap();
+        assert!(gp.jitter() > 0.0 && gp.jitter() <= JITTER_MAX * (1.0 + 1e-9));
+        let mut ws = GpWorkspace::default();
+        let (mut m, mut v) = ([0.0], [0.0]);
+        gp.predict_into(&[0.5], &mut m, &mut v, &mut ws).unwrap();
+        assert!((m[0] - 1.0).abs() < 1e-4 && v[0] >= 0.0 && v[0] < 1e-4);
+    }
+
+    #[test]
+    fn bad_input_is_rejected_with_the_argument_named() {
+        let (x, y) = data(10, 2, 1);
+        let name = |r: Result<Gp>| match r {
+            Err(Error::InvalidInput { arg, .. }) => arg,
+            other => panic!("expected InvalidInput, got {other:?}"),
+        };
+        assert_eq!(name(Gp::new(&x, &y, &[0.0, 0.0])), "theta");
+        assert_eq!(name(Gp::new(&x, &y, &[0.0, 0.0, f64::NAN, 0.0])), "theta");
+        assert_eq!(name(Gp::new(&x, &y, &[800.0, 0.0, 0.0, 0.0])), "theta");
+        assert_eq!(name(Gp::new(&x[..19], &y, &theta(2))), "x");
+        assert_eq!(name(Gp::new(&x[..2], &y[..1], &theta(2))), "y");
+        let mut yn = y.clone();
+        yn[3] = f64::INFINITY;
+        assert_eq!(name(Gp::new(&x, &yn, &theta(2))), "y");
+        let gp = Gp::new(&x, &y, &theta(2)).unwrap();
+        let mut ws = GpWorkspace::default();
+        let (mut m, mut v) = (vec![0.0; 2], vec![0.0; 1]);
+        assert!(gp.predict_into(&[0.0; 4], &mut m, &mut v, &mut ws).is_err());
+        assert!(gp.predict_into(&[0.0; 3], &mut m, &mut v, &mut ws).is_err());
+        assert!(MultiGp::new(&x, &y, &[0.0; 5]).is_err());
+        assert!(MultiGp::from_gps(vec![]).is_err());
+    }
+}
