@@ -6,6 +6,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 """
 
 from gpmhe._core import NumericalError
+from gpmhe.mhe import GPMHE
+from gpmhe.models import KnownModel
 
-__all__ = ["NumericalError"]
+__all__ = ["NumericalError", "GPMHE", "KnownModel"]
 __version__ = "0.1.0"
