@@ -14,6 +14,8 @@ from collections import deque
 import numpy as np
 from scipy.optimize import Bounds, least_squares, minimize
 
+from gpmhe import _core
+
 __all__ = ["GPMHE"]
 
 
@@ -347,7 +349,18 @@ class GPMHE:
                             method="trf", **options)
         return res.x, res.nfev, res.status > 0, res.message
 
+    def _solve_gauss_newton(self, window, z0, lb, ub):
+        # The Rust solver object (settings + work buffers) lives next to the window, built on
+        # first use so that `solver_options` is validated by Rust and reported by name.
+        core = self._core
+        if getattr(core, "solver", None) is None:
+            core.solver = _core.WindowSolver(**self.solver_options)
+        z, cost, status, ok, nit, nfev, pg, n_interior = core.solver.solve(window, z0, lb, ub)
+        self.projected_gradient, self.nfev = float(pg), int(nfev)
+        return z, nit, ok, f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
+
     _SOLVERS = {
+        "gauss-newton": "_solve_gauss_newton",
         "trust-constr": "_solve_trust_constr",
         "least-squares": "_solve_least_squares",
     }

@@ -382,11 +382,133 @@ fn window_problem(
     )?)
 }
 
+// ===== Window solver =====
+// The real-time bounded Gauss-Newton solver (solver.rs) on a `MheWindow`: one call per update.
+
+use crate::solver::{BoxLsqSolver, InteriorMode, SolveReport, SolverOptions, WindowLsq};
+
+/// Solver settings and work buffers, one per estimator (reused every update).
+#[pyclass(name = "WindowSolver", module = "gpmhe._core")]
+struct PyWindowSolver {
+    solver: BoxLsqSolver,
+    opts: SolverOptions,
+}
+
+#[pymethods]
+impl PyWindowSolver {
+    /// See `gpmhe.GPMHE`'s `solver_options` for the meaning of each setting.
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (max_iter=100, gtol=1e-6, xtol=1e-12, ftol=1e-15, interior="auto",
+                        interior_zone=0.01, mu_init=0.1, mu_final=1e-5))]
+    fn new(
+        max_iter: usize,
+        gtol: f64,
+        xtol: f64,
+        ftol: f64,
+        interior: &str,
+        interior_zone: f64,
+        mu_init: f64,
+        mu_final: f64,
+    ) -> PyResult<Self> {
+        let interior = match interior {
+            "auto" => InteriorMode::Auto,
+            "always" => InteriorMode::Always,
+            "never" => InteriorMode::Never,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "interior: must be 'auto', 'always' or 'never', got {other:?}"
+                )))
+            }
+        };
+        let opts = SolverOptions {
+            max_iter,
+            gtol,
+            xtol,
+            ftol,
+            interior,
+            interior_zone,
+            mu_init,
+            mu_final,
+        };
+        opts.validate()?;
+        Ok(Self {
+            solver: BoxLsqSolver::new(),
+            opts,
+        })
+    }
+
+    /// Minimises the window's cost over lower ≤ z ≤ upper from the warm start `z0`. Returns
+    /// (z, cost, status, success, nit, nfev, projected_gradient, interior_iterations); afterwards
+    /// the window's cached evaluation (with derivatives) is at the returned z. Learned models run
+    /// without the GIL; a known model's Python callback runs with it.
+    #[allow(clippy::type_complexity)]
+    fn solve<'py>(
+        &mut self,
+        py: Python<'py>,
+        mut window: PyRefMut<'py, PyMheWindow>,
+        z0: PyReadonlyArray1<'py, f64>,
+        lower: PyReadonlyArray1<'py, f64>,
+        upper: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<(
+        Bound<'py, numpy::PyArray1<f64>>,
+        f64,
+        &'static str,
+        bool,
+        usize,
+        usize,
+        f64,
+        usize,
+    )> {
+        let mut z = slice1("z0", &z0)?.to_vec();
+        let lower = slice1("lower", &lower)?;
+        let upper = slice1("upper", &upper)?;
+        let w = &mut *window;
+        w.last_z.clear();
+        let dims = (w.problem.dim_x(), w.problem.dim_u(), w.problem.dim_y());
+        let report: SolveReport = match &w.model {
+            WindowModel::Callback(func) => {
+                let mut model = CallbackModel {
+                    func: func.bind(py),
+                    dims,
+                    err: None,
+                };
+                let mut lsq = WindowLsq {
+                    problem: &w.problem,
+                    model: &mut model,
+                    eval: &mut w.eval,
+                };
+                match self
+                    .solver
+                    .solve(&mut lsq, &mut z, lower, upper, &self.opts)
+                {
+                    Ok(r) => r,
+                    // A Python exception raised by the model is more useful than its wrapper.
+                    Err(e) => return Err(model.err.take().unwrap_or_else(|| e.into())),
+                }
+            }
+        };
+        w.last_z.extend_from_slice(&z);
+        Ok((
+            numpy::PyArray1::from_vec(py, z),
+            report.cost,
+            report.status.as_str(),
+            report.status.is_success(),
+            report.nit,
+            report.nfev,
+            report.projected_gradient,
+            report.interior_iterations,
+        ))
+    }
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("NumericalError", m.py().get_type::<NumericalError>())?;
     m.add_function(wrap_pyfunction!(se_ard_kernel, m)?)?;
     // MHE window
     m.add_class::<PyMheWindow>()?;
+    // Window solver
+    m.add_class::<PyWindowSolver>()?;
     Ok(())
 }

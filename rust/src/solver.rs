@@ -75,9 +75,11 @@ impl BlockLsqProblem for WindowLsq<'_> {
 /// When the interior (barrier) phase runs before the active-set phase.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum InteriorMode {
-    /// When some free variable of the start lies within `interior_zone` of a bound.
+    /// When some free variable of the start lies within `interior_zone` of a bound; then the
+    /// active-set phase is also run from the start itself and the cheaper result is kept.
     Auto,
-    /// Whenever some variable has a finite bound.
+    /// Whenever some variable has a finite bound (the projected path from the start is run
+    /// only if the interior path ends costlier than the start).
     Always,
     /// Never: a plain projected active-set Levenberg-Marquardt method.
     Never,
@@ -350,6 +352,8 @@ pub fn projected_gradient_norm(z: &[f64], g: &[f64], lower: &[f64], upper: &[f64
 #[derive(Debug, Default, Clone)]
 pub struct BoxLsqSolver {
     chol: BlockTridiagCholesky,
+    z0: Vec<f64>,
+    z_int: Vec<f64>,
     g: Vec<f64>,
     diag: Vec<f64>,
     off: Vec<f64>,
@@ -376,6 +380,8 @@ struct Progress {
 
 const ARMIJO: f64 = 1e-4;
 const LAMBDA_MAX: f64 = 1e16;
+/// Longest extrapolated step (in multiples of the Gauss-Newton step) tried along flat directions.
+const EXTRAP_MAX: f64 = 10.0;
 
 fn finite_lower(l: f64) -> bool {
     l > f64::NEG_INFINITY
@@ -448,7 +454,7 @@ impl BoxLsqSolver {
 
     /// Minimises J(z) over lower ≤ z ≤ upper starting from `z` (a warm start; projected onto the
     /// box first) and writes the best point found into `z`. Bounds may be ±∞ and lower == upper
-    /// fixes a variable. Errors only on invalid input or when J is not finite at the start;
+    /// fixes a variable. The returned cost is never above the cost at the projected start. Errors only on invalid input or when J is not finite at the start;
     /// afterwards z is always finite and the problem's derivatives refer to the returned z.
     pub fn solve<P: BlockLsqProblem + ?Sized>(
         &mut self,
@@ -516,15 +522,37 @@ impl BoxLsqSolver {
             derivs_at_z: false,
         };
         let mut interior_iterations = 0;
+        self.start(prob, z, &mut pr)?;
+        let mut status;
         if run_interior {
+            // The barrier phase is not monotone in J: keep the (projected) start and its cost,
+            // and fall back to the active-set phase from there if the result costs more.
+            let cost0 = pr.cost;
+            self.z0.clear();
+            self.z0.extend_from_slice(z);
             self.push_inside(z, lower, upper);
             self.start(prob, z, &mut pr)?;
             self.interior_phase(prob, z, lower, upper, opts, &mut pr);
             interior_iterations = pr.nit;
+            status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+            if opts.interior == InteriorMode::Auto || pr.cost > cost0 {
+                // Auto: the problem is non-convex and the two paths can end in different
+                // minima, so also run the projected path from the start and keep the cheaper.
+                let (cost_int, status_int) = (pr.cost, status);
+                self.z_int.clear();
+                self.z_int.extend_from_slice(z);
+                z.copy_from_slice(&self.z0);
+                self.start(prob, z, &mut pr)?;
+                status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+                if cost_int < pr.cost {
+                    z.copy_from_slice(&self.z_int);
+                    self.start(prob, z, &mut pr)?;
+                    status = status_int;
+                }
+            }
         } else {
-            self.start(prob, z, &mut pr)?;
+            status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
         }
-        let status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
         if !pr.derivs_at_z {
             // Leave the problem's derivatives at the returned point (the caller may use them,
             // e.g. for a covariance); the cost there is already known.
@@ -684,7 +712,7 @@ impl BoxLsqSolver {
             }
             // Fraction to the boundary, primal and dual.
             let tau = (1.0 - mu).max(0.99);
-            let mut a_p = 1.0f64;
+            let mut a_max = f64::INFINITY;
             let mut a_d = 1.0f64;
             let mut dphi = 0.0;
             for k in 0..len {
@@ -701,7 +729,7 @@ impl BoxLsqSolver {
                 if has_l(k) {
                     gb -= mu / sl;
                     if dz < 0.0 {
-                        a_p = a_p.min(-tau * sl / dz);
+                        a_max = a_max.min(-tau * sl / dz);
                     }
                     self.dyl[k] = mu / sl - self.yl[k] - self.yl[k] / sl * dz;
                     if self.dyl[k] < 0.0 {
@@ -711,7 +739,7 @@ impl BoxLsqSolver {
                 if has_u(k) {
                     gb += mu / su;
                     if dz > 0.0 {
-                        a_p = a_p.min(tau * su / dz);
+                        a_max = a_max.min(tau * su / dz);
                     }
                     self.dyu[k] = mu / su - self.yu[k] + self.yu[k] / su * dz;
                     if self.dyu[k] < 0.0 {
@@ -722,6 +750,7 @@ impl BoxLsqSolver {
             }
             // Armijo backtracking on φ_μ = J − μ Σ ln s.
             let phi0 = pr.cost + barrier(z, lower, upper, &self.fixed_bound, mu);
+            let a_p = a_max.min(1.0);
             let mut alpha = a_p;
             let mut accepted = None;
             for ls in 0..40 {
@@ -733,12 +762,14 @@ impl BoxLsqSolver {
                 pr.derivs_at_z = false;
                 let phit = ct + barrier(&self.trial, lower, upper, &self.fixed_bound, mu);
                 if phit.is_finite() && phit <= phi0 + ARMIJO * alpha * dphi.min(0.0) {
-                    accepted = Some((ct, ls == 0));
+                    accepted = Some((ct, ls == 0, phit));
                     break;
                 }
                 alpha *= 0.5;
             }
-            let Some((ct, have_derivs)) = accepted else {
+                eprintln!("I mu {mu:.1e} lam {lambda:.1e} a_p {a_p:.3} alpha {alpha:.3e} a_d {a_d:.3} cost {:.6} edual {e_dual:.2e} ecomp {e_comp:.2e}", pr.cost);
+            }
+            let Some((mut ct, mut have_derivs, phit)) = accepted else {
                 // g and the blocks still hold the derivatives at z: damp harder and retry.
                 lambda = (10.0 * lambda).max(1e-8);
                 if lambda > LAMBDA_MAX {
@@ -746,6 +777,27 @@ impl BoxLsqSolver {
                 }
                 continue;
             };
+            if have_derivs && alpha == 1.0 {
+                // Gauss-Newton underestimates the step along flat directions (rho ≈ 2):
+                // try the minimiser of the parabola through φ(0), φ'(0), φ(1).
+                let c = 2.0 * (phit - phi0 - dphi);
+                let a_star = if c > 0.0 { -dphi / c } else { f64::INFINITY };
+                let a = a_star.min(EXTRAP_MAX).min(a_max);
+                if a > 1.5 {
+                    for k in 0..len {
+                        self.hp[k] = z[k] + a * self.step[k];
+                    }
+                    let c2 = prob.evaluate(&self.hp, true).unwrap_or(f64::INFINITY);
+                    pr.nfev += 1;
+                    let phi2 = c2 + barrier(&self.hp, lower, upper, &self.fixed_bound, mu);
+                    if phi2.is_finite() && phi2 < phit {
+                        self.trial.copy_from_slice(&self.hp);
+                        ct = c2;
+                    } else {
+                        have_derivs = false;
+                    }
+                }
+            }
             z.copy_from_slice(&self.trial);
             pr.cost = ct;
             const KAPPA_SIGMA: f64 = 1e10;
@@ -857,9 +909,12 @@ impl BoxLsqSolver {
             for k in 0..len {
                 pred -= self.g[k] * self.step[k] + 0.5 * self.step[k] * self.hp[k];
             }
+            let gp: f64 = (0..len).map(|k| self.g[k] * self.step[k]).sum();
             let ct = prob.evaluate(&self.trial, true).unwrap_or(f64::INFINITY);
             pr.nfev += 1;
             let rho = (pr.cost - ct) / pred;
+                eprintln!("A lam {lambda:.1e} cost {:.8} ct {ct:.8} pred {pred:.3e} rho {rho:.3} pnorm {pnorm:.2e} nfixed {}", pr.cost, self.fixed.iter().filter(|&&f| f).count());
+            }
             if ct.is_finite() && pred > 0.0 && rho > ARMIJO {
                 let decrease = pr.cost - ct;
                 let old = pr.cost;
@@ -871,6 +926,26 @@ impl BoxLsqSolver {
                 nu = 2.0;
                 if decrease <= opts.ftol * old {
                     return Status::CostTolerance;
+                }
+                // Along flat directions the Gauss-Newton model overestimates the curvature
+                // (rho ≈ 2, slow linear convergence): try the parabola's minimiser along the
+                // step, keep it if it costs less.
+                let c = 2.0 * (ct - old - gp);
+                let a_star = if c > 0.0 { -gp / c } else { f64::INFINITY };
+                if gp < 0.0 && a_star > 1.5 {
+                    let a = a_star.min(EXTRAP_MAX);
+                    for k in 0..len {
+                        self.trial[k] = (z[k] + (a - 1.0) * self.step[k]).clamp(lower[k], upper[k]);
+                    }
+                    let c2 = prob.evaluate(&self.trial, true).unwrap_or(f64::INFINITY);
+                    pr.nfev += 1;
+                    if c2.is_finite() && c2 < pr.cost {
+                        z.copy_from_slice(&self.trial);
+                        pr.cost = c2;
+                        self.take_derivatives(prob);
+                    } else {
+                        pr.derivs_at_z = false;
+                    }
                 }
             } else {
                 pr.derivs_at_z = false;
