@@ -767,8 +767,6 @@ impl BoxLsqSolver {
                 }
                 alpha *= 0.5;
             }
-                eprintln!("I mu {mu:.1e} lam {lambda:.1e} a_p {a_p:.3} alpha {alpha:.3e} a_d {a_d:.3} cost {:.6} edual {e_dual:.2e} ecomp {e_comp:.2e}", pr.cost);
-            }
             let Some((mut ct, mut have_derivs, phit)) = accepted else {
                 // g and the blocks still hold the derivatives at z: damp harder and retry.
                 lambda = (10.0 * lambda).max(1e-8);
@@ -913,8 +911,6 @@ impl BoxLsqSolver {
             let ct = prob.evaluate(&self.trial, true).unwrap_or(f64::INFINITY);
             pr.nfev += 1;
             let rho = (pr.cost - ct) / pred;
-                eprintln!("A lam {lambda:.1e} cost {:.8} ct {ct:.8} pred {pred:.3e} rho {rho:.3} pnorm {pnorm:.2e} nfixed {}", pr.cost, self.fixed.iter().filter(|&&f| f).count());
-            }
             if ct.is_finite() && pred > 0.0 && rho > ARMIJO {
                 let decrease = pr.cost - ct;
                 let old = pr.cost;
