@@ -6,8 +6,20 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 """
 
 from gpmhe._core import NumericalError
+from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 from gpmhe.mhe import GPMHE
-from gpmhe.models import KnownModel
+from gpmhe.models import KnownModel, LearnedModel
 
-__all__ = ["NumericalError", "GPMHE", "KnownModel"]
+__all__ = [
+    "NumericalError",
+    # GP
+    "GaussianProcess",
+    "MultiOutputGP",
+    "ConvergenceWarning",
+    "NotFittedError",
+    # MHE
+    "GPMHE",
+    "KnownModel",
+    "LearnedModel",
+]
 __version__ = "0.1.0"

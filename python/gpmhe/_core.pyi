@@ -12,3 +12,90 @@ def se_ard_kernel(
     sigma_f: float,
     lengthscales: npt.NDArray[np.float64],
 ) -> npt.NDArray[np.float64]: ...
+
+# ===== GP =====
+
+class GP:
+    """One exact zero-mean SE-ARD GP with a cached Cholesky factor (rust/src/gp.rs)."""
+
+    def __init__(
+        self,
+        x: npt.NDArray[np.float64],
+        y: npt.NDArray[np.float64],
+        theta: npt.NDArray[np.float64],
+    ) -> None: ...
+    @property
+    def dim(self) -> int: ...
+    @property
+    def n_train(self) -> int: ...
+    @property
+    def theta(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def sigma_f(self) -> float: ...
+    @property
+    def lengthscales(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def sigma_eps(self) -> float: ...
+    @property
+    def jitter(self) -> float: ...
+    @property
+    def alpha(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def x_train(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def y_train(self) -> npt.NDArray[np.float64]: ...
+    def log_marginal_likelihood(
+        self, eval_gradient: bool = False
+    ) -> tuple[float, npt.NDArray[np.float64]]: ...
+    def predict(
+        self, d: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def predict_with_gradients(
+        self, d: npt.NDArray[np.float64]
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+    ]: ...
+
+class MultiGP:
+    """q independent SE-ARD GPs on shared inputs (rust/src/gp.rs)."""
+
+    def __init__(
+        self,
+        x: npt.NDArray[np.float64],
+        y: npt.NDArray[np.float64],
+        thetas: npt.NDArray[np.float64],
+    ) -> None: ...
+    @staticmethod
+    def from_gps(gps: list[GP]) -> MultiGP: ...
+    @property
+    def n_outputs(self) -> int: ...
+    @property
+    def dim(self) -> int: ...
+    @property
+    def n_train(self) -> int: ...
+    @property
+    def thetas(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def jitters(self) -> npt.NDArray[np.float64]: ...
+    def log_marginal_likelihoods(self) -> npt.NDArray[np.float64]: ...
+    def predict(
+        self, d: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def predict_with_gradients(
+        self, d: npt.NDArray[np.float64]
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+    ]: ...
+
+def log_marginal_likelihood(
+    x: npt.NDArray[np.float64],
+    y: npt.NDArray[np.float64],
+    theta: npt.NDArray[np.float64],
+    eval_gradient: bool = False,
+) -> tuple[float, npt.NDArray[np.float64]]: ...

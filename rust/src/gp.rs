@@ -27,6 +27,8 @@ use crate::kernel::SeArd;
 /// Relative size of the first jitter tried, and of the largest (see the module docs).
 const JITTER_START: f64 = 1e-10;
 const JITTER_MAX: f64 = 1e-6;
+/// Number of jittered attempts: 1e-10, 1e-9, …, 1e-6 (relative).
+const JITTER_STEPS: i32 = 5;
 
 /// Scratch memory for batch predictions: two N × k column-major buffers. It only grows, so once
 /// it has been sized for the largest (N, k) in use, predictions allocate nothing.
@@ -90,6 +92,12 @@ fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
         ));
     }
     let nd = theta.len() - 2;
+    if !((p[0] * p[0]).is_finite() && (p[nd + 1] * p[nd + 1]).is_finite()) {
+        return Err(Error::invalid(
+            "theta",
+            "sigma_f^2 or sigma_eps^2 overflows; theta is far outside a usable range",
+        ));
+    }
     let kernel = SeArd::new(p[0], &p[1..=nd])?;
     Ok((kernel, p[nd + 1]))
 }
@@ -123,28 +131,26 @@ fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Resul
     let n = gram.nrows();
     let mut a = gram.clone();
     let scale = signal_var + noise_var;
-    let mut jitter = 0.0;
-    loop {
+    // Attempt 0 without jitter, then JITTER_START·scale growing tenfold up to JITTER_MAX·scale.
+    for attempt in 0..=JITTER_STEPS {
+        let jitter = if attempt == 0 {
+            0.0
+        } else {
+            JITTER_START * scale * 10f64.powi(attempt - 1)
+        };
         for i in 0..n {
             a[(i, i)] = gram[(i, i)] + noise_var + jitter;
         }
         if let Ok(llt) = Llt::new(a.as_ref(), Side::Lower) {
             return Ok((llt, jitter));
         }
-        jitter = if jitter == 0.0 {
-            JITTER_START * scale
-        } else {
-            jitter * 10.0
-        };
-        if jitter > JITTER_MAX * scale * (1.0 + 1e-12) {
-            return Err(Error::numerical(format!(
-                "K + sigma_eps^2 I is not positive definite even with a diagonal jitter of {:.3e} \
-                 (N = {n}, sigma_f^2 = {signal_var:.3e}, sigma_eps^2 = {noise_var:.3e}); \
-                 check for duplicated inputs or increase sigma_eps",
-                JITTER_MAX * scale
-            )));
-        }
     }
+    Err(Error::numerical(format!(
+        "K + sigma_eps^2 I is not positive definite even with a diagonal jitter of {:.3e} \
+         (N = {n}, sigma_f^2 = {signal_var:.3e}, sigma_eps^2 = {noise_var:.3e}); \
+         check for duplicated inputs or increase sigma_eps",
+        JITTER_MAX * scale
+    )))
 }
 
 impl Gp {
@@ -796,6 +802,12 @@ mod tests {
         assert_eq!(name(Gp::new(&x, &y, &[0.0, 0.0])), "theta");
         assert_eq!(name(Gp::new(&x, &y, &[0.0, 0.0, f64::NAN, 0.0])), "theta");
         assert_eq!(name(Gp::new(&x, &y, &[800.0, 0.0, 0.0, 0.0])), "theta");
+        assert_eq!(name(Gp::new(&x, &y, &[400.0, 0.0, 0.0, 0.0])), "theta");
+        let huge = vec![1e200; y.len()];
+        assert!(matches!(
+            Gp::new(&x, &huge, &theta(2)),
+            Err(Error::Numerical(_))
+        ));
         assert_eq!(name(Gp::new(&x[..19], &y, &theta(2))), "x");
         assert_eq!(name(Gp::new(&x[..2], &y[..1], &theta(2))), "y");
         let mut yn = y.clone();

@@ -3,17 +3,13 @@
 //! the GIL around the numerics, and maps core errors to exceptions: `InvalidInput` to `ValueError`,
 //! `Numerical` to `gpmhe.NumericalError`.
 
-use numpy::{
-    PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn,
-    PyUntypedArrayMethods,
-};
+use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
 use crate::error::Error;
 use crate::kernel::SeArd;
-use crate::window::{Form, StageEval, StageModel, WindowEval, WindowProblem};
 
 create_exception!(
     _core,
@@ -87,7 +83,325 @@ fn se_ard_kernel<'py>(
     array2(py, out, na, nb)
 }
 
+// ===== GP =====
+// Exact GPs (rust/src/gp.rs): `GP` (one output), `MultiGP` (independent outputs on shared inputs)
+// and `log_marginal_likelihood`. Inputs must be C-contiguous float64 (the Python wrappers in
+// gpmhe/gp.py convert and validate first); the numerics run with the GIL released.
+
+use crate::gp::{log_marginal_likelihood, Gp, GpWorkspace, MultiGp};
+use numpy::{PyArray1, PyArrayDyn};
+
+/// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
+fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
+    if cols == nd {
+        Ok(())
+    } else {
+        Err(PyValueError::new_err(format!(
+            "{arg}: expected {nd} columns (input dimension n_d), got {cols}"
+        )))
+    }
+}
+
+/// A numpy array of the given shape from a row-major vector.
+fn array_nd<'py, const D: usize>(
+    py: Python<'py>,
+    data: Vec<f64>,
+    shape: [usize; D],
+) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    numpy::PyArray1::from_vec(py, data).reshape(&shape[..])
+}
+
+type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
+
+/// Runs a batch prediction of `q` outputs at the points `d` with the GIL released and returns
+/// (mean, var[, dmean, dvar]) shaped (k, q...) / (k, q..., n_d); `squeeze` drops the q axis.
+fn predict_arrays<'py>(
+    py: Python<'py>,
+    model: &MultiGp,
+    d: &PyReadonlyArray2<'py, f64>,
+    gradients: bool,
+    squeeze: bool,
+) -> PyResult<Vec<Arr<'py>>> {
+    let (d, k, cols) = slice2("d", d)?;
+    let (q, nd) = (model.n_outputs(), model.dim());
+    check_cols("d", cols, nd)?;
+    let (mean, var, dmean, dvar) = py.detach(|| {
+        let mut ws = GpWorkspace::default();
+        let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
+        if gradients {
+            let (mut dm, mut dv) = (vec![0.0; k * q * nd], vec![0.0; k * q * nd]);
+            model.predict_with_gradients_into(d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)?;
+            Ok::<_, Error>((m, v, dm, dv))
+        } else {
+            model.predict_into(d, &mut m, &mut v, &mut ws)?;
+            Ok((m, v, Vec::new(), Vec::new()))
+        }
+    })?;
+    let mut out = Vec::with_capacity(4);
+    if squeeze {
+        out.push(array_nd(py, mean, [k])?);
+        out.push(array_nd(py, var, [k])?);
+        if gradients {
+            out.push(array_nd(py, dmean, [k, nd])?);
+            out.push(array_nd(py, dvar, [k, nd])?);
+        }
+    } else {
+        out.push(array_nd(py, mean, [k, q])?);
+        out.push(array_nd(py, var, [k, q])?);
+        if gradients {
+            out.push(array_nd(py, dmean, [k, q, nd])?);
+            out.push(array_nd(py, dvar, [k, q, nd])?);
+        }
+    }
+    Ok(out)
+}
+
+/// One exact zero-mean GP with the SE-ARD kernel; the Cholesky factor is cached at construction.
+#[pyclass(name = "GP", module = "gpmhe._core", frozen)]
+pub(crate) struct PyGp {
+    pub(crate) inner: Gp,
+    /// The same GP as a one-output MultiGp, so predictions share one code path.
+    single: MultiGp,
+}
+
+#[pymethods]
+impl PyGp {
+    /// GP(x, y, theta): x (N, n_d), y (N,), theta = log([sigma_f, lengthscales.., sigma_eps]).
+    #[new]
+    fn py_new(
+        py: Python<'_>,
+        x: PyReadonlyArray2<'_, f64>,
+        y: PyReadonlyArray1<'_, f64>,
+        theta: PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<Self> {
+        let (x, _, cols) = slice2("x", &x)?;
+        let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
+        check_cols("x", cols, theta.len().saturating_sub(2))?;
+        let inner = py.detach(|| Gp::new(x, y, theta))?;
+        let single = MultiGp::from_gps(vec![inner.clone()])?;
+        Ok(Self { inner, single })
+    }
+
+    #[getter]
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    #[getter]
+    fn n_train(&self) -> usize {
+        self.inner.n_train()
+    }
+    #[getter]
+    fn theta<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.inner.theta())
+    }
+    #[getter]
+    fn sigma_f(&self) -> f64 {
+        self.inner.kernel().sigma_f()
+    }
+    #[getter]
+    fn lengthscales<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.kernel().lengthscales())
+    }
+    #[getter]
+    fn sigma_eps(&self) -> f64 {
+        self.inner.sigma_eps()
+    }
+    #[getter]
+    fn jitter(&self) -> f64 {
+        self.inner.jitter()
+    }
+    #[getter]
+    fn alpha<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.alpha())
+    }
+    #[getter]
+    fn x_train<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let g = &self.inner;
+        array2(py, g.x_train().to_vec(), g.n_train(), g.dim())
+    }
+    #[getter]
+    fn y_train<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.y_train())
+    }
+
+    /// (lml, grad) at this GP's theta; grad is empty unless eval_gradient.
+    #[pyo3(signature = (eval_gradient=false))]
+    fn log_marginal_likelihood<'py>(
+        &self,
+        py: Python<'py>,
+        eval_gradient: bool,
+    ) -> (f64, Bound<'py, PyArray1<f64>>) {
+        let grad = if eval_gradient {
+            py.detach(|| self.inner.log_marginal_likelihood_gradient())
+        } else {
+            Vec::new()
+        };
+        (
+            self.inner.log_marginal_likelihood(),
+            PyArray1::from_vec(py, grad),
+        )
+    }
+
+    /// (mean, var) of shapes (k,), (k,) at the points d (k, n_d).
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>)> {
+        let mut out = predict_arrays(py, &self.single, &d, false, true)?.into_iter();
+        match (out.next(), out.next()) {
+            (Some(m), Some(v)) => Ok((m, v)),
+            _ => Err(PyRuntimeError::new_err(
+                "internal: missing prediction outputs",
+            )),
+        }
+    }
+
+    /// (mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d).
+    fn predict_with_gradients<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+        let mut out = predict_arrays(py, &self.single, &d, true, true)?.into_iter();
+        match (out.next(), out.next(), out.next(), out.next()) {
+            (Some(m), Some(v), Some(dm), Some(dv)) => Ok((m, v, dm, dv)),
+            _ => Err(PyRuntimeError::new_err(
+                "internal: missing prediction outputs",
+            )),
+        }
+    }
+}
+
+/// q independent GPs on shared inputs, each with its own hyperparameters.
+#[pyclass(name = "MultiGP", module = "gpmhe._core", frozen)]
+pub(crate) struct PyMultiGp {
+    pub(crate) inner: MultiGp,
+}
+
+#[pymethods]
+impl PyMultiGp {
+    /// MultiGP(x, y, thetas): x (N, n_d), y (N, q), thetas (q, n_d + 2).
+    #[new]
+    fn py_new(
+        py: Python<'_>,
+        x: PyReadonlyArray2<'_, f64>,
+        y: PyReadonlyArray2<'_, f64>,
+        thetas: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Self> {
+        let (x, n, nd) = slice2("x", &x)?;
+        let (y, ny, q) = slice2("y", &y)?;
+        let (thetas, qt, cols) = slice2("thetas", &thetas)?;
+        if ny != n {
+            return Err(PyValueError::new_err(format!(
+                "y: expected {n} rows (one per training input), got {ny}"
+            )));
+        }
+        if qt != q || cols != nd + 2 {
+            return Err(PyValueError::new_err(format!(
+                "thetas: expected shape ({q}, {}), got ({qt}, {cols})",
+                nd + 2
+            )));
+        }
+        let inner = py.detach(|| MultiGp::new(x, y, thetas))?;
+        Ok(Self { inner })
+    }
+
+    /// Bundles fitted GPs that share their training inputs.
+    #[staticmethod]
+    fn from_gps(gps: Vec<PyRef<'_, PyGp>>) -> PyResult<Self> {
+        let inner = MultiGp::from_gps(gps.iter().map(|g| g.inner.clone()).collect())?;
+        Ok(Self { inner })
+    }
+
+    #[getter]
+    fn n_outputs(&self) -> usize {
+        self.inner.n_outputs()
+    }
+    #[getter]
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    #[getter]
+    fn n_train(&self) -> usize {
+        self.inner.gps()[0].n_train()
+    }
+    /// (q, n_d + 2) log-hyperparameters, one row per output.
+    #[getter]
+    fn thetas<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let data: Vec<f64> = self.inner.gps().iter().flat_map(|g| g.theta()).collect();
+        array2(py, data, self.inner.n_outputs(), self.inner.dim() + 2)
+    }
+    /// The diagonal jitter each output's factorisation needed (0 if none).
+    #[getter]
+    fn jitters<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.inner.gps().iter().map(|g| g.jitter()).collect())
+    }
+
+    /// The log marginal likelihood of each output, shape (q,).
+    fn log_marginal_likelihoods<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        let v = self
+            .inner
+            .gps()
+            .iter()
+            .map(|g| g.log_marginal_likelihood())
+            .collect();
+        PyArray1::from_vec(py, v)
+    }
+
+    /// (mean, var) of shapes (k, q) at the points d (k, n_d).
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>)> {
+        let mut out = predict_arrays(py, &self.inner, &d, false, false)?.into_iter();
+        match (out.next(), out.next()) {
+            (Some(m), Some(v)) => Ok((m, v)),
+            _ => Err(PyRuntimeError::new_err(
+                "internal: missing prediction outputs",
+            )),
+        }
+    }
+
+    /// (mean, var, dmean_dd, dvar_dd) of shapes (k, q), (k, q), (k, q, n_d), (k, q, n_d).
+    fn predict_with_gradients<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+        let mut out = predict_arrays(py, &self.inner, &d, true, false)?.into_iter();
+        match (out.next(), out.next(), out.next(), out.next()) {
+            (Some(m), Some(v), Some(dm), Some(dv)) => Ok((m, v, dm, dv)),
+            _ => Err(PyRuntimeError::new_err(
+                "internal: missing prediction outputs",
+            )),
+        }
+    }
+}
+
+/// (lml, grad): log p(y | x, theta) and, if eval_gradient, its gradient w.r.t.
+/// theta = log([sigma_f, lengthscales.., sigma_eps]) (an empty array otherwise).
+#[pyfunction]
+#[pyo3(name = "log_marginal_likelihood", signature = (x, y, theta, eval_gradient=false))]
+fn gp_log_marginal_likelihood<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArray2<'py, f64>,
+    y: PyReadonlyArray1<'py, f64>,
+    theta: PyReadonlyArray1<'py, f64>,
+    eval_gradient: bool,
+) -> PyResult<(f64, Bound<'py, PyArray1<f64>>)> {
+    let (x, _, cols) = slice2("x", &x)?;
+    let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
+    check_cols("x", cols, theta.len().saturating_sub(2))?;
+    let (lml, grad) = py.detach(|| log_marginal_likelihood(x, y, theta, eval_gradient))?;
+    Ok((lml, PyArray1::from_vec(py, grad)))
+}
+
 // ===== MHE window =====
+
+use crate::window::{Form, GpStageModel, StageEval, StageModel, WindowEval, WindowProblem};
+use numpy::PyReadonlyArrayDyn;
 
 /// A [`StageModel`] backed by a Python callable `stage_eval(d) -> (mean_x, var_x, dmean_x,
 /// dvar_x, mean_y, var_y, dmean_y, dvar_y)` (the layout of [`StageEval`]); used for
@@ -164,6 +478,7 @@ impl StageModel for CallbackModel<'_, '_> {
 /// The model behind a window: a Python callback (known model) or the learned GPs.
 enum WindowModel {
     Callback(Py<PyAny>),
+    Gp(GpStageModel),
 }
 
 /// One MHE window problem with its model and evaluation buffers (DESIGN.md §3). The Python
@@ -195,7 +510,11 @@ impl PyMheWindow {
             self.problem.dim_u(),
             self.problem.dim_y(),
         );
-        let result = match &self.model {
+        let result = match &mut self.model {
+            WindowModel::Gp(model) => {
+                let (problem, eval) = (&self.problem, &mut self.eval);
+                py.detach(|| problem.evaluate(model, z, want_jacobian, eval))
+            }
             WindowModel::Callback(func) => {
                 let func = func.bind(py);
                 let mut model = CallbackModel {
@@ -268,6 +587,46 @@ impl PyMheWindow {
         Ok(Self {
             problem,
             model: WindowModel::Callback(stage_eval.unbind()),
+            eval: WindowEval::default(),
+            last_z: Vec::new(),
+        })
+    }
+
+    /// A window on the learned model: `f_gp` (dim_x outputs) and `h_gp` (dim_y outputs, None when
+    /// dim_y = 0) on inputs [x; u]; `f_residual`: f's GPs model x(t+1) − x(t).
+    #[staticmethod]
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (f_gp, h_gp, dim_u, f_residual, eta, q0, r0, p2_sqrt, filtering))]
+    fn with_gp(
+        f_gp: PyRef<'_, PyMultiGp>,
+        h_gp: Option<PyRef<'_, PyMultiGp>>,
+        dim_u: usize,
+        f_residual: bool,
+        eta: f64,
+        q0: PyReadonlyArray1<'_, f64>,
+        r0: PyReadonlyArray1<'_, f64>,
+        p2_sqrt: PyReadonlyArray2<'_, f64>,
+        filtering: bool,
+    ) -> PyResult<Self> {
+        let model = GpStageModel::new(
+            f_gp.inner.clone(),
+            h_gp.map(|h| h.inner.clone()),
+            dim_u,
+            f_residual,
+        )?;
+        let problem = window_problem(
+            model.dim_x(),
+            dim_u,
+            model.dim_y(),
+            eta,
+            &q0,
+            &r0,
+            &p2_sqrt,
+            filtering,
+        )?;
+        Ok(Self {
+            problem,
+            model: WindowModel::Gp(model),
             eval: WindowEval::default(),
             last_z: Vec::new(),
         })
@@ -506,6 +865,10 @@ impl PyWindowSolver {
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("NumericalError", m.py().get_type::<NumericalError>())?;
     m.add_function(wrap_pyfunction!(se_ard_kernel, m)?)?;
+    // GP
+    m.add_class::<PyGp>()?;
+    m.add_class::<PyMultiGp>()?;
+    m.add_function(wrap_pyfunction!(gp_log_marginal_likelihood, m)?)?;
     // MHE window
     m.add_class::<PyMheWindow>()?;
     // Window solver

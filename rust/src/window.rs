@@ -19,6 +19,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::gp::{GpWorkspace, MultiGp};
 
 /// Means, variances and their input gradients of a stage model at k points d = [x; u].
 /// All row-major: `mean_x` k×n, `var_x` k×n, `dmean_x` and `dvar_x` k×n×nd, `mean_y` k×p,
@@ -79,6 +80,106 @@ pub trait StageModel {
     fn dim_y(&self) -> usize;
     /// Evaluate at k points d (k×(n+m) row-major) into `out` (resized as needed, reused).
     fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()>;
+}
+
+/// The learned model of GP-MHE: n independent GPs for f (regression targets x(t+1), or the
+/// increment x(t+1) − x(t) when `f_residual`, i.e. prior mean x) and p GPs for h, all on the
+/// inputs d = [x; u]. The variances are the GPs' latent variances (DESIGN.md §2).
+#[derive(Debug, Clone)]
+pub struct GpStageModel {
+    f: MultiGp,
+    h: Option<MultiGp>,
+    f_residual: bool,
+    n: usize,
+    m: usize,
+    ws: GpWorkspace,
+}
+
+impl GpStageModel {
+    /// `f` has n outputs on inputs of dimension n + `dim_u`; `h` (None when p = 0) has p outputs
+    /// on the same inputs.
+    pub fn new(f: MultiGp, h: Option<MultiGp>, dim_u: usize, f_residual: bool) -> Result<Self> {
+        let n = f.n_outputs();
+        if f.dim() != n + dim_u {
+            return Err(Error::invalid(
+                "f",
+                format!(
+                    "GP input dimension {} is not dim_x + dim_u = {}",
+                    f.dim(),
+                    n + dim_u
+                ),
+            ));
+        }
+        if let Some(h) = &h {
+            if h.dim() != n + dim_u {
+                return Err(Error::invalid(
+                    "h",
+                    format!(
+                        "GP input dimension {} is not dim_x + dim_u = {}",
+                        h.dim(),
+                        n + dim_u
+                    ),
+                ));
+            }
+        }
+        Ok(Self {
+            f,
+            h,
+            f_residual,
+            n,
+            m: dim_u,
+            ws: GpWorkspace::default(),
+        })
+    }
+
+    pub fn f_residual(&self) -> bool {
+        self.f_residual
+    }
+}
+
+impl StageModel for GpStageModel {
+    fn dim_x(&self) -> usize {
+        self.n
+    }
+    fn dim_u(&self) -> usize {
+        self.m
+    }
+    fn dim_y(&self) -> usize {
+        self.h.as_ref().map_or(0, |h| h.n_outputs())
+    }
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.dim_y());
+        let nd = n + m;
+        let k = d.len() / nd;
+        out.resize(k, n, m, p);
+        self.f.predict_with_gradients_into(
+            d,
+            &mut out.mean_x,
+            &mut out.var_x,
+            &mut out.dmean_x,
+            &mut out.dvar_x,
+            &mut self.ws,
+        )?;
+        if self.f_residual {
+            for i in 0..k {
+                for c in 0..n {
+                    out.mean_x[i * n + c] += d[i * nd + c];
+                    out.dmean_x[(i * n + c) * nd + c] += 1.0;
+                }
+            }
+        }
+        if let Some(h) = &self.h {
+            h.predict_with_gradients_into(
+                d,
+                &mut out.mean_y,
+                &mut out.var_y,
+                &mut out.dmean_y,
+                &mut out.dvar_y,
+                &mut self.ws,
+            )?;
+        }
+        Ok(())
+    }
 }
 
 /// Which outputs the window uses (DESIGN.md §3): the paper's prediction form (y up to t−1, the
@@ -659,6 +760,87 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Window gradient and Jacobian against central differences for any model.
+    fn check_derivatives(w: &WindowProblem, model: &mut dyn StageModel, z: &[f64]) {
+        let mut ev = WindowEval::default();
+        w.evaluate(model, z, true, &mut ev).unwrap();
+        let nv = z.len();
+        let rows = ev.n_residuals();
+        let mut g = vec![0.0; nv];
+        ev.gradient_into(&mut g);
+        let mut jac = vec![0.0; rows * nv];
+        ev.dense_jacobian_into(&mut jac);
+        let mut e2 = WindowEval::default();
+        let h = 1e-6;
+        for c in 0..nv {
+            let mut zp = z.to_vec();
+            zp[c] += h;
+            w.evaluate(model, &zp, false, &mut e2).unwrap();
+            let (cp, rp) = (e2.cost(), e2.residuals().to_vec());
+            let mut zm = z.to_vec();
+            zm[c] -= h;
+            w.evaluate(model, &zm, false, &mut e2).unwrap();
+            let fd = (cp - e2.cost()) / (2.0 * h);
+            assert!(
+                (g[c] - fd).abs() <= 1e-5 * (1.0 + fd.abs()),
+                "grad {c}: {} vs {fd}",
+                g[c]
+            );
+            for r in 0..rows {
+                let fdr = (rp[r] - e2.residuals()[r]) / (2.0 * h);
+                assert!((jac[r * nv + c] - fdr).abs() <= 1e-5 * (1.0 + fdr.abs()));
+            }
+        }
+    }
+
+    #[test]
+    fn gp_stage_model_window_derivatives_match_finite_differences() {
+        // Training data from a smooth 2-state, 1-input system on a small grid.
+        let mut x = Vec::new();
+        let (mut yf, mut yh) = (Vec::new(), Vec::new());
+        for a in 0..4 {
+            for b in 0..4 {
+                for c in 0..2 {
+                    let (x0, x1, u) = (0.3 * a as f64, 0.25 * b as f64, 0.5 * c as f64);
+                    x.extend_from_slice(&[x0, x1, u]);
+                    yf.extend_from_slice(&[
+                        x0 + 0.1 * x1.sin() + 0.1 * u,
+                        0.9 * x1 + 0.05 * x0 * x0,
+                    ]);
+                    yh.push(x0 * x1 + u);
+                }
+            }
+        }
+        let th = |sf: f64| [sf.ln(), 0.7f64.ln(), 0.9f64.ln(), 1.2f64.ln(), 0.05f64.ln()];
+        let thetas_f: Vec<f64> = [th(1.0), th(0.8)].concat();
+        let f = MultiGp::new(&x, &yf, &thetas_f).unwrap();
+        let h = MultiGp::new(&x, &yh, &th(1.5)).unwrap();
+        for residual in [false, true] {
+            let mut model = GpStageModel::new(f.clone(), Some(h.clone()), 1, residual).unwrap();
+            for form in [Form::Prediction, Form::Filtering] {
+                let w = problem(form, 5, &[3]);
+                let z: Vec<f64> = z0(5).iter().map(|v| 0.4 * v).collect();
+                check_derivatives(&w, &mut model, &z);
+            }
+        }
+        // The residual form adds the identity to the mean and its gradient.
+        let d = [0.4, 0.3, 0.5];
+        let (mut a, mut b) = (StageEval::default(), StageEval::default());
+        GpStageModel::new(f.clone(), Some(h.clone()), 1, false)
+            .unwrap()
+            .evaluate(&d, &mut a)
+            .unwrap();
+        GpStageModel::new(f.clone(), Some(h.clone()), 1, true)
+            .unwrap()
+            .evaluate(&d, &mut b)
+            .unwrap();
+        assert!((b.mean_x[0] - a.mean_x[0] - 0.4).abs() < 1e-14);
+        assert!((b.mean_x[1] - a.mean_x[1] - 0.3).abs() < 1e-14);
+        assert!((b.dmean_x[4] - a.dmean_x[4] - 1.0).abs() < 1e-14);
+        assert_eq!(a.var_y, b.var_y);
+        assert!(GpStageModel::new(f.clone(), Some(h), 2, false).is_err());
     }
 
     #[test]

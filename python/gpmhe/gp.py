@@ -1,0 +1,612 @@
+"""Gaussian-process regression with the SE-ARD kernel on the Rust core (DESIGN.md §2).
+
+``GaussianProcess`` is one zero-mean GP; ``MultiOutputGP`` is one independent GP per output column
+on shared inputs, each with its own hyperparameters, predicted in one Rust call. Hyperparameters
+are optimised in log space, theta = log([sigma_f, lengthscales..., sigma_eps]), by maximising the
+log marginal likelihood with SciPy's L-BFGS-B and the analytic gradient from Rust, with optional
+random restarts inside the bounds. Models are saved as ``.npz`` (no pickle).
+
+Model (per output)::
+
+    y_i = f(d_i) + eps_i,   eps_i ~ N(0, sigma_eps^2),   f ~ GP(0, k),
+    k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d'))
+
+Posterior at a test point d*: mean m(d*) = k*^T (K + sigma_eps^2 I)^-1 y and latent (noise-free)
+variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*, computed as sigma_f^2 - |L^-1 k*|^2.
+If K + sigma_eps^2 I is numerically singular, the core adds a small diagonal jitter (from
+1e-10 (sigma_f^2 + sigma_eps^2), growing tenfold up to 1e-6 (sigma_f^2 + sigma_eps^2)) and records
+it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import scipy.optimize
+
+from gpmhe import _core
+from gpmhe._core import NumericalError
+
+__all__ = ["GaussianProcess", "MultiOutputGP", "ConvergenceWarning", "NotFittedError"]
+
+#: Default hyperparameter bounds in natural units: (sigma_f, every length-scale, sigma_eps).
+DEFAULT_BOUNDS = ((1e-3, 1e3), (1e-3, 1e3), (1e-5, 1e2))
+
+_FORMAT_VERSION = 1
+
+
+class ConvergenceWarning(UserWarning):
+    """The hyperparameter optimiser stopped without reporting convergence."""
+
+
+class NotFittedError(ValueError, AttributeError):
+    """A method that needs a fitted model was called before ``fit``."""
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _as_float_array(a: Any, name: str, ndim: int) -> np.ndarray:
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+    if arr.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    return np.ascontiguousarray(arr)
+
+
+def _check_training(D: Any, y: Any, y_ndim: int) -> Tuple[np.ndarray, np.ndarray]:
+    D = _as_float_array(D, "D", 2)
+    y = _as_float_array(y, "y", y_ndim)
+    n = D.shape[0]
+    if n < 2:
+        raise ValueError(f"D: needs at least 2 training points, got {n}")
+    if D.shape[1] < 1:
+        raise ValueError("D: needs at least one input dimension")
+    if y.shape[0] != n:
+        raise ValueError(f"y: expected {n} rows (one per row of D), got {y.shape[0]}")
+    if y_ndim == 2 and y.shape[1] < 1:
+        raise ValueError("y: needs at least one output column")
+    return D, y
+
+
+def _check_points(D: Any, nd: int) -> np.ndarray:
+    D = _as_float_array(D, "D", 2)
+    if D.shape[1] != nd:
+        raise ValueError(f"D: expected {nd} columns (input dimension), got {D.shape[1]}")
+    return D
+
+
+def _positive(value: Any, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a positive number or array of them") from None
+    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError(f"{name}: must be finite and > 0, got {value!r}")
+    return arr
+
+
+def _positive_scalar(value: Any, name: str) -> float:
+    arr = _positive(value, name)
+    if arr.ndim != 0:
+        raise ValueError(f"{name}: must be a positive scalar, got shape {arr.shape}")
+    return float(arr)
+
+
+def _log_bounds(bounds: Any, nd: int) -> np.ndarray:
+    """Natural-unit bounds -> (nd + 2, 2) bounds on theta."""
+    try:
+        b = np.asarray(bounds, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("bounds: must be a sequence of (low, high) pairs") from None
+    if b.ndim != 2 or b.shape[1] != 2 or b.shape[0] not in (3, nd + 2):
+        raise ValueError(
+            f"bounds: expected shape (3, 2) (sigma_f, lengthscales, sigma_eps) or "
+            f"({nd + 2}, 2), got {b.shape}"
+        )
+    if not np.all(np.isfinite(b)) or np.any(b <= 0) or np.any(b[:, 0] > b[:, 1]):
+        raise ValueError("bounds: need finite 0 < low <= high in every row")
+    if b.shape[0] == 3:
+        b = np.vstack([b[0], np.repeat(b[1:2], nd, axis=0), b[2]])
+    return np.log(b)
+
+
+def _check_optimizer(optimizer: Optional[str]) -> Optional[str]:
+    if optimizer is not None and optimizer != "L-BFGS-B":
+        raise ValueError(f"optimizer: must be 'L-BFGS-B' or None, got {optimizer!r}")
+    return optimizer
+
+
+def _check_restarts(n_restarts: Any) -> int:
+    if isinstance(n_restarts, bool) or not isinstance(n_restarts, (int, np.integer)) or n_restarts < 0:
+        raise ValueError(f"n_restarts: must be a non-negative integer, got {n_restarts!r}")
+    return int(n_restarts)
+
+
+# ----------------------------------------------------------------------------- optimisation
+
+
+def _maximise_lml(
+    D: np.ndarray,
+    y: np.ndarray,
+    theta0: np.ndarray,
+    log_bounds: np.ndarray,
+    n_restarts: int,
+    rng: np.random.Generator,
+    maxiter: int,
+) -> Tuple[np.ndarray, float]:
+    """Best (theta, lml) over L-BFGS-B runs from theta0 and n_restarts uniform random starts.
+
+    Raises NumericalError if no run produced a finite log marginal likelihood.
+    """
+
+    def objective(theta: np.ndarray) -> Tuple[float, np.ndarray]:
+        try:
+            lml, grad = _core.log_marginal_likelihood(D, y, np.ascontiguousarray(theta), True)
+        except (NumericalError, ValueError):
+            # Outside the numerically usable region: report it as infinitely bad so the line
+            # search backs off.
+            return np.inf, np.zeros_like(theta)
+        return -lml, -grad
+
+    starts = [np.clip(theta0, log_bounds[:, 0], log_bounds[:, 1])]
+    starts += [rng.uniform(log_bounds[:, 0], log_bounds[:, 1]) for _ in range(n_restarts)]
+    best: Optional[Tuple[np.ndarray, float, bool]] = None
+    for t0 in starts:
+        res = scipy.optimize.minimize(
+            objective,
+            t0,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=log_bounds,
+            # Tighter than SciPy's defaults: the LML is flat near its optimum.
+            options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9},
+        )
+        if np.isfinite(res.fun) and (best is None or -res.fun > best[1]):
+            best = (np.asarray(res.x, dtype=np.float64), float(-res.fun), bool(res.success))
+    if best is None:
+        raise NumericalError(
+            "fit: no optimiser run reached a finite log marginal likelihood; "
+            "check the data scaling and the bounds"
+        )
+    if not best[2]:
+        warnings.warn(
+            "fit: L-BFGS-B stopped before convergence (maxiter reached or line search failed); "
+            "the best hyperparameters found are used",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    return best[0], best[1]
+
+
+# ----------------------------------------------------------------------------- single output
+
+
+class GaussianProcess:
+    """Exact GP regression of one output with the SE-ARD kernel.
+
+    Parameters
+    ----------
+    sigma_f : float
+        Signal standard deviation sigma_f (initial value when optimised).
+    lengthscales : float or array of shape (n_d,)
+        Length-scales phi_1..phi_nd; a scalar is used for every input dimension.
+    sigma_eps : float
+        Measurement-noise standard deviation sigma_eps.
+    optimizer : "L-BFGS-B" or None
+        Maximise the log marginal likelihood over theta in ``fit``; None keeps the given values.
+    n_restarts : int
+        Extra optimiser runs from uniform random theta inside the log-bounds; the best is kept.
+    bounds : sequence of (low, high)
+        Bounds in natural units, either 3 rows (sigma_f, every length-scale, sigma_eps) or
+        n_d + 2 rows (sigma_f, phi_1..phi_nd, sigma_eps). Default ``DEFAULT_BOUNDS``.
+    random_state : int, numpy Generator or None
+        Seed of the restart points.
+    maxiter : int
+        Iteration limit of each L-BFGS-B run.
+
+    Attributes
+    ----------
+    sigma_f, lengthscales, sigma_eps : current hyperparameters (fitted after ``fit``).
+    theta : ndarray (n_d + 2,)
+        log([sigma_f, lengthscales..., sigma_eps]); setting it on a fitted GP refactors the model
+        without optimising.
+    D_train, y_train : training data of the last successful ``fit``.
+    jitter : float
+        Diagonal jitter the Cholesky factorisation needed (0 normally).
+    log_marginal_likelihood_value : float
+        log p(y | D, theta) at the current theta.
+    """
+
+    def __init__(
+        self,
+        sigma_f: float = 1.0,
+        lengthscales: Union[float, Sequence[float], np.ndarray] = 1.0,
+        sigma_eps: float = 0.1,
+        optimizer: Optional[str] = "L-BFGS-B",
+        n_restarts: int = 0,
+        bounds: Any = DEFAULT_BOUNDS,
+        random_state: Union[None, int, np.random.Generator] = None,
+        maxiter: int = 15000,
+    ) -> None:
+        self.sigma_f = _positive_scalar(sigma_f, "sigma_f")
+        ls = _positive(lengthscales, "lengthscales")
+        if ls.ndim > 1 or ls.size == 0:
+            raise ValueError("lengthscales: must be a positive scalar or a 1-D array")
+        self.lengthscales = ls.copy() if ls.ndim == 1 else float(ls)
+        self.sigma_eps = _positive_scalar(sigma_eps, "sigma_eps")
+        self.optimizer = _check_optimizer(optimizer)
+        self.n_restarts = _check_restarts(n_restarts)
+        _log_bounds(bounds, 1)  # validate the shape now; re-expanded once n_d is known
+        self.bounds = bounds
+        self.random_state = random_state
+        self.maxiter = int(maxiter)
+        self._core_model: Optional[_core.GP] = None
+
+    # -- state -------------------------------------------------------------------------------
+
+    def _theta_for(self, nd: int) -> np.ndarray:
+        ls = np.asarray(self.lengthscales, dtype=np.float64)
+        if ls.ndim == 0:
+            ls = np.full(nd, float(ls))
+        if ls.shape != (nd,):
+            raise ValueError(f"lengthscales: expected {nd} values (one per input), got {ls.shape[0]}")
+        return np.log(np.concatenate([[self.sigma_f], ls, [self.sigma_eps]]))
+
+    def _set_model(self, model: "_core.GP") -> None:
+        self._core_model = model
+        t = np.exp(model.theta)
+        self.sigma_f = float(t[0])
+        self.lengthscales = t[1:-1].copy()
+        self.sigma_eps = float(t[-1])
+
+    def _model(self) -> "_core.GP":
+        if self._core_model is None:
+            raise NotFittedError("this GaussianProcess is not fitted yet; call fit(D, y) first")
+        return self._core_model
+
+    @property
+    def theta(self) -> np.ndarray:
+        """log([sigma_f, lengthscales..., sigma_eps])."""
+        nd = self._core_model.dim if self._core_model is not None else np.size(self.lengthscales)
+        return self._theta_for(nd)
+
+    @theta.setter
+    def theta(self, value: Any) -> None:
+        theta = _as_float_array(value, "theta", 1)
+        if theta.size < 3:
+            raise ValueError(f"theta: needs n_d + 2 >= 3 values, got {theta.size}")
+        if self._core_model is not None:
+            m = self._core_model
+            if theta.size != m.dim + 2:
+                raise ValueError(f"theta: expected {m.dim + 2} values, got {theta.size}")
+            self._set_model(_core.GP(m.x_train, m.y_train, theta))
+        else:
+            p = np.exp(theta)
+            if not np.all(np.isfinite(p)):
+                raise ValueError("theta: exp(theta) overflows")
+            self.sigma_f, self.lengthscales, self.sigma_eps = float(p[0]), p[1:-1].copy(), float(p[-1])
+
+    @property
+    def D_train(self) -> np.ndarray:
+        return self._model().x_train
+
+    @property
+    def y_train(self) -> np.ndarray:
+        return self._model().y_train
+
+    @property
+    def jitter(self) -> float:
+        return self._model().jitter
+
+    @property
+    def log_marginal_likelihood_value(self) -> float:
+        return self._model().log_marginal_likelihood(False)[0]
+
+    @property
+    def dim(self) -> int:
+        """Input dimension n_d of the fitted model."""
+        return self._model().dim
+
+    # -- fitting -----------------------------------------------------------------------------
+
+    def fit(self, D: Any, y: Any) -> "GaussianProcess":
+        """Fit to D (N, n_d) and y (N,); returns self. A failed fit leaves the model unchanged."""
+        D, y = _check_training(D, y, 1)
+        nd = D.shape[1]
+        theta0 = self._theta_for(nd)
+        if self.optimizer is None:
+            theta = theta0
+        else:
+            log_bounds = _log_bounds(self.bounds, nd)
+            rng = np.random.default_rng(self.random_state)
+            theta, _ = _maximise_lml(D, y, theta0, log_bounds, self.n_restarts, rng, self.maxiter)
+        self._set_model(_core.GP(D, y, np.ascontiguousarray(theta)))
+        return self
+
+    def log_marginal_likelihood(
+        self, theta: Any = None, eval_gradient: bool = False
+    ) -> Union[float, Tuple[float, np.ndarray]]:
+        """log p(y | D, theta) on the training data (at the current theta if None); with
+        ``eval_gradient`` also its gradient w.r.t. theta, as ``(lml, grad)``."""
+        m = self._model()
+        if theta is None:
+            lml, grad = m.log_marginal_likelihood(bool(eval_gradient))
+        else:
+            theta = _as_float_array(theta, "theta", 1)
+            if theta.size != m.dim + 2:
+                raise ValueError(f"theta: expected {m.dim + 2} values, got {theta.size}")
+            lml, grad = _core.log_marginal_likelihood(m.x_train, m.y_train, theta, bool(eval_gradient))
+        return (lml, grad) if eval_gradient else lml
+
+    # -- prediction --------------------------------------------------------------------------
+
+    def predict(self, D: Any, return_std: bool = False):
+        """Posterior mean (k,) at D (k, n_d); with ``return_std`` also the std of the latent f."""
+        m = self._model()
+        mean, var = m.predict(_check_points(D, m.dim))
+        return (mean, np.sqrt(var)) if return_std else mean
+
+    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d); var is the
+        latent (noise-free) posterior variance."""
+        m = self._model()
+        return m.predict_with_gradients(_check_points(D, m.dim))
+
+    # -- persistence -------------------------------------------------------------------------
+
+    def save(self, path: Union[str, os.PathLike]) -> None:
+        """Save the fitted model and its settings to an ``.npz`` file (no pickle)."""
+        m = self._model()
+        np.savez(
+            path,
+            format_version=_FORMAT_VERSION,
+            kind="GaussianProcess",
+            D=m.x_train,
+            y=m.y_train,
+            theta=m.theta,
+            **_settings(self),
+        )
+
+    @classmethod
+    def load(cls, path: Union[str, os.PathLike]) -> "GaussianProcess":
+        """Load a model written by ``save``."""
+        with np.load(path, allow_pickle=False) as f:
+            _check_kind(f, "GaussianProcess")
+            gp = cls(**_settings_from(f))
+            gp._set_model(_core.GP(f["D"], f["y"], f["theta"]))
+        return gp
+
+    def __repr__(self) -> str:
+        state = "fitted" if self._core_model is not None else "not fitted"
+        return (
+            f"GaussianProcess(sigma_f={self.sigma_f:.4g}, lengthscales={np.round(self.lengthscales, 4)}, "
+            f"sigma_eps={self.sigma_eps:.4g}, {state})"
+        )
+
+
+def _settings(est: Any) -> dict:
+    return dict(
+        optimizer="" if est.optimizer is None else est.optimizer,
+        n_restarts=est.n_restarts,
+        bounds=np.asarray(est.bounds, dtype=np.float64),
+        maxiter=est.maxiter,
+    )
+
+
+def _settings_from(f: Any) -> dict:
+    opt = str(f["optimizer"])
+    return dict(
+        optimizer=None if opt == "" else opt,
+        n_restarts=int(f["n_restarts"]),
+        bounds=f["bounds"],
+        maxiter=int(f["maxiter"]),
+    )
+
+
+def _check_kind(f: Any, kind: str) -> None:
+    if "kind" not in f or str(f["kind"]) != kind:
+        raise ValueError(f"path: not a saved {kind} file")
+    if int(f["format_version"]) > _FORMAT_VERSION:
+        raise ValueError("path: saved by a newer gpmhe (format version too high)")
+
+
+# ----------------------------------------------------------------------------- multi output
+
+
+class MultiOutputGP:
+    """Independent SE-ARD GPs, one per output column, on shared inputs.
+
+    Each output o has its own hyperparameters sigma_f[o], lengthscales[o, :], sigma_eps[o]; all
+    outputs are fitted separately (same optimiser settings as ``GaussianProcess``) and predicted in
+    one Rust call.
+
+    Parameters
+    ----------
+    sigma_f, sigma_eps : float or array (q,)
+    lengthscales : float, array (n_d,) or array (q, n_d)
+        Initial values (broadcast over outputs and input dimensions).
+    optimizer, n_restarts, bounds, random_state, maxiter : as for ``GaussianProcess`` (the same
+        bounds for every output).
+
+    Attributes
+    ----------
+    sigma_f (q,), lengthscales (q, n_d), sigma_eps (q,) : fitted hyperparameters.
+    theta : ndarray (q, n_d + 2), one row log([sigma_f, lengthscales..., sigma_eps]) per output;
+        settable on a fitted model.
+    _core_model : gpmhe._core.MultiGP
+        The fitted Rust model (used directly by the estimators).
+    """
+
+    def __init__(
+        self,
+        sigma_f: Union[float, np.ndarray] = 1.0,
+        lengthscales: Union[float, np.ndarray] = 1.0,
+        sigma_eps: Union[float, np.ndarray] = 0.1,
+        optimizer: Optional[str] = "L-BFGS-B",
+        n_restarts: int = 0,
+        bounds: Any = DEFAULT_BOUNDS,
+        random_state: Union[None, int, np.random.Generator] = None,
+        maxiter: int = 15000,
+    ) -> None:
+        self.sigma_f = _positive(sigma_f, "sigma_f")
+        self.lengthscales = _positive(lengthscales, "lengthscales")
+        self.sigma_eps = _positive(sigma_eps, "sigma_eps")
+        if self.sigma_f.ndim > 1 or self.sigma_eps.ndim > 1 or self.lengthscales.ndim > 2:
+            raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
+        self.optimizer = _check_optimizer(optimizer)
+        self.n_restarts = _check_restarts(n_restarts)
+        _log_bounds(bounds, 1)
+        self.bounds = bounds
+        self.random_state = random_state
+        self.maxiter = int(maxiter)
+        self._core_model: Optional[_core.MultiGP] = None
+
+    def _thetas_for(self, q: int, nd: int) -> np.ndarray:
+        try:
+            sf = np.broadcast_to(self.sigma_f, (q,))
+            se = np.broadcast_to(self.sigma_eps, (q,))
+        except ValueError:
+            raise ValueError(f"sigma_f, sigma_eps: expected a scalar or {q} values (one per output)") from None
+        try:
+            ls = np.broadcast_to(self.lengthscales, (q, nd))
+        except ValueError:
+            raise ValueError(
+                f"lengthscales: expected a scalar, ({nd},) or ({q}, {nd}), got {self.lengthscales.shape}"
+            ) from None
+        return np.log(np.column_stack([sf, ls, se]))
+
+    def _set_model(self, model: "_core.MultiGP") -> None:
+        self._core_model = model
+        t = np.exp(model.thetas)
+        self.sigma_f = t[:, 0].copy()
+        self.lengthscales = t[:, 1:-1].copy()
+        self.sigma_eps = t[:, -1].copy()
+
+    def _model(self) -> "_core.MultiGP":
+        if self._core_model is None:
+            raise NotFittedError("this MultiOutputGP is not fitted yet; call fit(D, Y) first")
+        return self._core_model
+
+    @property
+    def n_outputs(self) -> int:
+        return self._model().n_outputs
+
+    @property
+    def dim(self) -> int:
+        return self._model().dim
+
+    @property
+    def theta(self) -> np.ndarray:
+        """(q, n_d + 2) log-hyperparameters, one row per output."""
+        return self._model().thetas
+
+    @theta.setter
+    def theta(self, value: Any) -> None:
+        m = self._model()
+        theta = _as_float_array(value, "theta", 2)
+        if theta.shape != (m.n_outputs, m.dim + 2):
+            raise ValueError(f"theta: expected shape ({m.n_outputs}, {m.dim + 2}), got {theta.shape}")
+        self._set_model(_core.MultiGP(self._D, self._Y, theta))
+
+    @property
+    def D_train(self) -> np.ndarray:
+        self._model()
+        return self._D
+
+    @property
+    def y_train(self) -> np.ndarray:
+        self._model()
+        return self._Y
+
+    @property
+    def jitter(self) -> np.ndarray:
+        return self._model().jitters
+
+    def fit(self, D: Any, Y: Any) -> "MultiOutputGP":
+        """Fit to D (N, n_d) and Y (N, q) (a 1-D Y is one output); returns self.
+        A failed fit leaves the model unchanged."""
+        if np.ndim(Y) == 1:
+            Y = np.asarray(Y)[:, None]
+        D, Y = _check_training(D, Y, 2)
+        q, nd = Y.shape[1], D.shape[1]
+        thetas = self._thetas_for(q, nd)
+        if self.optimizer is not None:
+            log_bounds = _log_bounds(self.bounds, nd)
+            rng = np.random.default_rng(self.random_state)
+            thetas = np.array(
+                [
+                    _maximise_lml(
+                        D, np.ascontiguousarray(Y[:, o]), thetas[o], log_bounds, self.n_restarts, rng, self.maxiter
+                    )[0]
+                    for o in range(q)
+                ]
+            )
+        model = _core.MultiGP(D, Y, np.ascontiguousarray(thetas))
+        self._D, self._Y = D, Y
+        self._set_model(model)
+        return self
+
+    def log_marginal_likelihood(self, theta: Any = None, eval_gradient: bool = False):
+        """Per-output log marginal likelihoods (q,) (at the current theta if None, else at theta
+        of shape (q, n_d + 2)); with ``eval_gradient`` also the gradients (q, n_d + 2)."""
+        m = self._model()
+        theta = m.thetas if theta is None else _as_float_array(theta, "theta", 2)
+        if theta.shape != (m.n_outputs, m.dim + 2):
+            raise ValueError(f"theta: expected shape ({m.n_outputs}, {m.dim + 2}), got {theta.shape}")
+        res = [
+            _core.log_marginal_likelihood(
+                self._D, np.ascontiguousarray(self._Y[:, o]), np.ascontiguousarray(theta[o]), bool(eval_gradient)
+            )
+            for o in range(m.n_outputs)
+        ]
+        lml = np.array([r[0] for r in res])
+        return (lml, np.array([r[1] for r in res])) if eval_gradient else lml
+
+    def predict(self, D: Any, return_std: bool = False):
+        """Posterior means (k, q) at D (k, n_d); with ``return_std`` also latent stds (k, q)."""
+        m = self._model()
+        mean, var = m.predict(_check_points(D, m.dim))
+        return (mean, np.sqrt(var)) if return_std else mean
+
+    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(mean, var, dmean_dd, dvar_dd) of shapes (k, q), (k, q), (k, q, n_d), (k, q, n_d)."""
+        m = self._model()
+        return m.predict_with_gradients(_check_points(D, m.dim))
+
+    def save(self, path: Union[str, os.PathLike]) -> None:
+        """Save the fitted model and its settings to an ``.npz`` file (no pickle)."""
+        m = self._model()
+        np.savez(
+            path,
+            format_version=_FORMAT_VERSION,
+            kind="MultiOutputGP",
+            D=self._D,
+            y=self._Y,
+            theta=m.thetas,
+            **_settings(self),
+        )
+
+    @classmethod
+    def load(cls, path: Union[str, os.PathLike]) -> "MultiOutputGP":
+        """Load a model written by ``save``."""
+        with np.load(path, allow_pickle=False) as f:
+            _check_kind(f, "MultiOutputGP")
+            gp = cls(**_settings_from(f))
+            D, Y = np.ascontiguousarray(f["D"]), np.ascontiguousarray(f["y"])
+            model = _core.MultiGP(D, Y, np.ascontiguousarray(f["theta"]))
+            gp._D, gp._Y = D, Y
+            gp._set_model(model)
+        return gp
+
+    def __repr__(self) -> str:
+        if self._core_model is None:
+            return "MultiOutputGP(not fitted)"
+        return f"MultiOutputGP(q={self.n_outputs}, n_d={self.dim}, N={self._D.shape[0]}, fitted)"
