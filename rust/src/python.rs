@@ -825,7 +825,19 @@ impl PyWindowSolver {
         let w = &mut *window;
         w.last_z.clear();
         let dims = (w.problem.dim_x(), w.problem.dim_u(), w.problem.dim_y());
-        let report: SolveReport = match &w.model {
+        let (solver, opts) = (&mut self.solver, &self.opts);
+        let report: SolveReport = match &mut w.model {
+            WindowModel::Gp(model) => {
+                let (problem, eval) = (&w.problem, &mut w.eval);
+                py.detach(|| {
+                    let mut lsq = WindowLsq {
+                        problem,
+                        model,
+                        eval,
+                    };
+                    solver.solve(&mut lsq, &mut z, lower, upper, opts)
+                })?
+            }
             WindowModel::Callback(func) => {
                 let mut model = CallbackModel {
                     func: func.bind(py),
@@ -837,10 +849,7 @@ impl PyWindowSolver {
                     model: &mut model,
                     eval: &mut w.eval,
                 };
-                match self
-                    .solver
-                    .solve(&mut lsq, &mut z, lower, upper, &self.opts)
-                {
+                match solver.solve(&mut lsq, &mut z, lower, upper, opts) {
                     Ok(r) => r,
                     // A Python exception raised by the model is more useful than its wrapper.
                     Err(e) => return Err(model.err.take().unwrap_or_else(|| e.into())),
