@@ -315,14 +315,16 @@ class GPMHE:
 
     # ---- solvers: one method per solver, dispatched through _SOLVERS ------------------------
     def _solve(self, window, z0, lb, ub):
-        cost0 = window.cost(z0)
+        # The Rust solver never returns a point costlier than its start: skip that evaluation.
+        cost0 = None if self.solver == "gauss-newton" else window.cost(z0)
         try:
             z, nit, ok, message = getattr(self, self._SOLVERS[self.solver])(window, z0, lb, ub)
             z = np.clip(np.asarray(z, dtype=np.float64), lb, ub)
             cost = window.cost(z) if np.all(np.isfinite(z)) else np.inf
         except (ValueError, ArithmeticError, np.linalg.LinAlgError, RuntimeError) as e:
             z, nit, ok, message, cost = z0, 0, False, f"solver raised: {e}", np.inf
-        if not np.isfinite(cost) or cost > cost0:
+        if not np.isfinite(cost) or (cost0 is not None and cost > cost0):
+            cost0 = window.cost(z0) if cost0 is None else cost0
             if ok:
                 message = f"solver returned a point costlier than its start ({message})"
             z, cost, ok = z0.copy(), cost0, False

@@ -380,6 +380,8 @@ struct Progress {
 
 const ARMIJO: f64 = 1e-4;
 const LAMBDA_MAX: f64 = 1e16;
+/// Relative size below which a predicted decrease of J cannot be verified by evaluating J.
+const NOISE: f64 = 1e-10;
 /// Longest extrapolated step (in multiples of the Gauss-Newton step) tried along flat directions.
 const EXTRAP_MAX: f64 = 10.0;
 
@@ -857,6 +859,7 @@ impl BoxLsqSolver {
         let len = z.len();
         let mut lambda = 1e-6;
         let mut nu = 2.0;
+        let mut noise_failures = 0;
         // `g`, `diag`, `off` hold the derivatives at z here (start() or the interior phase).
         loop {
             let pg = projected_gradient_norm(z, &self.g, lower, upper);
@@ -867,20 +870,68 @@ impl BoxLsqSolver {
                 return Status::MaxIterations;
             }
             pr.nit += 1;
+            // ε-active set (Bertsekas' projected Newton): a variable within ε of a bound with
+            // the gradient pushing outward is held on that bound, with ε the size of the
+            // diagonally scaled projected-gradient step (capped), so that variables creeping
+            // towards a bound are caught instead of producing tiny projected steps.
+            let mut eps = 0.0f64;
             for k in 0..len {
-                let tol_l = 1e-10 * lower[k].abs().max(1.0);
-                let tol_u = 1e-10 * upper[k].abs().max(1.0);
-                let at_l = finite_lower(lower[k]) && z[k] - lower[k] <= tol_l && self.g[k] > 0.0;
-                let at_u = finite_upper(upper[k]) && upper[k] - z[k] <= tol_u && self.g[k] < 0.0;
+                let d = self.scale(n, k);
+                eps = eps.max((z[k] - (z[k] - self.g[k] / d).clamp(lower[k], upper[k])).abs());
+            }
+            for k in 0..len {
+                let e_l = eps.min(1e-3 * lower[k].abs().max(1.0));
+                let e_u = eps.min(1e-3 * upper[k].abs().max(1.0));
+                let at_l = finite_lower(lower[k]) && z[k] - lower[k] <= e_l && self.g[k] > 0.0;
+                let at_u = finite_upper(upper[k]) && upper[k] - z[k] <= e_u && self.g[k] < 0.0;
                 self.fixed[k] = self.fixed_bound[k] || at_l || at_u;
                 self.shift[k] = lambda * self.scale(n, k);
-                self.step[k] = if self.fixed[k] { 0.0 } else { -self.g[k] };
             }
-            let ok = self
-                .chol
-                .factor(nodes, n, &self.diag, &self.off, &self.shift, &self.fixed);
-            if ok {
+            // Reduced damped Gauss-Newton step with the held variables moved onto their bounds
+            // (s_A = bound − z, right-hand side −g_F − H_FA s_A). Free variables whose step
+            // crosses a bound while the gradient pushes outward join the held set and the step
+            // is recomputed (a few passes; factorisations are cheap next to evaluations).
+            let mut ok = false;
+            for _pass in 0..4 {
+                for k in 0..len {
+                    self.trial[k] = if self.fixed[k] && !self.fixed_bound[k] {
+                        let b = if self.g[k] > 0.0 { lower[k] } else { upper[k] };
+                        b - z[k]
+                    } else {
+                        0.0
+                    };
+                }
+                block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.trial, &mut self.hp);
+                for k in 0..len {
+                    self.step[k] = if self.fixed[k] {
+                        0.0
+                    } else {
+                        -self.g[k] - self.hp[k]
+                    };
+                }
+                ok = self
+                    .chol
+                    .factor(nodes, n, &self.diag, &self.off, &self.shift, &self.fixed);
+                if !ok {
+                    break;
+                }
                 self.chol.solve_in_place(&mut self.step);
+                let mut added = false;
+                for k in 0..len {
+                    if self.fixed[k] {
+                        self.step[k] = self.trial[k];
+                    } else {
+                        let zk = z[k] + self.step[k];
+                        if (zk < lower[k] && self.g[k] > 0.0) || (zk > upper[k] && self.g[k] < 0.0)
+                        {
+                            self.fixed[k] = true;
+                            added = true;
+                        }
+                    }
+                }
+                if !added {
+                    break;
+                }
             }
             if !ok || self.step.iter().any(|s| !s.is_finite()) {
                 lambda *= nu;
@@ -893,8 +944,12 @@ impl BoxLsqSolver {
             // Projected trial point and the step actually taken.
             let mut znorm = 0.0f64;
             let mut pnorm = 0.0f64;
+            let mut clipped = false;
             for k in 0..len {
-                self.trial[k] = (z[k] + self.step[k]).clamp(lower[k], upper[k]);
+                self.dyl[k] = self.step[k]; // the unprojected step (dyl is free scratch here)
+                let target = z[k] + self.step[k];
+                self.trial[k] = target.clamp(lower[k], upper[k]);
+                clipped |= !self.fixed[k] && self.trial[k] != target;
                 self.step[k] = self.trial[k] - z[k];
                 znorm = znorm.max(z[k].abs());
                 pnorm = pnorm.max(self.step[k].abs());
@@ -907,19 +962,72 @@ impl BoxLsqSolver {
             for k in 0..len {
                 pred -= self.g[k] * self.step[k] + 0.5 * self.step[k] * self.hp[k];
             }
+            if clipped {
+                // A projected step can be poor when coupled variables hit a bound; the
+                // unprojected step truncated at the first bound may predict more: keep
+                // whichever model decrease is larger. `shift` is free scratch here.
+                let mut a = 1.0f64;
+                for k in 0..len {
+                    let u = self.dyl[k];
+                    self.shift[k] = u;
+                    if u < 0.0 && finite_lower(lower[k]) {
+                        a = a.min((lower[k] - z[k]) / u);
+                    } else if u > 0.0 && finite_upper(upper[k]) {
+                        a = a.min((upper[k] - z[k]) / u);
+                    }
+                }
+                let a = a.max(0.0);
+                for k in 0..len {
+                    self.shift[k] *= a;
+                }
+                block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.shift, &mut self.hp);
+                let mut pred_t = 0.0;
+                for k in 0..len {
+                    pred_t -= self.g[k] * self.shift[k] + 0.5 * self.shift[k] * self.hp[k];
+                }
+                if pred_t > pred {
+                    pred = pred_t;
+                    for k in 0..len {
+                        self.step[k] = self.shift[k];
+                        self.trial[k] = (z[k] + self.shift[k]).clamp(lower[k], upper[k]);
+                    }
+                }
+            }
             let gp: f64 = (0..len).map(|k| self.g[k] * self.step[k]).sum();
             let ct = prob.evaluate(&self.trial, true).unwrap_or(f64::INFINITY);
             pr.nfev += 1;
             let rho = (pr.cost - ct) / pred;
-            if ct.is_finite() && pred > 0.0 && rho > ARMIJO {
+            // Below the rounding noise of J (GP variances are differences of O(σ_f²) numbers)
+            // the gain ratio is meaningless: accept the step if it lowers the projected
+            // gradient instead, and stop if it does not.
+            let unmeasurable = !clipped && pred <= NOISE * pr.cost.abs().max(1.0);
+            let mut accept = ct.is_finite() && pred > 0.0 && rho > ARMIJO;
+            if !accept && unmeasurable && ct.is_finite() {
+                prob.gradient_into(&mut self.hp);
+                if projected_gradient_norm(&self.trial, &self.hp, lower, upper) < pg {
+                    accept = true;
+                } else {
+                    noise_failures += 1;
+                    if noise_failures >= 3 {
+                        pr.derivs_at_z = false;
+                        return Status::CostTolerance;
+                    }
+                }
+            }
+            if accept {
+                noise_failures = 0;
                 let decrease = pr.cost - ct;
                 let old = pr.cost;
                 z.copy_from_slice(&self.trial);
                 pr.cost = ct;
                 pr.derivs_at_z = true;
                 self.take_derivatives(prob);
-                lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
                 nu = 2.0;
+                if unmeasurable {
+                    lambda /= 3.0;
+                    continue;
+                }
+                lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
                 if decrease <= opts.ftol * old {
                     return Status::CostTolerance;
                 }
