@@ -23,9 +23,13 @@ def _progress(msg):
     print(msg, file=sys.stderr, flush=True)
 
 
-def run_estimators(seed, steps, solver, n_restarts=3, log=_progress, models=None):
+def run_estimators(seed, steps, solver, n_restarts=3, log=_progress, models=None,
+                   increment_model=False):
     """Simulate one run (seed) and run every estimator on it. Returns (truth (steps+1, 2),
-    {name: (estimates (steps, 2) of x(1..steps), update times (steps,), failed windows)}, models)."""
+    {name: (estimates (steps, 2) of x(1..steps), update times (steps,), failed windows)}, models).
+    `solver` is one name or a list (each MHE runs once per solver; names get a suffix then);
+    `increment_model` adds GP-MHE with f learned as an increment (5 trajectories)."""
+    solvers = [solver] if isinstance(solver, str) else list(solver)
     from gpmhe import GPMHE, KnownModel, LearnedModel
     from gpmhe.baselines import GPEKF, ExactEKF
     from gpmhe.systems import batch_reactor as br
@@ -33,33 +37,39 @@ def run_estimators(seed, steps, solver, n_restarts=3, log=_progress, models=None
     rng = np.random.default_rng(seed)
     if models is None:
         models = {}
-        for n_traj in (5, 3):
-            log(f"training GPs on {n_traj} trajectories (seed {seed}) ...")
+        data = {n_traj: br.training_data(n_traj, rng=rng) for n_traj in (5, 3)}
+        kinds = [(5, False), (3, False)] + ([(5, True)] if increment_model else [])
+        for n_traj, incr in kinds:
+            log(f"training GPs on {n_traj} trajectories{' (f as increment)' if incr else ''} "
+                f"(seed {seed}) ...")
             t0 = time.perf_counter()
-            states, outputs = br.training_data(n_traj, rng=rng)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # optimiser chatter; the best restart is kept
-                models[n_traj] = LearnedModel.from_trajectories(
-                    states, outputs, n_restarts=n_restarts, random_state=seed
+                models[(n_traj, incr)] = LearnedModel.from_trajectories(
+                    *data[n_traj], n_restarts=n_restarts, random_state=seed, f_residual=incr
                 )
             log(f"  done in {time.perf_counter() - t0:.1f} s")
     x, y = br.simulate(br.X_TRUE0, steps, rng)
     known = KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
-    mhe_kw = dict(x_bounds=br.X_BOUNDS, solver=solver, **br.MHE_SETTINGS)
-    estimators = {
-        "GP-MHE (5 traj.)": GPMHE(models[5], br.X_PRIOR0, **mhe_kw),
-        "GP-MHE (3 traj.)": GPMHE(models[3], br.X_PRIOR0, **mhe_kw),
-        "exact-model MHE": GPMHE(known, br.X_PRIOR0, **mhe_kw),
-    }
+    estimators = {}
+    for sv in solvers:
+        tag = f" [{sv}]" if len(solvers) > 1 else ""
+        mhe_kw = dict(x_bounds=br.X_BOUNDS, solver=sv, **br.MHE_SETTINGS)
+        estimators[f"GP-MHE (5 traj.){tag}"] = GPMHE(models[(5, False)], br.X_PRIOR0, **mhe_kw)
+        if (5, True) in models:
+            estimators[f"GP-MHE (5, incr. f){tag}"] = GPMHE(models[(5, True)], br.X_PRIOR0,
+                                                            **mhe_kw)
+        estimators[f"GP-MHE (3 traj.){tag}"] = GPMHE(models[(3, False)], br.X_PRIOR0, **mhe_kw)
+        estimators[f"exact-model MHE{tag}"] = GPMHE(known, br.X_PRIOR0, **mhe_kw)
     Q, R = br.SIGMA_W**2 * np.eye(2), br.SIGMA_V**2 * np.eye(1)
     ekfs = {
         "filterpy EKF (exact)": ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_PRIOR0,
                                          np.eye(2), Q, R),
-        "GP-EKF (5 traj.)": GPEKF(models[5], br.X_PRIOR0, np.eye(2), Q, R),
+        "GP-EKF (5 traj.)": GPEKF(models[(5, False)], br.X_PRIOR0, np.eye(2), Q, R),
     }
     results = {}
     for name, est in estimators.items():
-        log(f"running {name} ({solver}) ...")
+        log(f"running {name} ({est.solver}) ...")
         xs, ts, failed = np.empty((steps, 2)), np.empty(steps), 0
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # counted in `failed` instead
