@@ -91,10 +91,17 @@ class GPMHE:
         weights are their inverses; identity by default).
     x_bounds : (lower, upper) arrays of shape (dim_x,), the box X; unbounded by default.
     form : "prediction" (the paper's) or "filtering".
-    solver : "trust-constr" (SciPy interior point, exact gradient and Gauss-Newton Hessian from
+    solver : "gauss-newton" (default: the real-time Rust solver, one Rust call per update:
+        bounded Gauss-Newton/Levenberg-Marquardt with a block-tridiagonal factorisation, linear
+        in the horizon; a barrier phase keeps early iterations off the bounds, see README),
+        "trust-constr" (SciPy interior point, exact gradient and Gauss-Newton Hessian from
         Rust; slow but the general reference) or "least-squares" (SciPy's bounded TRF on the
-        stacked residuals with the Rust Jacobian).
-    solver_options : dict passed to the SciPy solver, overriding gpmhe's tuned defaults.
+        stacked residuals with the Rust Jacobian). With a KnownModel, "gauss-newton" still
+        solves in Rust but calls the model's Python functions for every point evaluation.
+    solver_options : dict overriding gpmhe's tuned defaults: passed to the SciPy solver, or for
+        "gauss-newton" any of max_iter (100), gtol (1e-6, on ‖z − P(z − ∇J)‖∞), xtol (1e-12),
+        ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (0.01), mu_init
+        (0.1), mu_final (1e-5).
 
     Attributes
     ----------
@@ -105,7 +112,7 @@ class GPMHE:
         Gauss-Newton Hessian of J (J is 4× a negative log-likelihood); a rough indication, exact
         only for linear-Gaussian models and η = 1.
     cost, success, nit, message : the last window's optimal cost, solver status, iterations and
-        message. On failure (`success` False, a RuntimeWarning), the window keeps whichever of the
+        message. With "gauss-newton" also `nfev` (window evaluations) and `projected_gradient`. On failure (`success` False, a RuntimeWarning), the window keeps whichever of the
         solver's last finite iterate and the warm start costs less; `x` is never NaN.
     t : number of updates so far.
 
@@ -115,7 +122,7 @@ class GPMHE:
     """
 
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
-                 x_bounds=None, form="prediction", solver="trust-constr", solver_options=None):
+                 x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None):
         for attr in ("dim_x", "dim_y", "dim_u", "predict", "_make_window"):
             if not hasattr(model, attr):
                 raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
@@ -159,6 +166,8 @@ class GPMHE:
         self._core = _Unsaved(
             model._make_window(self.eta, q0, r0, p2_sqrt, form == "filtering")
         )
+        if solver == "gauss-newton":
+            self._core.solver = self._rust_solver()
         self.reset(x0)
 
     # ----------------------------------------------------------------------------------------
@@ -181,6 +190,7 @@ class GPMHE:
         self.x_window = x0[None, :].copy()
         self.P = np.linalg.inv(self.P2)
         self.cost, self.success, self.nit, self.message = 0.0, True, 0, ""
+        self.nfev, self.projected_gradient = 0, 0.0
         # Histories (time stamps implicit): inputs/outputs of the last M+1 steps and the arrival
         # priors for the last M+2 times (priors[-1] belongs to the newest time).
         h = self._core
@@ -363,12 +373,18 @@ class GPMHE:
                             method="trf", **options)
         return res.x, res.nfev, res.status > 0, res.message
 
+    def _rust_solver(self):
+        """The Rust solver object (settings + reused work buffers), validating solver_options."""
+        try:
+            return _core.WindowSolver(**self.solver_options)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"solver_options: {e}") from None
+
     def _solve_gauss_newton(self, window, z0, lb, ub):
-        # The Rust solver object (settings + work buffers) lives next to the window, built on
-        # first use so that `solver_options` is validated by Rust and reported by name.
+        # One Rust call: bounded Gauss-Newton on the window (gpmhe._core.WindowSolver).
         core = self._core
         if getattr(core, "solver", None) is None:
-            core.solver = _core.WindowSolver(**self.solver_options)
+            core.solver = self._rust_solver()
         z, cost, status, ok, nit, nfev, pg, n_interior = core.solver.solve(window, z0, lb, ub)
         self.projected_gradient, self.nfev = float(pg), int(nfev)
         return z, nit, ok, f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
