@@ -99,3 +99,30 @@ def log_marginal_likelihood(
     theta: npt.NDArray[np.float64],
     eval_gradient: bool = False,
 ) -> tuple[float, npt.NDArray[np.float64]]: ...
+
+# ===== Window solver =====
+
+class WindowSolver:
+    """The real-time bounded Gauss-Newton window solver (rust/src/solver.rs): settings and work
+    buffers reused across updates. Used by GPMHE(solver="gauss-newton")."""
+
+    def __init__(
+        self,
+        max_iter: int = 100,
+        gtol: float = 1e-6,
+        xtol: float = 1e-12,
+        ftol: float = 1e-15,
+        interior: str = "auto",
+        interior_zone: float = 0.01,
+        mu_init: float = 0.1,
+        mu_final: float = 1e-5,
+    ) -> None: ...
+    def solve(
+        self,
+        window: object,  # an MheWindow
+        z0: npt.NDArray[np.float64],
+        lower: npt.NDArray[np.float64],
+        upper: npt.NDArray[np.float64],
+    ) -> tuple[npt.NDArray[np.float64], float, str, bool, int, int, float, int]:
+        """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations)"""
+        ...

@@ -525,35 +525,52 @@ impl BoxLsqSolver {
         };
         let mut interior_iterations = 0;
         self.start(prob, z, &mut pr)?;
-        let mut status;
-        if run_interior {
+        let status;
+        if !run_interior {
+            status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+        } else if opts.interior == InteriorMode::Always {
             // The barrier phase is not monotone in J: keep the (projected) start and its cost,
             // and fall back to the active-set phase from there if the result costs more.
             let cost0 = pr.cost;
             self.z0.clear();
             self.z0.extend_from_slice(z);
-            self.push_inside(z, lower, upper);
-            self.start(prob, z, &mut pr)?;
-            self.interior_phase(prob, z, lower, upper, opts, &mut pr);
+            let status_i = self.interior_path(prob, z, lower, upper, opts, &mut pr)?;
             interior_iterations = pr.nit;
-            status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
-            if opts.interior == InteriorMode::Auto || pr.cost > cost0 {
-                // Auto: the problem is non-convex and the two paths can end in different
-                // minima, so also run the projected path from the start and keep the cheaper.
-                let (cost_int, status_int) = (pr.cost, status);
-                self.z_int.clear();
-                self.z_int.extend_from_slice(z);
+            if pr.cost > cost0 {
                 z.copy_from_slice(&self.z0);
                 self.start(prob, z, &mut pr)?;
                 status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
-                if cost_int < pr.cost {
-                    z.copy_from_slice(&self.z_int);
-                    self.start(prob, z, &mut pr)?;
-                    status = status_int;
-                }
+            } else {
+                status = status_i;
             }
         } else {
-            status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+            // Auto: the projected path first; if it ends on a bound it may have been pinned
+            // there (DESIGN.md §6), so also take the interior path from the same start and keep
+            // the cheaper result (the problem is non-convex: the paths can end in different
+            // minima).
+            self.z0.clear();
+            self.z0.extend_from_slice(z);
+            let status_a = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+            let on_bound =
+                (0..len).any(|k| !self.fixed_bound[k] && (z[k] == lower[k] || z[k] == upper[k]));
+            if on_bound && pr.nit < opts.max_iter {
+                let cost_a = pr.cost;
+                self.z_int.clear();
+                self.z_int.extend_from_slice(z);
+                z.copy_from_slice(&self.z0);
+                let before = pr.nit;
+                let status_i = self.interior_path(prob, z, lower, upper, opts, &mut pr)?;
+                interior_iterations = pr.nit - before;
+                if pr.cost < cost_a {
+                    status = status_i;
+                } else {
+                    z.copy_from_slice(&self.z_int);
+                    self.start(prob, z, &mut pr)?;
+                    status = status_a;
+                }
+            } else {
+                status = status_a;
+            }
         }
         if !pr.derivs_at_z {
             // Leave the problem's derivatives at the returned point (the caller may use them,
@@ -571,6 +588,22 @@ impl BoxLsqSolver {
             interior_iterations,
             nfev: pr.nfev,
         })
+    }
+
+    /// Barrier phase from a pushed-inside copy of z, then the active-set polish.
+    fn interior_path<P: BlockLsqProblem + ?Sized>(
+        &mut self,
+        prob: &mut P,
+        z: &mut [f64],
+        lower: &[f64],
+        upper: &[f64],
+        opts: &SolverOptions,
+        pr: &mut Progress,
+    ) -> Result<Status> {
+        self.push_inside(z, lower, upper);
+        self.start(prob, z, pr)?;
+        self.interior_phase(prob, z, lower, upper, opts, pr);
+        Ok(self.active_set_phase(prob, z, lower, upper, opts, pr))
     }
 
     fn start<P: BlockLsqProblem + ?Sized>(
@@ -656,6 +689,7 @@ impl BoxLsqSolver {
             .sum::<usize>()
             .max(1);
         let mut lambda = 0.0f64;
+        let mut failures = 0;
         while pr.nit < opts.max_iter {
             // Optimality error of the barrier problem (IPOPT's E_mu with its dual scaling).
             let mut e_dual = 0.0f64;
@@ -755,7 +789,7 @@ impl BoxLsqSolver {
             let a_p = a_max.min(1.0);
             let mut alpha = a_p;
             let mut accepted = None;
-            for ls in 0..40 {
+            for ls in 0..12 {
                 for k in 0..len {
                     self.trial[k] = z[k] + alpha * self.step[k];
                 }
@@ -770,9 +804,11 @@ impl BoxLsqSolver {
                 alpha *= 0.5;
             }
             let Some((mut ct, mut have_derivs, phit)) = accepted else {
-                // g and the blocks still hold the derivatives at z: damp harder and retry.
+                // g and the blocks still hold the derivatives at z: damp harder and retry, but
+                // leave the rest to the active-set phase after repeated failures.
                 lambda = (10.0 * lambda).max(1e-8);
-                if lambda > LAMBDA_MAX {
+                failures += 1;
+                if lambda > LAMBDA_MAX || failures >= 3 {
                     break;
                 }
                 continue;
@@ -798,6 +834,7 @@ impl BoxLsqSolver {
                     }
                 }
             }
+            failures = 0;
             z.copy_from_slice(&self.trial);
             pr.cost = ct;
             const KAPPA_SIGMA: f64 = 1e10;
@@ -1462,8 +1499,12 @@ mod tests {
         let lo = vec![-3.0; nodes * n];
         let hi = vec![3.0; nodes * n];
         let mut z = vec![-3.0; nodes * n];
+        let opts = SolverOptions {
+            interior: InteriorMode::Always,
+            ..SolverOptions::default()
+        };
         let rep = BoxLsqSolver::new()
-            .solve(&mut p, &mut z, &lo, &hi, &SolverOptions::default())
+            .solve(&mut p, &mut z, &lo, &hi, &opts)
             .unwrap();
         assert!(rep.interior_iterations > 0);
         assert!(rep.projected_gradient <= 1e-6, "{rep:?}");
