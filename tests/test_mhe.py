@@ -233,3 +233,19 @@ def test_f_residual_option_and_gp_ekf_run():
     ekf.update(3.9)
     ekf.predict()
     assert np.all(np.isfinite(ekf.x))
+
+
+def test_demo_runs_and_prints_the_table(capsys, tmp_path):
+    import importlib.util
+
+    from gpmhe.demos.batch_reactor import main
+
+    plot = importlib.util.find_spec("matplotlib") is not None  # the optional `plot` extra
+    args = ["--steps", "21", "--restarts", "0"] + (["--out", str(tmp_path / "fig.png")] if plot else [])
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    for name in ("GP-MHE (5 traj.)", "GP-MHE (3 traj.)", "exact-model MHE", "filterpy EKF (exact)",
+                 "GP-EKF (5 traj.)", "MHE solver: least-squares"):
+        assert name in out
+    if plot:
+        assert (tmp_path / "fig.png").stat().st_size > 0

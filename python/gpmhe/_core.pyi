@@ -100,6 +100,51 @@ def log_marginal_likelihood(
     eval_gradient: bool = False,
 ) -> tuple[float, npt.NDArray[np.float64]]: ...
 
+# ===== MHE window =====
+
+from typing import Callable
+
+_F = npt.NDArray[np.float64]
+
+class MheWindow:
+    """One GP-MHE window problem (DESIGN.md §3): residuals, banded Jacobian, cost, gradient and
+    Gauss-Newton Hessian in the stacked window states z; evaluations at the same z are cached."""
+
+    @staticmethod
+    def with_callback(
+        stage_eval: Callable[[_F], tuple[_F, _F, _F, _F, _F, _F, _F, _F]],
+        dim_x: int,
+        dim_u: int,
+        dim_y: int,
+        eta: float,
+        q0: _F,
+        r0: _F,
+        p2_sqrt: _F,
+        filtering: bool,
+    ) -> MheWindow: ...
+    @staticmethod
+    def with_gp(
+        f_gp: MultiGP,
+        h_gp: MultiGP | None,
+        dim_u: int,
+        f_residual: bool,
+        eta: float,
+        q0: _F,
+        r0: _F,
+        p2_sqrt: _F,
+        filtering: bool,
+    ) -> MheWindow: ...
+    def set_data(self, u: _F, y: _F, y_present: list[bool], x_prior: _F) -> None: ...
+    @property
+    def n_nodes(self) -> int: ...
+    @property
+    def n_residuals(self) -> int: ...
+    def cost(self, z: _F) -> float: ...
+    def cost_grad(self, z: _F) -> tuple[float, _F]: ...
+    def gn_hessian(self, z: _F) -> _F: ...
+    def residuals(self, z: _F) -> _F: ...
+    def jacobian(self, z: _F) -> _F: ...
+
 # ===== Window solver =====
 
 class WindowSolver:
@@ -119,7 +164,7 @@ class WindowSolver:
     ) -> None: ...
     def solve(
         self,
-        window: object,  # an MheWindow
+        window: MheWindow,
         z0: npt.NDArray[np.float64],
         lower: npt.NDArray[np.float64],
         upper: npt.NDArray[np.float64],
