@@ -380,7 +380,11 @@ struct Progress {
 
 const ARMIJO: f64 = 1e-4;
 const LAMBDA_MAX: f64 = 1e16;
-/// Relative size below which a predicted decrease of J cannot be verified by evaluating J.
+/// Auto mode tries the barrier path only if the start cost more than this times the projected
+/// path's optimum (a poor start, as in the transient from a wrong prior).
+const POOR_START: f64 = 1.5;
+/// Relative size below which a predicted decrease of J cannot be verified by evaluating J
+/// (the floor of the solver's running noise estimate).
 const NOISE: f64 = 1e-10;
 /// Longest extrapolated step (in multiples of the Gauss-Newton step) tried along flat directions.
 const EXTRAP_MAX: f64 = 10.0;
@@ -550,10 +554,14 @@ impl BoxLsqSolver {
             // minima).
             self.z0.clear();
             self.z0.extend_from_slice(z);
+            let cost0 = pr.cost;
             let status_a = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
             let on_bound =
                 (0..len).any(|k| !self.fixed_bound[k] && (z[k] == lower[k] || z[k] == upper[k]));
-            if on_bound && pr.nit < opts.max_iter {
+            // A warm start that was already good (cost within `POOR_START` of the optimum found)
+            // is not the transient situation in which pinning happens.
+            let poor_start = cost0 > POOR_START * pr.cost;
+            if on_bound && poor_start && pr.nit < opts.max_iter {
                 let cost_a = pr.cost;
                 self.z_int.clear();
                 self.z_int.extend_from_slice(z);
@@ -897,6 +905,9 @@ impl BoxLsqSolver {
         let mut lambda = 1e-6;
         let mut nu = 2.0;
         let mut noise_failures = 0;
+        // Rounding noise of J: at least NOISE relative, raised when small steps show more (a GP
+        // with a large σ_f has variances σ_f² − ‖v‖² with large cancellation).
+        let mut noise = NOISE * pr.cost.abs().max(1.0);
         // `g`, `diag`, `off` hold the derivatives at z here (start() or the interior phase).
         loop {
             let pg = projected_gradient_norm(z, &self.g, lower, upper);
@@ -1037,8 +1048,12 @@ impl BoxLsqSolver {
             // Below the rounding noise of J (GP variances are differences of O(σ_f²) numbers)
             // the gain ratio is meaningless: accept the step if it lowers the projected
             // gradient instead, and stop if it does not.
-            let unmeasurable = !clipped && pred <= NOISE * pr.cost.abs().max(1.0);
             let mut accept = ct.is_finite() && pred > 0.0 && rho > ARMIJO;
+            if !accept && ct.is_finite() && pred > 0.0 && pred <= 1e-4 * pr.cost.abs() {
+                // A small step that "failed": its mismatch with the model estimates the noise.
+                noise = noise.max((ct - (pr.cost - pred)).abs().min(1e-4 * pr.cost.abs()));
+            }
+            let unmeasurable = !clipped && pred <= 2.0 * noise;
             if !accept && unmeasurable && ct.is_finite() {
                 prob.gradient_into(&mut self.hp);
                 if projected_gradient_norm(&self.trial, &self.hp, lower, upper) < pg {
