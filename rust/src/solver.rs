@@ -907,7 +907,7 @@ impl BoxLsqSolver {
         let mut noise_failures = 0;
         // Rounding noise of J: at least NOISE relative, raised when small steps show more (a GP
         // with a large σ_f has variances σ_f² − ‖v‖² with large cancellation).
-        let mut noise = NOISE * pr.cost.abs().max(1.0);
+        let mut noise_est = 0.0f64;
         // `g`, `diag`, `off` hold the derivatives at z here (start() or the interior phase).
         loop {
             let pg = projected_gradient_norm(z, &self.g, lower, upper);
@@ -1049,9 +1049,13 @@ impl BoxLsqSolver {
             // the gain ratio is meaningless: accept the step if it lowers the projected
             // gradient instead, and stop if it does not.
             let mut accept = ct.is_finite() && pred > 0.0 && rho > ARMIJO;
-            if !accept && ct.is_finite() && pred > 0.0 && pred <= 1e-4 * pr.cost.abs() {
-                // A small step that "failed": its mismatch with the model estimates the noise.
-                noise = noise.max((ct - (pr.cost - pred)).abs().min(1e-4 * pr.cost.abs()));
+            let mut noise = noise_est.max(NOISE * pr.cost.abs().max(1.0));
+            let mismatch = (ct - (pr.cost - pred)).abs();
+            if !accept && ct.is_finite() && pred > 0.0 && mismatch > 10.0 * pred {
+                // A small step that "failed" by far more than its predicted decrease: the
+                // mismatch is rounding noise, not model error.
+                noise_est = noise_est.max(mismatch.min(1e-4 * pr.cost.abs()));
+                noise = noise.max(noise_est);
             }
             let unmeasurable = !clipped && pred <= 2.0 * noise;
             if !accept && unmeasurable && ct.is_finite() {
@@ -1086,10 +1090,11 @@ impl BoxLsqSolver {
                 // Along flat directions the Gauss-Newton model overestimates the curvature
                 // (rho ≈ 2, slow linear convergence): try the parabola's minimiser along the
                 // step, keep it if it costs less.
+                // The same parabola also shortens steps that overshoot (rho well below 1).
                 let c = 2.0 * (ct - old - gp);
                 let a_star = if c > 0.0 { -gp / c } else { f64::INFINITY };
-                if gp < 0.0 && a_star > 1.5 {
-                    let a = a_star.min(EXTRAP_MAX);
+                if gp < 0.0 && !(0.7..=1.5).contains(&a_star) {
+                    let a = a_star.clamp(0.2, EXTRAP_MAX);
                     for k in 0..len {
                         self.trial[k] = (z[k] + (a - 1.0) * self.step[k]).clamp(lower[k], upper[k]);
                     }
@@ -1105,6 +1110,28 @@ impl BoxLsqSolver {
                 }
             } else {
                 pr.derivs_at_z = false;
+                // Before damping harder, try the minimiser of the parabola through J(0),
+                // J'(0) and J(1) along the same step (a one-evaluation line search).
+                let c = 2.0 * (ct - pr.cost - gp);
+                if ct.is_finite() && !unmeasurable && gp < 0.0 && c > 0.0 {
+                    let a = (-gp / c).clamp(0.05, 0.9);
+                    let php = -2.0 * (pred + gp); // stepᵀ H step
+                    let pred2 = -(a * gp + 0.5 * a * a * php);
+                    for k in 0..len {
+                        self.trial[k] = (z[k] + a * self.step[k]).clamp(lower[k], upper[k]);
+                    }
+                    let c2 = prob.evaluate(&self.trial, true).unwrap_or(f64::INFINITY);
+                    pr.nfev += 1;
+                    if c2.is_finite() && pred2 > 0.0 && pr.cost - c2 > ARMIJO * pred2 {
+                        z.copy_from_slice(&self.trial);
+                        pr.cost = c2;
+                        pr.derivs_at_z = true;
+                        self.take_derivatives(prob);
+                        noise_failures = 0;
+                        lambda *= 2.0;
+                        continue;
+                    }
+                }
                 lambda *= nu;
                 nu *= 2.0;
                 if lambda > LAMBDA_MAX {
