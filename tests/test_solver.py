@@ -226,3 +226,14 @@ def test_estimator_reports_solver_details(reactor_gp):
     est.update(None, y[0])
     assert est.success and est.nit >= 1 and est.nfev >= est.nit
     assert "gradient" in est.message or "tolerance" in est.message
+
+
+def test_covariance_from_the_block_factorisation_matches_the_dense_one(reactor_gp):
+    x, y = br.simulate(br.X_TRUE0, 6, np.random.default_rng(4))
+    est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    for t in range(6):
+        est.update(None, y[t])
+    z = est.x_window.reshape(-1)
+    H = est._core.window.gn_hessian(z)
+    dense = 4.0 * np.linalg.inv(H)[-2:, -2:]
+    assert np.allclose(est.P, dense, rtol=1e-8, atol=1e-12)

@@ -171,3 +171,6 @@ class WindowSolver:
     ) -> tuple[npt.NDArray[np.float64], float, str, bool, int, int, float, int]:
         """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations)"""
         ...
+    def last_block_inverse(self, window: MheWindow) -> npt.NDArray[np.float64] | None:
+        """Last n×n block of (2JᵀJ)⁻¹ at the window's cached evaluation (None if singular)."""
+        ...

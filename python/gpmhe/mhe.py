@@ -325,6 +325,14 @@ class GPMHE:
 
     def _covariance(self, window, z):
         n = self.dim_x
+        if self.solver == "gauss-newton":
+            # The same quantity in O(M n³) from the block-tridiagonal factorisation.
+            window.cost_grad(z)  # evaluation with derivatives at z (cached after the solve)
+            Hinv_last = self._core.solver.last_block_inverse(window)
+            if Hinv_last is None:
+                return self.P.copy()
+            P = 4.0 * 0.5 * (Hinv_last + Hinv_last.T)
+            return P if np.all(np.isfinite(P)) else self.P.copy()
         H = window.gn_hessian(z)
         try:
             Hinv_last = np.linalg.solve(H, np.eye(len(z))[:, -n:])[-n:]

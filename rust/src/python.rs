@@ -884,6 +884,29 @@ impl PyWindowSolver {
             report.interior_iterations,
         ))
     }
+
+    /// The last n×n block of (2JᵀJ)⁻¹ at the window's cached evaluation (the returned z after
+    /// `solve`), from the block-tridiagonal factorisation; None if 2JᵀJ is singular.
+    fn last_block_inverse<'py>(
+        &self,
+        py: Python<'py>,
+        window: PyRef<'py, PyMheWindow>,
+    ) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+        let ev = &window.eval;
+        if !ev.has_jacobian() || ev.n_nodes() == 0 {
+            return Err(PyValueError::new_err(
+                "window: no evaluation with derivatives (call solve first)",
+            ));
+        }
+        let (nodes, n) = (ev.n_nodes(), ev.dim_x());
+        let mut diag = vec![0.0; nodes * n * n];
+        let mut off = vec![0.0; nodes.saturating_sub(1) * n * n];
+        ev.gauss_newton_blocks_into(&mut diag, &mut off);
+        match crate::solver::gauss_newton_last_block_inverse(nodes, n, &diag, &off) {
+            Some(v) => Ok(Some(array2(py, v, n, n)?)),
+            None => Ok(None),
+        }
+    }
 }
 
 #[pymodule]

@@ -311,6 +311,42 @@ impl BlockTridiagCholesky {
     }
 }
 
+impl BlockTridiagCholesky {
+    /// The last n×n diagonal block of A⁻¹ (row-major into `out`) after a successful
+    /// [`factor`](Self::factor): L is block lower-bidiagonal, so (A⁻¹)_NN = L_N⁻ᵀ L_N⁻¹.
+    pub fn last_block_of_inverse(&self, out: &mut [f64]) {
+        let n = self.n;
+        let Some(l) = self.l.last() else { return };
+        let mut x = DMatrix::<f64>::identity(n, n);
+        l.solve_lower_triangular_unchecked_mut(&mut x);
+        let inv = x.transpose() * x;
+        for r in 0..n {
+            for c in 0..n {
+                out[r * n + c] = inv[(r, c)];
+            }
+        }
+    }
+}
+
+/// The last n×n block of (2JᵀJ)⁻¹ from the block-tridiagonal Gauss-Newton blocks (row-major
+/// into `out`), or None when 2JᵀJ is not positive definite. O(nodes·n³).
+pub fn gauss_newton_last_block_inverse(
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+) -> Option<Vec<f64>> {
+    let mut chol = BlockTridiagCholesky::default();
+    let zero = vec![0.0; nodes * n];
+    let free = vec![false; nodes * n];
+    if !chol.factor(nodes, n, diag, off, &zero, &free) {
+        return None;
+    }
+    let mut out = vec![0.0; n * n];
+    chol.last_block_of_inverse(&mut out);
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
 /// y = A x for a block-tridiagonal symmetric A given by row-major `diag`/`off` blocks.
 pub fn block_tridiag_matvec(
     nodes: usize,
@@ -1403,6 +1439,21 @@ mod tests {
                         (x[k] - xd[k]).abs() < 1e-10 * (1.0 + xd[k].abs()),
                         "{nodes} {n} {k}"
                     );
+                }
+                if mask_every == 0 {
+                    // last diagonal block of the inverse of A + diag(shift)
+                    let mut d2 = diag.clone();
+                    for k in 0..nodes * n {
+                        d2[(k / n) * n * n + (k % n) * n + k % n] += shift[k];
+                    }
+                    let inv = gauss_newton_last_block_inverse(nodes, n, &d2, &off).unwrap();
+                    let ainv = a.clone().try_inverse().unwrap();
+                    for r in 0..n {
+                        for c in 0..n {
+                            let e = ainv[((nodes - 1) * n + r, (nodes - 1) * n + c)];
+                            assert!((inv[r * n + c] - e).abs() < 1e-9 * (1.0 + e.abs()));
+                        }
+                    }
                 }
                 let mut y = vec![0.0; nodes * n];
                 block_tridiag_matvec(nodes, n, &diag, &off, &x, &mut y);
