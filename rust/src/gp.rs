@@ -15,11 +15,12 @@
 //! later prediction and in the LML; if the largest jitter still fails, a `Numerical` error is
 //! returned.
 
-use faer::linalg::solvers::{DenseSolveCore, Llt};
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
-use faer::{Mat, MatMut, MatRef, Par, Side};
+use faer::{Mat, MatMut, Par};
 
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
@@ -31,7 +32,8 @@ const JITTER_MAX: f64 = 1e-6;
 const JITTER_STEPS: i32 = 5;
 
 /// Scratch memory for batch predictions: two N × k column-major buffers. It only grows, so once
-/// it has been sized for the largest (N, k) in use, predictions allocate nothing.
+/// it has been sized for the largest (N, k) in use, the GP code allocates nothing per prediction
+/// (faer's triangular-solve kernels manage their own small scratch).
 #[derive(Default, Clone, Debug)]
 pub struct GpWorkspace {
     kstar: Vec<f64>,
@@ -62,8 +64,11 @@ pub struct Gp {
     kernel: SeArd,
     sigma_eps: f64,
     jitter: f64,
-    /// Cholesky factorisation L Lᵀ of K + (σ_ε² + jitter) I.
-    chol: Llt<f64>,
+    /// The Cholesky factor L of K + (σ_ε² + jitter) I in its lower triangle and Lᵀ in its strict
+    /// upper triangle (faer's triangular solves read one triangle only). The second copy costs no
+    /// memory (the upper half would be zeros) and makes the Lᵀ solve column-major, which faer
+    /// runs ~1.4× faster than on the transposed view of L at N = 150.
+    chol: Mat<f64>,
     /// (K + (σ_ε² + jitter) I)⁻¹ y.
     alpha: Vec<f64>,
     lml: f64,
@@ -126,10 +131,16 @@ fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
     Ok(n)
 }
 
-/// Cholesky factor of `gram` + noise_var·I under the jitter policy; returns (L, jitter).
-fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Result<(Llt<f64>, f64)> {
+/// Cholesky factor of `gram` + noise_var·I under the jitter policy; returns (S, jitter) with L in
+/// the lower and Lᵀ in the strict upper triangle of S.
+fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Result<(Mat<f64>, f64)> {
     let n = gram.nrows();
-    let mut a = gram.clone();
+    let mut a = Mat::<f64>::zeros(n, n);
+    let mut mem = MemBuffer::new(llt::factor::cholesky_in_place_scratch::<f64>(
+        n,
+        Par::Seq,
+        Default::default(),
+    ));
     let scale = signal_var + noise_var;
     // Attempt 0 without jitter, then JITTER_START·scale growing tenfold up to JITTER_MAX·scale.
     for attempt in 0..=JITTER_STEPS {
@@ -138,11 +149,24 @@ fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Resul
         } else {
             JITTER_START * scale * 10f64.powi(attempt - 1)
         };
+        a.copy_from(gram);
         for i in 0..n {
-            a[(i, i)] = gram[(i, i)] + noise_var + jitter;
+            a[(i, i)] += noise_var + jitter;
         }
-        if let Ok(llt) = Llt::new(a.as_ref(), Side::Lower) {
-            return Ok((llt, jitter));
+        let factored = llt::factor::cholesky_in_place(
+            a.as_mut(),
+            Default::default(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+            Default::default(),
+        );
+        if factored.is_ok() {
+            for j in 0..n {
+                for i in 0..j {
+                    a[(i, j)] = a[(j, i)];
+                }
+            }
+            return Ok((a, jitter));
         }
     }
     Err(Error::numerical(format!(
@@ -164,12 +188,12 @@ impl Gp {
         let n = check_training(x, y, nd)?;
         let gram = kernel.gram(x);
         let (chol, jitter) = factor_with_jitter(&gram, sigma_eps * sigma_eps, kernel.variance())?;
-        let l = chol.L();
+        let l = chol.as_ref();
         let mut alpha = y.to_vec();
         {
             let mut rhs = MatMut::from_column_major_slice_mut(&mut alpha[..], n, 1);
             solve_lower_triangular_in_place(l, rhs.as_mut(), Par::Seq);
-            solve_upper_triangular_in_place(l.transpose(), rhs.as_mut(), Par::Seq);
+            solve_upper_triangular_in_place(l, rhs.as_mut(), Par::Seq);
         }
         let half_logdet: f64 = (0..n).map(|i| l[(i, i)].ln()).sum();
         let data_fit: f64 = y.iter().zip(&alpha).map(|(a, b)| a * b).sum();
@@ -235,9 +259,10 @@ impl Gp {
         &self.alpha
     }
 
-    /// The lower Cholesky factor L of K + (σ_ε² + jitter) I.
-    pub fn cholesky(&self) -> MatRef<'_, f64> {
-        self.chol.L()
+    /// A copy of the lower Cholesky factor L of K + (σ_ε² + jitter) I (zeros above the diagonal).
+    pub fn cholesky(&self) -> Mat<f64> {
+        let n = self.n_train();
+        Mat::from_fn(n, n, |i, j| if i >= j { self.chol[(i, j)] } else { 0.0 })
     }
 
     /// log p(y | D, θ) at this GP's θ.
@@ -251,8 +276,16 @@ impl Gp {
     pub fn log_marginal_likelihood_gradient(&self) -> Vec<f64> {
         let n = self.n_train();
         let nd = self.dim();
-        // K⁻¹ from the cached factor (faer's Cholesky inverse).
-        let kinv = self.chol.inverse();
+        // K⁻¹ from the cached factor (faer's Cholesky inverse; it reads the lower triangle of
+        // `chol` and writes the lower triangle of `kinv`, the only part used below).
+        let mut kinv = Mat::<f64>::zeros(n, n);
+        let mut mem = MemBuffer::new(llt::inverse::inverse_scratch::<f64>(n, Par::Seq));
+        llt::inverse::inverse(
+            kinv.as_mut(),
+            self.chol.as_ref(),
+            Par::Seq,
+            MemStack::new(&mut mem),
+        );
         let w = self.kernel.inv_lengthscales_sq();
         let s2 = self.kernel.variance();
         let a = &self.alpha;
@@ -341,9 +374,7 @@ impl Gp {
         // k*: column j holds k(x_i, d_j) for i = 0..N.
         for (j, dj) in d.chunks_exact(nd).enumerate() {
             let col = &mut kstar[j * n..(j + 1) * n];
-            for (c, xi) in col.iter_mut().zip(self.x.chunks_exact(nd)) {
-                *c = self.kernel.eval(dj, xi);
-            }
+            kernel_column(&self.x, dj, w, self.kernel.variance(), col);
             // m = k*ᵀ α; ∂m/∂d_l = −w_l Σ_i α_i k_i (d_l − x_il).
             let mut m = 0.0;
             for (c, a) in col.iter().zip(&self.alpha) {
@@ -361,7 +392,7 @@ impl Gp {
         let Some(var) = var else { return };
         v.copy_from_slice(kstar);
         let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
-        solve_lower_triangular_in_place(self.chol.L(), vm.as_mut(), Par::Seq);
+        solve_lower_triangular_in_place(self.chol.as_ref(), vm.as_mut(), Par::Seq);
         let s2 = self.kernel.variance();
         for j in 0..k {
             let vj = &v[j * n..(j + 1) * n];
@@ -372,7 +403,7 @@ impl Gp {
         let Some((_, dvar)) = grads else { return };
         // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_l = 2 w_l Σ_i β_i k_i (d_l − x_il).
         let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
-        solve_upper_triangular_in_place(self.chol.L().transpose(), vm.as_mut(), Par::Seq);
+        solve_upper_triangular_in_place(self.chol.as_ref(), vm.as_mut(), Par::Seq);
         for (j, dj) in d.chunks_exact(nd).enumerate() {
             let col = &kstar[j * n..(j + 1) * n];
             let beta = &v[j * n..(j + 1) * n];
@@ -382,6 +413,45 @@ impl Gp {
                 *gl *= 2.0 * wl;
             }
         }
+    }
+}
+
+/// out_i = σ_f² exp(−½ Σ_l w_l (d_l − x_il)²) for the training points x (N × n_d row-major): the
+/// same arithmetic as `SeArd::eval`, with the input dimension a compile-time constant for
+/// n_d ≤ 4 so the inner loop unrolls (the kernel column is a large share of a prediction).
+#[inline]
+fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+    #[inline(always)]
+    fn fixed<const ND: usize>(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+        let (Ok(d), Ok(w)) = (<&[f64; ND]>::try_from(d), <&[f64; ND]>::try_from(w)) else {
+            return generic(x, d, w, s2, out);
+        };
+        for (c, xi) in out.iter_mut().zip(x.chunks_exact(ND)) {
+            let mut r2 = 0.0;
+            for l in 0..ND {
+                let t = d[l] - xi[l];
+                r2 += t * t * w[l];
+            }
+            *c = s2 * (-0.5 * r2).exp();
+        }
+    }
+    fn generic(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+        for (c, xi) in out.iter_mut().zip(x.chunks_exact(d.len())) {
+            let r2: f64 = d
+                .iter()
+                .zip(xi)
+                .zip(w)
+                .map(|((a, b), wl)| (a - b) * (a - b) * wl)
+                .sum();
+            *c = s2 * (-0.5 * r2).exp();
+        }
+    }
+    match d.len() {
+        1 => fixed::<1>(x, d, w, s2, out),
+        2 => fixed::<2>(x, d, w, s2, out),
+        3 => fixed::<3>(x, d, w, s2, out),
+        4 => fixed::<4>(x, d, w, s2, out),
+        _ => generic(x, d, w, s2, out),
     }
 }
 
@@ -442,7 +512,9 @@ impl MultiGp {
     /// n_d is taken from `x.len() / N` with N = `y.len() / q` and q = `thetas.len() / (n_d + 2)`;
     /// they must be consistent.
     pub fn new(x: &[f64], y: &[f64], thetas: &[f64]) -> Result<Self> {
-        // q · (nd + 2) = thetas.len(), N · q = y.len(), N · nd = x.len(): solve for q by trial.
+        // q · (nd + 2) = thetas.len(), N · q = y.len(), N · nd = x.len() give
+        // x.len()·q² + 2·y.len()·q − y.len()·thetas.len() = 0, which has exactly one positive root,
+        // so the first q found by trial is the only one.
         let (q, nd, n) = (1..=thetas.len())
             .filter(|q| thetas.len() % q == 0 && y.len() % q == 0)
             .filter_map(|q| {
@@ -626,7 +698,7 @@ mod tests {
 
     #[test]
     fn posterior_matches_dense_computation() {
-        for nd in 1..=3 {
+        for nd in [1, 2, 3, 4, 6] {
             let (x, y) = data(40, nd, nd as u64);
             let th = theta(nd);
             let gp = Gp::new(&x, &y, &th).unwrap();
@@ -726,10 +798,21 @@ mod tests {
         });
         let yv = DVector::from_column_slice(&y);
         let logdet = km.clone().cholesky().unwrap().determinant().ln();
-        let want = -0.5 * yv.dot(&(&km.try_inverse().unwrap() * &yv))
+        let want = -0.5 * yv.dot(&(&km.clone().try_inverse().unwrap() * &yv))
             - 0.5 * logdet
             - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
         assert!((gp.log_marginal_likelihood() - want).abs() < 1e-9 * want.abs());
+        // The exposed factor is lower triangular and reproduces K + σ_ε² I.
+        let l = gp.cholesky();
+        let llt = &l * l.transpose();
+        for i in 0..n {
+            for j in 0..n {
+                assert!((llt[(i, j)] - km[(i, j)]).abs() < 1e-12);
+                if j > i {
+                    assert_eq!(l[(i, j)], 0.0);
+                }
+            }
+        }
     }
 
     #[test]

@@ -40,6 +40,12 @@ pub(crate) fn slice2<'a>(
 ) -> PyResult<(&'a [f64], usize, usize)> {
     let shape = a.shape();
     let (rows, cols) = (shape[0], shape[1]);
+    // as_slice also accepts Fortran order, which would be read transposed here.
+    if !a.is_c_contiguous() {
+        return Err(PyValueError::new_err(format!(
+            "{arg}: must be a C-contiguous float64 array"
+        )));
+    }
     let data = a.as_slice().map_err(|_| {
         PyValueError::new_err(format!("{arg}: must be a C-contiguous float64 array"))
     })?;
@@ -89,7 +95,7 @@ fn se_ard_kernel<'py>(
 // gpmhe/gp.py convert and validate first); the numerics run with the GIL released.
 
 use crate::gp::{log_marginal_likelihood, Gp, GpWorkspace, MultiGp};
-use numpy::{PyArray1, PyArrayDyn};
+use numpy::{IntoPyArray, PyArray1, PyArrayDyn};
 
 /// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
 fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
@@ -102,13 +108,15 @@ fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
     }
 }
 
-/// A numpy array of the given shape from a row-major vector.
+/// A numpy array of the given shape that takes over a row-major vector (no copy, no reshape).
 fn array_nd<'py, const D: usize>(
     py: Python<'py>,
     data: Vec<f64>,
     shape: [usize; D],
 ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-    numpy::PyArray1::from_vec(py, data).reshape(&shape[..])
+    let arr = numpy::ndarray::ArrayD::from_shape_vec(&shape[..], data)
+        .map_err(|e| PyRuntimeError::new_err(format!("internal: output shape: {e}")))?;
+    Ok(arr.into_pyarray(py))
 }
 
 type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
@@ -122,9 +130,11 @@ fn predict_arrays<'py>(
     gradients: bool,
     squeeze: bool,
 ) -> PyResult<Vec<Arr<'py>>> {
-    let (d, k, cols) = slice2("d", d)?;
+    // Named "D" as in the Python API; the wrappers leave the NaN/inf scan to this O(k) check.
+    let (d, k, cols) = slice2("D", d)?;
     let (q, nd) = (model.n_outputs(), model.dim());
-    check_cols("d", cols, nd)?;
+    check_cols("D", cols, nd)?;
+    crate::error::check_finite("D", d)?;
     let (mean, var, dmean, dvar) = py.detach(|| {
         let mut ws = GpWorkspace::default();
         let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
@@ -159,9 +169,14 @@ fn predict_arrays<'py>(
 /// One exact zero-mean GP with the SE-ARD kernel; the Cholesky factor is cached at construction.
 #[pyclass(name = "GP", module = "gpmhe._core", frozen)]
 pub(crate) struct PyGp {
-    pub(crate) inner: Gp,
-    /// The same GP as a one-output MultiGp, so predictions share one code path.
-    single: MultiGp,
+    /// The GP as a one-output MultiGp, so predictions share one code path (see `gp()`).
+    pub(crate) inner: MultiGp,
+}
+
+impl PyGp {
+    pub(crate) fn gp(&self) -> &Gp {
+        &self.inner.gps()[0]
+    }
 }
 
 #[pymethods]
@@ -177,51 +192,52 @@ impl PyGp {
         let (x, _, cols) = slice2("x", &x)?;
         let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
         check_cols("x", cols, theta.len().saturating_sub(2))?;
-        let inner = py.detach(|| Gp::new(x, y, theta))?;
-        let single = MultiGp::from_gps(vec![inner.clone()])?;
-        Ok(Self { inner, single })
+        let gp = py.detach(|| Gp::new(x, y, theta))?;
+        Ok(Self {
+            inner: MultiGp::from_gps(vec![gp])?,
+        })
     }
 
     #[getter]
     fn dim(&self) -> usize {
-        self.inner.dim()
+        self.gp().dim()
     }
     #[getter]
     fn n_train(&self) -> usize {
-        self.inner.n_train()
+        self.gp().n_train()
     }
     #[getter]
     fn theta<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_vec(py, self.inner.theta())
+        PyArray1::from_vec(py, self.gp().theta())
     }
     #[getter]
     fn sigma_f(&self) -> f64 {
-        self.inner.kernel().sigma_f()
+        self.gp().kernel().sigma_f()
     }
     #[getter]
     fn lengthscales<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.kernel().lengthscales())
+        PyArray1::from_slice(py, self.gp().kernel().lengthscales())
     }
     #[getter]
     fn sigma_eps(&self) -> f64 {
-        self.inner.sigma_eps()
+        self.gp().sigma_eps()
     }
     #[getter]
     fn jitter(&self) -> f64 {
-        self.inner.jitter()
+        self.gp().jitter()
     }
     #[getter]
     fn alpha<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.alpha())
+        PyArray1::from_slice(py, self.gp().alpha())
     }
     #[getter]
     fn x_train<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let g = &self.inner;
+        let g = self.gp();
         array2(py, g.x_train().to_vec(), g.n_train(), g.dim())
     }
     #[getter]
     fn y_train<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.y_train())
+        PyArray1::from_slice(py, self.gp().y_train())
     }
 
     /// (lml, grad) at this GP's theta; grad is empty unless eval_gradient.
@@ -232,12 +248,12 @@ impl PyGp {
         eval_gradient: bool,
     ) -> (f64, Bound<'py, PyArray1<f64>>) {
         let grad = if eval_gradient {
-            py.detach(|| self.inner.log_marginal_likelihood_gradient())
+            py.detach(|| self.gp().log_marginal_likelihood_gradient())
         } else {
             Vec::new()
         };
         (
-            self.inner.log_marginal_likelihood(),
+            self.gp().log_marginal_likelihood(),
             PyArray1::from_vec(py, grad),
         )
     }
@@ -248,7 +264,7 @@ impl PyGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.single, &d, false, true)?.into_iter();
+        let mut out = predict_arrays(py, &self.inner, &d, false, true)?.into_iter();
         match (out.next(), out.next()) {
             (Some(m), Some(v)) => Ok((m, v)),
             _ => Err(PyRuntimeError::new_err(
@@ -263,7 +279,7 @@ impl PyGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.single, &d, true, true)?.into_iter();
+        let mut out = predict_arrays(py, &self.inner, &d, true, true)?.into_iter();
         match (out.next(), out.next(), out.next(), out.next()) {
             (Some(m), Some(v), Some(dm), Some(dv)) => Ok((m, v, dm, dv)),
             _ => Err(PyRuntimeError::new_err(
@@ -310,7 +326,7 @@ impl PyMultiGp {
     /// Bundles fitted GPs that share their training inputs.
     #[staticmethod]
     fn from_gps(gps: Vec<PyRef<'_, PyGp>>) -> PyResult<Self> {
-        let inner = MultiGp::from_gps(gps.iter().map(|g| g.inner.clone()).collect())?;
+        let inner = MultiGp::from_gps(gps.iter().map(|g| g.gp().clone()).collect())?;
         Ok(Self { inner })
     }
 
