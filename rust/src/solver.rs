@@ -75,11 +75,10 @@ impl BlockLsqProblem for WindowLsq<'_> {
 /// When the interior (barrier) phase runs before the active-set phase.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum InteriorMode {
-    /// When some free variable of the start lies within `interior_zone` of a bound; then the
-    /// active-set phase is also run from the start itself and the cheaper result is kept.
+    /// When some free variable of the start lies within `interior_zone` of a bound (the
+    /// transient from a poor prior; a warm start well inside the box needs no barrier).
     Auto,
-    /// Whenever some variable has a finite bound (the projected path from the start is run
-    /// only if the interior path ends costlier than the start).
+    /// Whenever some variable has a finite bound.
     Always,
     /// Never: a plain projected active-set Levenberg-Marquardt method.
     Never,
@@ -389,7 +388,6 @@ pub fn projected_gradient_norm(z: &[f64], g: &[f64], lower: &[f64], upper: &[f64
 pub struct BoxLsqSolver {
     chol: BlockTridiagCholesky,
     z0: Vec<f64>,
-    z_int: Vec<f64>,
     g: Vec<f64>,
     diag: Vec<f64>,
     off: Vec<f64>,
@@ -416,9 +414,6 @@ struct Progress {
 
 const ARMIJO: f64 = 1e-4;
 const LAMBDA_MAX: f64 = 1e16;
-/// Auto mode tries the barrier path only if the start cost more than this times the projected
-/// path's optimum (a poor start, as in the transient from a wrong prior).
-const POOR_START: f64 = 1.5;
 /// Relative size below which a predicted decrease of J cannot be verified by evaluating J
 /// (the floor of the solver's running noise estimate).
 const NOISE: f64 = 1e-10;
@@ -568,7 +563,7 @@ impl BoxLsqSolver {
         let status;
         if !run_interior {
             status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
-        } else if opts.interior == InteriorMode::Always {
+        } else {
             // The barrier phase is not monotone in J: keep the (projected) start and its cost,
             // and fall back to the active-set phase from there if the result costs more.
             let cost0 = pr.cost;
@@ -582,38 +577,6 @@ impl BoxLsqSolver {
                 status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
             } else {
                 status = status_i;
-            }
-        } else {
-            // Auto: the projected path first; if it ends on a bound it may have been pinned
-            // there (DESIGN.md §6), so also take the interior path from the same start and keep
-            // the cheaper result (the problem is non-convex: the paths can end in different
-            // minima).
-            self.z0.clear();
-            self.z0.extend_from_slice(z);
-            let cost0 = pr.cost;
-            let status_a = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
-            let on_bound =
-                (0..len).any(|k| !self.fixed_bound[k] && (z[k] == lower[k] || z[k] == upper[k]));
-            // A warm start that was already good (cost within `POOR_START` of the optimum found)
-            // is not the transient situation in which pinning happens.
-            let poor_start = cost0 > POOR_START * pr.cost;
-            if on_bound && poor_start && pr.nit < opts.max_iter {
-                let cost_a = pr.cost;
-                self.z_int.clear();
-                self.z_int.extend_from_slice(z);
-                z.copy_from_slice(&self.z0);
-                let before = pr.nit;
-                let status_i = self.interior_path(prob, z, lower, upper, opts, &mut pr)?;
-                interior_iterations = pr.nit - before;
-                if pr.cost < cost_a {
-                    status = status_i;
-                } else {
-                    z.copy_from_slice(&self.z_int);
-                    self.start(prob, z, &mut pr)?;
-                    status = status_a;
-                }
-            } else {
-                status = status_a;
             }
         }
         if !pr.derivs_at_z {
