@@ -7,6 +7,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 
 from gpmhe._core import NumericalError
 from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
+from gpmhe.mhe import GPMHE
+from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.rgp import RGPEKF, RecursiveGP
 
 __all__ = [
@@ -16,6 +18,10 @@ __all__ = [
     "MultiOutputGP",
     "ConvergenceWarning",
     "NotFittedError",
+    # MHE
+    "GPMHE",
+    "KnownModel",
+    "LearnedModel",
     # RGP-dKF
     "RecursiveGP",
     "RGPEKF",

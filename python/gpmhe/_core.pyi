@@ -202,3 +202,78 @@ class RGPEKFCore:
     def S(self) -> npt.NDArray[np.float64]: ...
     @property
     def log_likelihood(self) -> float: ...
+
+# ===== MHE window =====
+
+from typing import Callable
+
+_F = npt.NDArray[np.float64]
+
+class MheWindow:
+    """One GP-MHE window problem (DESIGN.md §3): residuals, banded Jacobian, cost, gradient and
+    Gauss-Newton Hessian in the stacked window states z; evaluations at the same z are cached."""
+
+    @staticmethod
+    def with_callback(
+        stage_eval: Callable[[_F], tuple[_F, _F, _F, _F, _F, _F, _F, _F]],
+        dim_x: int,
+        dim_u: int,
+        dim_y: int,
+        eta: float,
+        q0: _F,
+        r0: _F,
+        p2_sqrt: _F,
+        filtering: bool,
+    ) -> MheWindow: ...
+    @staticmethod
+    def with_gp(
+        f_gp: MultiGP,
+        h_gp: MultiGP | None,
+        dim_u: int,
+        f_residual: bool,
+        eta: float,
+        q0: _F,
+        r0: _F,
+        p2_sqrt: _F,
+        filtering: bool,
+    ) -> MheWindow: ...
+    def set_data(self, u: _F, y: _F, y_present: list[bool], x_prior: _F) -> None: ...
+    @property
+    def n_nodes(self) -> int: ...
+    @property
+    def n_residuals(self) -> int: ...
+    def cost(self, z: _F) -> float: ...
+    def cost_grad(self, z: _F) -> tuple[float, _F]: ...
+    def gn_hessian(self, z: _F) -> _F: ...
+    def residuals(self, z: _F) -> _F: ...
+    def jacobian(self, z: _F) -> _F: ...
+
+# ===== Window solver =====
+
+class WindowSolver:
+    """The real-time bounded Gauss-Newton window solver (rust/src/solver.rs): settings and work
+    buffers reused across updates. Used by GPMHE(solver="gauss-newton")."""
+
+    def __init__(
+        self,
+        max_iter: int = 100,
+        gtol: float = 1e-6,
+        xtol: float = 1e-12,
+        ftol: float = 1e-15,
+        interior: str = "auto",
+        interior_zone: float = 0.01,
+        mu_init: float = 0.1,
+        mu_final: float = 1e-5,
+    ) -> None: ...
+    def solve(
+        self,
+        window: MheWindow,
+        z0: npt.NDArray[np.float64],
+        lower: npt.NDArray[np.float64],
+        upper: npt.NDArray[np.float64],
+    ) -> tuple[npt.NDArray[np.float64], float, str, bool, int, int, float, int]:
+        """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations)"""
+        ...
+    def last_block_inverse(self, window: MheWindow) -> npt.NDArray[np.float64] | None:
+        """Last n×n block of (2JᵀJ)⁻¹ at the window's cached evaluation (None if singular)."""
+        ...

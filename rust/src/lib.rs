@@ -6,6 +6,8 @@ pub mod error;
 pub mod gp;
 pub mod kernel;
 pub mod rgp;
+pub mod solver;
+pub mod window;
 
 #[cfg(feature = "python")]
 mod python;

@@ -1,0 +1,207 @@
+"""Benchmark: time per `update()` of GPMHE's window solvers against filterpy's filters (issue 4).
+
+    python benches/bench_update.py [--seed 0] [--steps 100] [--tc-steps 40] [--quick]
+
+1. The paper's size (batch reactor, n = 2, p = 1, M = 15, GPs on the 5 training trajectories:
+   150 points for the f-GPs, 155 for the h-GP): one run of `--steps` updates from the poor prior
+   [0.1, 4.5] (transient included) per estimator; median and p95 of the time per update, and the
+   ratio of the medians to filterpy's EKF (predict + update) measured in the same run.
+   trust-constr (~0.5 s per step) runs only the first `--tc-steps` steps.
+2. Scaling in the horizon M (Rust solver, same GPs): times after the window is full (t ≥ M),
+   window evaluations per update and the time per evaluation and window node (total time over
+   total evaluations: the per-iteration cost, which should not grow with M).
+3. Scaling in the number of training points per GP, N (Rust solver, M = 15): GPs with the
+   hyperparameters fitted in 1., conditioned on N points of simulated trajectories; t ≥ M.
+Also prints RMSE over the run so the timings are of estimators that work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import numpy as np
+
+from gpmhe import GPMHE, KnownModel, LearnedModel, MultiOutputGP
+from gpmhe.baselines import GPEKF, ExactEKF
+from gpmhe.systems import batch_reactor as br
+
+
+def timed_run(step, y, steps):
+    """Calls step(y_t) for t < steps; returns (estimates (steps, 2), times (steps,))."""
+    xs, ts = np.empty((steps, 2)), np.empty(steps)
+    for t in range(steps):
+        t0 = time.perf_counter()
+        xs[t] = step(y[t])
+        ts[t] = time.perf_counter() - t0
+    return xs, ts
+
+
+def mhe_step(est):
+    return lambda yt: est.update(None, yt)
+
+
+def ekf_step(ekf):
+    def step(yt):
+        ekf.update(yt)
+        ekf.predict()
+        return ekf.x.ravel()
+    return step
+
+
+def make_ukf(Q, R):
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    ukf = UnscentedKalmanFilter(dim_x=2, dim_z=1, dt=br.T, fx=lambda x, dt: br.f(x),
+                                hx=lambda x: np.atleast_1d(br.h(x)),
+                                points=MerweScaledSigmaPoints(2, alpha=0.1, beta=2.0, kappa=1.0))
+    ukf.x, ukf.P, ukf.Q, ukf.R = br.X_PRIOR0.copy(), np.eye(2), Q, R
+
+    def step(yt):
+        ukf.update(yt)
+        ukf.predict()
+        return ukf.x.copy()
+    return step
+
+
+def rmse(xs, truth):
+    return float(np.sqrt(np.mean(np.sum((xs - truth[1:len(xs) + 1]) ** 2, axis=1))))
+
+
+def row(name, ts, ekf_median, extra=""):
+    med, p95 = np.median(ts) * 1e3, np.percentile(ts, 95) * 1e3
+    print(f"| {name:<38} | {med:9.3f} | {p95:9.3f} | {med / (ekf_median * 1e3):8.1f} |{extra}")
+
+
+def gps_with_n_points(model, n_points, rng):
+    """GPs with `model`'s hyperparameters conditioned on n_points transitions of trajectories
+    from random initial states in the box (states measured with noise, as in training_data)."""
+    lb, ub = br.X_BOUNDS
+    D, Xn, Dh, Yh = [], [], [], []
+    while sum(len(d) for d in D) < n_points:
+        x, y = br.simulate(rng.uniform(lb, ub), br.TRAIN_STEPS, rng)
+        xm = x + br.SIGMA_X_MEAS * rng.standard_normal(x.shape)
+        D.append(xm[:-1]), Xn.append(xm[1:]), Dh.append(xm), Yh.append(y)
+    D, Xn = np.vstack(D)[:n_points], np.vstack(Xn)[:n_points]
+    Dh, Yh = np.vstack(Dh)[:n_points], np.vstack(Yh)[:n_points]
+    f, h = model.f_gp, model.h_gp
+    fg = MultiOutputGP(f.sigma_f, f.lengthscales, f.sigma_eps, optimizer=None).fit(D, Xn)
+    hg = MultiOutputGP(h.sigma_f, h.lengthscales, h.sigma_eps, optimizer=None).fit(Dh, Yh)
+    return LearnedModel(fg, hg)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--tc-steps", type=int, default=40)
+    ap.add_argument("--quick", action="store_true", help="short runs, smaller scaling tables")
+    args = ap.parse_args(argv)
+    steps = 30 if args.quick else args.steps
+    tc_steps = 5 if args.quick else min(args.tc_steps, steps)
+    rng = np.random.default_rng(args.seed)
+    warnings.simplefilter("ignore")  # optimiser chatter; failed windows are counted instead
+
+    t0 = time.perf_counter()
+    gp5 = LearnedModel.from_trajectories(*br.training_data(5, rng=rng), n_restarts=2,
+                                         random_state=args.seed)
+    print(f"GPs fitted on 5 trajectories in {time.perf_counter() - t0:.1f} s "
+          f"(N = {gp5.f_gp._core_model.n_train} per f-GP, {gp5.h_gp._core_model.n_train} for h)")
+    known = KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
+    x, y = br.simulate(br.X_TRUE0, steps, rng)
+    Q, R = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1)
+    kw = dict(x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+
+    runs = {}
+    runs["filterpy EKF (exact model)"] = timed_run(
+        ekf_step(ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_PRIOR0, np.eye(2), Q, R)),
+        y, steps)
+    runs["filterpy UKF (exact model)"] = timed_run(make_ukf(Q, R), y, steps)
+    runs["GP-EKF (5 traj.)"] = timed_run(ekf_step(GPEKF(gp5, br.X_PRIOR0, np.eye(2), Q, R)),
+                                         y, steps)
+    failed = {}
+    mhes = [
+        ("GPMHE Rust gauss-newton", gp5, "gauss-newton", {}, steps),
+        ("GPMHE Rust gauss-newton, gtol=1e-4", gp5, "gauss-newton", {"gtol": 1e-4}, steps),
+        ("GPMHE least-squares (SciPy)", gp5, "least-squares", {}, steps),
+        ("GPMHE trust-constr (SciPy)", gp5, "trust-constr", {}, tc_steps),
+        ("exact-model MHE, Rust gauss-newton", known, "gauss-newton", {}, steps),
+        ("exact-model MHE, least-squares", known, "least-squares", {}, steps),
+    ]
+    for name, model, solver, opts, n_steps in mhes:
+        est = GPMHE(model, br.X_PRIOR0, solver=solver, solver_options=opts, **kw)
+        fails = []
+        step = mhe_step(est)
+
+        def counted(yt, step=step, est=est, fails=fails):
+            out = step(yt)
+            fails.append(not est.success)
+            return out
+        runs[name] = timed_run(counted, y, n_steps)
+        failed[name] = sum(fails)
+
+    ekf_med = np.median(runs["filterpy EKF (exact model)"][1])
+    print(f"\n## Time per update, batch reactor from the poor prior ({steps} steps, seed "
+          f"{args.seed}; trust-constr: first {tc_steps} steps)\n")
+    print("| estimator                              | median ms |   p95 ms | ×EKF med | RMSE "
+          "(failed windows)")
+    print("|" + "-" * 40 + "|-----------|-----------|----------|-----")
+    for name, (xs, ts) in runs.items():
+        extra = f" {rmse(xs, x):.3f}" + (f" ({failed[name]})" if name in failed else "")
+        row(name, ts, ekf_med, extra)
+    gn, ls = np.median(runs["GPMHE Rust gauss-newton"][1]), np.median(
+        runs["GPMHE least-squares (SciPy)"][1])
+    tc = np.median(runs["GPMHE trust-constr (SciPy)"][1])
+    print(f"\nRust solver speed-up (medians): {ls / gn:.1f}× vs least-squares, "
+          f"{tc / gn:.0f}× vs trust-constr")
+
+    # --- scaling in M --------------------------------------------------------------------
+    horizons = [5, 15, 60] if args.quick else [5, 10, 15, 30, 60]
+    after = 20 if args.quick else 60
+    print(f"\n## Scaling in the horizon M (Rust solver, N as above; {after} updates with a full "
+          f"window, t ≥ M)\n")
+    print("|   M | median ms |   p95 ms | mean evaluations per update | µs per evaluation per node |")
+    print("|-----|-----------|----------|-----------------------------|----------------------------|")
+    for M in horizons:
+        xM, yM = br.simulate(br.X_TRUE0, M + after, np.random.default_rng(args.seed + 1))
+        est = GPMHE(gp5, br.X_PRIOR0, **{**kw, "horizon": M})
+        nfev = []
+
+        def step(yt, est=est, nfev=nfev):
+            out = est.update(None, yt)
+            nfev.append(est.nfev)
+            return out
+        _, ts = timed_run(step, yM, M + after)
+        ts, ev = ts[M:], np.array(nfev[M:])
+        per = np.sum(ts) / np.sum(ev) / (M + 1) * 1e6
+        print(f"| {M:3d} | {np.median(ts) * 1e3:9.3f} | {np.percentile(ts, 95) * 1e3:8.3f} | "
+              f"{np.mean(ev):27.1f} | {per:26.1f} |")
+
+    # --- scaling in N --------------------------------------------------------------------
+    sizes = [50, 150, 500] if args.quick else [50, 150, 500, 2000]
+    after = 10 if args.quick else 25
+    print(f"\n## Scaling in the training points per GP N (Rust solver, M = 15, {after} updates "
+          f"with a full window)\n")
+    print("|    N | median ms |   p95 ms | mean evaluations per update |")
+    print("|------|-----------|----------|-----------------------------|")
+    for N in sizes:
+        model = gps_with_n_points(gp5, N, np.random.default_rng(args.seed + 2))
+        xN, yN = br.simulate(br.X_TRUE0, 15 + after, np.random.default_rng(args.seed + 1))
+        est = GPMHE(model, br.X_PRIOR0, **kw)
+        nfev = []
+
+        def step(yt, est=est, nfev=nfev):
+            out = est.update(None, yt)
+            nfev.append(est.nfev)
+            return out
+        _, ts = timed_run(step, yN, 15 + after)
+        ts = ts[15:]
+        print(f"| {N:4d} | {np.median(ts) * 1e3:9.3f} | {np.percentile(ts, 95) * 1e3:8.3f} | "
+              f"{np.mean(nfev[15:]):27.1f} |")
+    print(f"\ntotal benchmark time {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

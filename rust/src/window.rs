@@ -1,0 +1,927 @@
+//! The GP-MHE window problem (DESIGN.md §3) as a nonlinear least-squares problem in the window
+//! states z = (x̄_0, …, x̄_{M_t}) (multiple shooting): stacked residuals r(z), their block-banded
+//! Jacobian, the cost J = ‖r‖², the gradient 2Jᵀr and the block-tridiagonal Gauss-Newton Hessian
+//! 2JᵀJ. The model enters only through [`StageModel`] (means, variances and their input gradients
+//! at a batch of points), so the same code serves learned (GP) and known models.
+//!
+//! Residual rows, in this order (node i is window time t − M_t + i, a_j = √(2η^j)):
+//! * prior (n rows, node 0): a_{M_t} · S (x̄_0 − x̂(t − M_t)), with P2 = SᵀS;
+//! * for every node i = 0 … M_t:
+//!   - output (p rows, node i, only if y_i is present and i < M_t, or i = M_t in the filtering
+//!     form): weight a_{M_t−1−i} (a_0 = √2 for the filtering form's newest output),
+//!     (y_i − m_y(d̄_i)) ⊘ √(σ²_y(d̄_i) + r0);
+//!   - process (n rows, nodes i and i+1, for i < M_t): a_{M_t−1−i} (x̄_{i+1} − m_x(d̄_i)) ⊘
+//!     √(σ²_x(d̄_i) + q0).
+//!
+//! Q0 = diag(q0) and R0 = diag(r0) are covariances (DESIGN.md §3, "Units of Q0, R0").
+
+// Index loops mirror the block formulas of DESIGN.md §3 and read better than iterator chains here.
+#![allow(clippy::needless_range_loop)]
+
+use crate::error::{check_finite, check_len, Error, Result};
+use crate::gp::{GpWorkspace, MultiGp};
+
+/// Means, variances and their input gradients of a stage model at k points d = [x; u].
+/// All row-major: `mean_x` k×n, `var_x` k×n, `dmean_x` and `dvar_x` k×n×nd, `mean_y` k×p,
+/// `var_y` k×p, `dmean_y` and `dvar_y` k×p×nd, with nd = n + m.
+#[derive(Debug, Default, Clone)]
+pub struct StageEval {
+    pub mean_x: Vec<f64>,
+    pub var_x: Vec<f64>,
+    pub dmean_x: Vec<f64>,
+    pub dvar_x: Vec<f64>,
+    pub mean_y: Vec<f64>,
+    pub var_y: Vec<f64>,
+    pub dmean_y: Vec<f64>,
+    pub dvar_y: Vec<f64>,
+}
+
+impl StageEval {
+    /// Sizes every buffer for k points (reuses capacity; contents unspecified).
+    pub fn resize(&mut self, k: usize, n: usize, m: usize, p: usize) {
+        let nd = n + m;
+        self.mean_x.resize(k * n, 0.0);
+        self.var_x.resize(k * n, 0.0);
+        self.dmean_x.resize(k * n * nd, 0.0);
+        self.dvar_x.resize(k * n * nd, 0.0);
+        self.mean_y.resize(k * p, 0.0);
+        self.var_y.resize(k * p, 0.0);
+        self.dmean_y.resize(k * p * nd, 0.0);
+        self.dvar_y.resize(k * p * nd, 0.0);
+    }
+}
+
+impl StageEval {
+    /// Fails unless every buffer has the size for k points (guards against a model that
+    /// resized them wrongly).
+    fn check_sizes(&self, k: usize, n: usize, m: usize, p: usize) -> Result<()> {
+        let nd = n + m;
+        let ok = self.mean_x.len() == k * n
+            && self.var_x.len() == k * n
+            && self.dmean_x.len() == k * n * nd
+            && self.dvar_x.len() == k * n * nd
+            && self.mean_y.len() == k * p
+            && self.var_y.len() == k * p
+            && self.dmean_y.len() == k * p * nd
+            && self.dvar_y.len() == k * p * nd;
+        if ok {
+            Ok(())
+        } else {
+            Err(Error::invalid("model", "returned arrays of the wrong size"))
+        }
+    }
+}
+
+/// A model x(t+1) = f(x, u) + w, y = h(x, u) + v with input-dependent variances (zero for a
+/// known model), evaluated for a batch of points at once.
+pub trait StageModel {
+    fn dim_x(&self) -> usize;
+    fn dim_u(&self) -> usize;
+    fn dim_y(&self) -> usize;
+    /// Evaluate at k points d (k×(n+m) row-major) into `out` (resized as needed, reused).
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()>;
+}
+
+/// The learned model of GP-MHE: n independent GPs for f (regression targets x(t+1), or the
+/// increment x(t+1) − x(t) when `f_residual`, i.e. prior mean x) and p GPs for h, all on the
+/// inputs d = [x; u]. The variances are the GPs' latent variances (DESIGN.md §2).
+#[derive(Debug, Clone)]
+pub struct GpStageModel {
+    f: MultiGp,
+    h: Option<MultiGp>,
+    f_residual: bool,
+    n: usize,
+    m: usize,
+    ws: GpWorkspace,
+}
+
+impl GpStageModel {
+    /// `f` has n outputs on inputs of dimension n + `dim_u`; `h` (None when p = 0) has p outputs
+    /// on the same inputs.
+    pub fn new(f: MultiGp, h: Option<MultiGp>, dim_u: usize, f_residual: bool) -> Result<Self> {
+        let n = f.n_outputs();
+        if f.dim() != n + dim_u {
+            return Err(Error::invalid(
+                "f",
+                format!(
+                    "GP input dimension {} is not dim_x + dim_u = {}",
+                    f.dim(),
+                    n + dim_u
+                ),
+            ));
+        }
+        if let Some(h) = &h {
+            if h.dim() != n + dim_u {
+                return Err(Error::invalid(
+                    "h",
+                    format!(
+                        "GP input dimension {} is not dim_x + dim_u = {}",
+                        h.dim(),
+                        n + dim_u
+                    ),
+                ));
+            }
+        }
+        Ok(Self {
+            f,
+            h,
+            f_residual,
+            n,
+            m: dim_u,
+            ws: GpWorkspace::default(),
+        })
+    }
+
+    pub fn f_residual(&self) -> bool {
+        self.f_residual
+    }
+}
+
+impl StageModel for GpStageModel {
+    fn dim_x(&self) -> usize {
+        self.n
+    }
+    fn dim_u(&self) -> usize {
+        self.m
+    }
+    fn dim_y(&self) -> usize {
+        self.h.as_ref().map_or(0, |h| h.n_outputs())
+    }
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.dim_y());
+        let nd = n + m;
+        let k = d.len() / nd;
+        out.resize(k, n, m, p);
+        self.f.predict_with_gradients_into(
+            d,
+            &mut out.mean_x,
+            &mut out.var_x,
+            &mut out.dmean_x,
+            &mut out.dvar_x,
+            &mut self.ws,
+        )?;
+        if self.f_residual {
+            for i in 0..k {
+                for c in 0..n {
+                    out.mean_x[i * n + c] += d[i * nd + c];
+                    out.dmean_x[(i * n + c) * nd + c] += 1.0;
+                }
+            }
+        }
+        if let Some(h) = &self.h {
+            h.predict_with_gradients_into(
+                d,
+                &mut out.mean_y,
+                &mut out.var_y,
+                &mut out.dmean_y,
+                &mut out.dvar_y,
+                &mut self.ws,
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// Which outputs the window uses (DESIGN.md §3): the paper's prediction form (y up to t−1, the
+/// estimate is x̂(t) = x̄_t before seeing y_t) or the filtering form (adds y_t).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Form {
+    Prediction,
+    Filtering,
+}
+
+/// One window's data and weights. Build once with [`WindowProblem::new`], then call
+/// [`WindowProblem::set_data`] every time step (buffers are reused).
+#[derive(Debug, Clone)]
+pub struct WindowProblem {
+    n: usize,
+    m: usize,
+    p: usize,
+    eta: f64,
+    form: Form,
+    q0: Vec<f64>,
+    r0: Vec<f64>,
+    /// S with P2 = SᵀS, n×n row-major.
+    p2_sqrt: Vec<f64>,
+    m_t: usize,
+    /// (M_t+1)×m inputs, (M_t+1)×p outputs, (M_t+1) presence flags.
+    u: Vec<f64>,
+    y: Vec<f64>,
+    y_present: Vec<bool>,
+    x_prior: Vec<f64>,
+}
+
+impl WindowProblem {
+    /// `q0` (n) and `r0` (p) are the diagonals of Q0, R0 (positive); `p2_sqrt` is S (n×n,
+    /// row-major) with P2 = SᵀS; `eta` ∈ [0, 1).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        n: usize,
+        m: usize,
+        p: usize,
+        eta: f64,
+        q0: &[f64],
+        r0: &[f64],
+        p2_sqrt: &[f64],
+        form: Form,
+    ) -> Result<Self> {
+        if n == 0 {
+            return Err(Error::invalid("dim_x", "must be at least 1"));
+        }
+        if !(eta.is_finite() && (0.0..1.0).contains(&eta)) {
+            return Err(Error::invalid(
+                "eta",
+                format!("must be in [0, 1), got {eta}"),
+            ));
+        }
+        check_len("Q0", q0, n)?;
+        check_len("R0", r0, p)?;
+        check_len("P2", p2_sqrt, n * n)?;
+        check_finite("Q0", q0)?;
+        check_finite("R0", r0)?;
+        check_finite("P2", p2_sqrt)?;
+        if q0.iter().any(|&v| v <= 0.0) {
+            return Err(Error::invalid("Q0", "diagonal must be positive"));
+        }
+        if r0.iter().any(|&v| v <= 0.0) {
+            return Err(Error::invalid("R0", "diagonal must be positive"));
+        }
+        Ok(Self {
+            n,
+            m,
+            p,
+            eta,
+            form,
+            q0: q0.to_vec(),
+            r0: r0.to_vec(),
+            p2_sqrt: p2_sqrt.to_vec(),
+            m_t: 0,
+            u: vec![0.0; m],
+            y: vec![0.0; p],
+            y_present: vec![false],
+            x_prior: vec![0.0; n],
+        })
+    }
+
+    /// Sets the window: M_t = rows − 1 with `u` (M_t+1)×m, `y` (M_t+1)×p (rows where
+    /// `y_present` is false are ignored and may hold anything, including NaN), and the arrival
+    /// prior x̂(t − M_t). In the prediction form the last row of `y` is never used.
+    /// On error the previous window is kept.
+    pub fn set_data(
+        &mut self,
+        u: &[f64],
+        y: &[f64],
+        y_present: &[bool],
+        x_prior: &[f64],
+    ) -> Result<()> {
+        let nodes = y_present.len();
+        if nodes == 0 {
+            return Err(Error::invalid(
+                "y_present",
+                "window needs at least one node",
+            ));
+        }
+        check_len("u", u, nodes * self.m)?;
+        check_len("y", y, nodes * self.p)?;
+        check_len("x_prior", x_prior, self.n)?;
+        check_finite("u", u)?;
+        check_finite("x_prior", x_prior)?;
+        for (i, &present) in y_present.iter().enumerate() {
+            if present {
+                check_finite("y", &y[i * self.p..(i + 1) * self.p])?;
+            }
+        }
+        self.m_t = nodes - 1;
+        self.u.clear();
+        self.u.extend_from_slice(u);
+        self.y.clear();
+        self.y.extend_from_slice(y);
+        self.y_present.clear();
+        self.y_present.extend_from_slice(y_present);
+        self.x_prior.clear();
+        self.x_prior.extend_from_slice(x_prior);
+        Ok(())
+    }
+
+    /// M_t + 1.
+    pub fn n_nodes(&self) -> usize {
+        self.m_t + 1
+    }
+    pub fn dim_x(&self) -> usize {
+        self.n
+    }
+    pub fn dim_u(&self) -> usize {
+        self.m
+    }
+    pub fn dim_y(&self) -> usize {
+        self.p
+    }
+    pub fn horizon_now(&self) -> usize {
+        self.m_t
+    }
+    pub fn form(&self) -> Form {
+        self.form
+    }
+
+    /// Whether node i carries an output residual block.
+    fn has_output(&self, i: usize) -> bool {
+        self.p > 0
+            && self.y_present[i]
+            && (i < self.m_t || (i == self.m_t && self.form == Form::Filtering))
+    }
+
+    /// Number of points the model is evaluated at: M_t (prediction) or M_t + 1 (filtering).
+    fn n_points(&self) -> usize {
+        match self.form {
+            Form::Prediction => self.m_t,
+            Form::Filtering => self.m_t + 1,
+        }
+    }
+
+    /// Total number of residual rows for the current data.
+    pub fn n_residuals(&self) -> usize {
+        let outputs = (0..self.n_nodes()).filter(|&i| self.has_output(i)).count();
+        self.n + self.m_t * self.n + outputs * self.p
+    }
+
+    /// Weight √(2η^{M_t−1−i}) of the stage at node i (√2 for node M_t).
+    fn stage_weight(&self, i: usize) -> f64 {
+        let power = self.m_t.saturating_sub(i + 1) as i32;
+        (2.0 * self.eta.powi(power)).sqrt()
+    }
+
+    /// Residuals (and, if `want_jacobian`, the Jacobian blocks) at z ((M_t+1)·n values).
+    pub fn evaluate(
+        &self,
+        model: &mut dyn StageModel,
+        z: &[f64],
+        want_jacobian: bool,
+        out: &mut WindowEval,
+    ) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.p);
+        if model.dim_x() != n || model.dim_u() != m || model.dim_y() != p {
+            return Err(Error::invalid(
+                "model",
+                format!(
+                    "dimensions (dim_x, dim_u, dim_y) = ({}, {}, {}) do not match the window's ({n}, {m}, {p})",
+                    model.dim_x(),
+                    model.dim_u(),
+                    model.dim_y()
+                ),
+            ));
+        }
+        let nodes = self.n_nodes();
+        check_len("z", z, nodes * n)?;
+        check_finite("z", z)?;
+        let nd = n + m;
+        let k = self.n_points();
+        out.d.resize(k * nd, 0.0);
+        for i in 0..k {
+            out.d[i * nd..i * nd + n].copy_from_slice(&z[i * n..(i + 1) * n]);
+            out.d[i * nd + n..(i + 1) * nd].copy_from_slice(&self.u[i * m..(i + 1) * m]);
+        }
+        out.stage.resize(k, n, m, p);
+        if k > 0 {
+            model.evaluate(&out.d, &mut out.stage)?;
+            out.stage.check_sizes(k, n, m, p)?;
+        }
+        let rows = self.n_residuals();
+        out.reset(n, nodes, rows, want_jacobian);
+        let WindowEval {
+            stage: st,
+            r: out_r,
+            node: out_node,
+            process: out_process,
+            ja: out_ja,
+            jb: out_jb,
+            ..
+        } = out;
+
+        // Prior block.
+        let a = (2.0 * self.eta.powi(self.m_t as i32)).sqrt();
+        let mut row = 0;
+        for r in 0..n {
+            let mut acc = 0.0;
+            for c in 0..n {
+                acc += self.p2_sqrt[r * n + c] * (z[c] - self.x_prior[c]);
+            }
+            out_r[row] = a * acc;
+            out_node[row] = 0;
+            out_process[row] = false;
+            if want_jacobian {
+                for c in 0..n {
+                    out_ja[row * n + c] = a * self.p2_sqrt[r * n + c];
+                }
+            }
+            row += 1;
+        }
+
+        for i in 0..nodes {
+            let a = self.stage_weight(i);
+            if self.has_output(i) {
+                for kk in 0..p {
+                    let s = st.var_y[i * p + kk].max(0.0) + self.r0[kk];
+                    let inv_sqrt = 1.0 / s.sqrt();
+                    let res = a * (self.y[i * p + kk] - st.mean_y[i * p + kk]) * inv_sqrt;
+                    out_r[row] = res;
+                    out_node[row] = i;
+                    out_process[row] = false;
+                    if want_jacobian {
+                        let g = (i * p + kk) * nd;
+                        for l in 0..n {
+                            out_ja[row * n + l] = -a * inv_sqrt * st.dmean_y[g + l]
+                                - res / (2.0 * s) * st.dvar_y[g + l];
+                        }
+                    }
+                    row += 1;
+                }
+            }
+            if i < self.m_t {
+                for kk in 0..n {
+                    let s = st.var_x[i * n + kk].max(0.0) + self.q0[kk];
+                    let inv_sqrt = 1.0 / s.sqrt();
+                    let res = a * (z[(i + 1) * n + kk] - st.mean_x[i * n + kk]) * inv_sqrt;
+                    out_r[row] = res;
+                    out_node[row] = i;
+                    out_process[row] = true;
+                    if want_jacobian {
+                        let g = (i * n + kk) * nd;
+                        for l in 0..n {
+                            out_ja[row * n + l] = -a * inv_sqrt * st.dmean_x[g + l]
+                                - res / (2.0 * s) * st.dvar_x[g + l];
+                            out_jb[row * n + l] = 0.0;
+                        }
+                        out_jb[row * n + kk] = a * inv_sqrt;
+                    }
+                    row += 1;
+                }
+            }
+        }
+        debug_assert_eq!(row, rows);
+        if out.r.iter().any(|v| !v.is_finite()) {
+            return Err(Error::numerical(
+                "window residuals are not finite (model returned NaN/inf)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Residuals and the block-banded Jacobian of one window evaluation. Row `k` belongs to node
+/// `node[k]`; `ja` holds ∂r_k/∂x̄_{node} (n values per row) and, for process rows, `jb` holds
+/// ∂r_k/∂x̄_{node+1} (zero for other rows).
+#[derive(Debug, Default, Clone)]
+pub struct WindowEval {
+    n: usize,
+    nodes: usize,
+    has_jacobian: bool,
+    r: Vec<f64>,
+    node: Vec<usize>,
+    process: Vec<bool>,
+    ja: Vec<f64>,
+    jb: Vec<f64>,
+    /// Scratch reused between evaluations: the k×nd stage points and the model's values there.
+    d: Vec<f64>,
+    stage: StageEval,
+}
+
+impl WindowEval {
+    fn reset(&mut self, n: usize, nodes: usize, rows: usize, want_jacobian: bool) {
+        self.n = n;
+        self.nodes = nodes;
+        self.has_jacobian = want_jacobian;
+        self.r.resize(rows, 0.0);
+        self.node.resize(rows, 0);
+        self.process.resize(rows, false);
+        if want_jacobian {
+            self.ja.resize(rows * n, 0.0);
+            self.jb.clear();
+            self.jb.resize(rows * n, 0.0);
+        }
+    }
+
+    /// The model's values at the window's stage points of the last evaluation.
+    pub fn stage(&self) -> &StageEval {
+        &self.stage
+    }
+
+    /// ‖r‖².
+    pub fn cost(&self) -> f64 {
+        self.r.iter().map(|v| v * v).sum()
+    }
+    pub fn residuals(&self) -> &[f64] {
+        &self.r
+    }
+    pub fn n_residuals(&self) -> usize {
+        self.r.len()
+    }
+    /// Number of decision variables, n_nodes · n.
+    pub fn n_vars(&self) -> usize {
+        self.nodes * self.n
+    }
+    pub fn n_nodes(&self) -> usize {
+        self.nodes
+    }
+    pub fn dim_x(&self) -> usize {
+        self.n
+    }
+    pub fn has_jacobian(&self) -> bool {
+        self.has_jacobian
+    }
+
+    /// 2Jᵀr into `g` (length n_nodes·n). Needs an evaluation with the Jacobian.
+    pub fn gradient_into(&self, g: &mut [f64]) {
+        let n = self.n;
+        g.iter_mut().for_each(|v| *v = 0.0);
+        for (k, &rk) in self.r.iter().enumerate() {
+            let i = self.node[k];
+            for l in 0..n {
+                g[i * n + l] += 2.0 * self.ja[k * n + l] * rk;
+            }
+            if self.process[k] {
+                for l in 0..n {
+                    g[(i + 1) * n + l] += 2.0 * self.jb[k * n + l] * rk;
+                }
+            }
+        }
+    }
+
+    /// 2JᵀJ as block-tridiagonal: `diag` (n_nodes·n·n, block i row-major at i·n·n) and `off`
+    /// ((n_nodes−1)·n·n, block (i, i+1) row-major). Needs an evaluation with the Jacobian.
+    pub fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
+        let n = self.n;
+        let nn = n * n;
+        diag.iter_mut().for_each(|v| *v = 0.0);
+        off.iter_mut().for_each(|v| *v = 0.0);
+        for k in 0..self.r.len() {
+            let i = self.node[k];
+            let ja = &self.ja[k * n..(k + 1) * n];
+            for a in 0..n {
+                for b in 0..n {
+                    diag[i * nn + a * n + b] += 2.0 * ja[a] * ja[b];
+                }
+            }
+            if self.process[k] {
+                let jb = &self.jb[k * n..(k + 1) * n];
+                for a in 0..n {
+                    for b in 0..n {
+                        diag[(i + 1) * nn + a * n + b] += 2.0 * jb[a] * jb[b];
+                        off[i * nn + a * n + b] += 2.0 * ja[a] * jb[b];
+                    }
+                }
+            }
+        }
+    }
+
+    /// The dense Jacobian (n_residuals × n_nodes·n, row-major) into `jac`.
+    pub fn dense_jacobian_into(&self, jac: &mut [f64]) {
+        let n = self.n;
+        let cols = self.nodes * n;
+        jac.iter_mut().for_each(|v| *v = 0.0);
+        for k in 0..self.r.len() {
+            let i = self.node[k];
+            jac[k * cols + i * n..k * cols + (i + 1) * n]
+                .copy_from_slice(&self.ja[k * n..(k + 1) * n]);
+            if self.process[k] {
+                jac[k * cols + (i + 1) * n..k * cols + (i + 2) * n]
+                    .copy_from_slice(&self.jb[k * n..(k + 1) * n]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An analytic model with state-dependent means and variances (n = 2, m = 1, p = 1):
+    /// f(x, u) = [x0 + 0.1 x1 sin(x0) + 0.2u, 0.9 x1 + 0.05 x0²], h = x0 x1 + u,
+    /// var_x = [0.01 + 0.02 x0², 0.03 + 0.01 (x1 − u)²], var_y = 0.02 + 0.01 x0².
+    struct Analytic;
+    impl StageModel for Analytic {
+        fn dim_x(&self) -> usize {
+            2
+        }
+        fn dim_u(&self) -> usize {
+            1
+        }
+        fn dim_y(&self) -> usize {
+            1
+        }
+        fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+            let k = d.len() / 3;
+            out.resize(k, 2, 1, 1);
+            out.dmean_x.iter_mut().for_each(|v| *v = 0.0);
+            out.dvar_x.iter_mut().for_each(|v| *v = 0.0);
+            for i in 0..k {
+                let (x0, x1, u) = (d[3 * i], d[3 * i + 1], d[3 * i + 2]);
+                out.mean_x[2 * i] = x0 + 0.1 * x1 * x0.sin() + 0.2 * u;
+                out.mean_x[2 * i + 1] = 0.9 * x1 + 0.05 * x0 * x0;
+                let g = 6 * i;
+                out.dmean_x[g] = 1.0 + 0.1 * x1 * x0.cos();
+                out.dmean_x[g + 1] = 0.1 * x0.sin();
+                out.dmean_x[g + 2] = 0.2;
+                out.dmean_x[g + 3] = 0.1 * x0;
+                out.dmean_x[g + 4] = 0.9;
+                out.var_x[2 * i] = 0.01 + 0.02 * x0 * x0;
+                out.var_x[2 * i + 1] = 0.03 + 0.01 * (x1 - u).powi(2);
+                out.dvar_x[g] = 0.04 * x0;
+                out.dvar_x[g + 4] = 0.02 * (x1 - u);
+                out.dvar_x[g + 5] = -0.02 * (x1 - u);
+                out.mean_y[i] = x0 * x1 + u;
+                out.var_y[i] = 0.02 + 0.01 * x0 * x0;
+                out.dmean_y[3 * i] = x1;
+                out.dmean_y[3 * i + 1] = x0;
+                out.dmean_y[3 * i + 2] = 1.0;
+                out.dvar_y[3 * i] = 0.02 * x0;
+                out.dvar_y[3 * i + 1] = 0.0;
+                out.dvar_y[3 * i + 2] = 0.0;
+            }
+            Ok(())
+        }
+    }
+
+    fn problem(form: Form, nodes: usize, missing: &[usize]) -> WindowProblem {
+        let mut w = WindowProblem::new(
+            2,
+            1,
+            1,
+            0.91,
+            &[1e-3, 2e-3],
+            &[1e-2],
+            &[1.0, 0.3, 0.0, 0.8],
+            form,
+        )
+        .unwrap();
+        let u: Vec<f64> = (0..nodes).map(|i| 0.1 * i as f64).collect();
+        let y: Vec<f64> = (0..nodes).map(|i| 1.0 + 0.2 * i as f64).collect();
+        let present: Vec<bool> = (0..nodes).map(|i| !missing.contains(&i)).collect();
+        w.set_data(&u, &y, &present, &[0.7, 1.3]).unwrap();
+        w
+    }
+
+    fn z0(nodes: usize) -> Vec<f64> {
+        (0..2 * nodes)
+            .map(|j| 0.5 + 0.37 * ((j * 7 % 5) as f64))
+            .collect()
+    }
+
+    /// Direct evaluation of DESIGN.md §3's sum (no residual stacking) for the analytic model.
+    fn direct_cost(w: &WindowProblem, z: &[f64]) -> f64 {
+        let mt = w.m_t;
+        let dx: Vec<f64> = (0..2).map(|c| z[c] - w.x_prior[c]).collect();
+        let p2 = [1.0 * 1.0, 0.3, 0.3, 0.3 * 0.3 + 0.8 * 0.8]; // SᵀS
+        let prior =
+            dx[0] * (p2[0] * dx[0] + p2[1] * dx[1]) + dx[1] * (p2[2] * dx[0] + p2[3] * dx[1]);
+        let mut j = 2.0 * 0.91f64.powi(mt as i32) * prior;
+        let mut model = Analytic;
+        let mut st = StageEval::default();
+        for i in 0..=mt {
+            let d = [z[2 * i], z[2 * i + 1], w.u[i]];
+            model.evaluate(&d, &mut st).unwrap();
+            let weight = 2.0 * 0.91f64.powi(mt.saturating_sub(i + 1) as i32);
+            if w.has_output(i) {
+                let v = w.y[i] - st.mean_y[0];
+                j += weight * v * v / (st.var_y[0] + 1e-2);
+            }
+            if i < mt {
+                let q0 = [1e-3, 2e-3];
+                for c in 0..2 {
+                    let wv = z[2 * (i + 1) + c] - st.mean_x[c];
+                    j += weight * wv * wv / (st.var_x[c] + q0[c]);
+                }
+            }
+        }
+        j
+    }
+
+    #[test]
+    fn cost_matches_direct_sum_and_derivatives_match_finite_differences() {
+        for form in [Form::Prediction, Form::Filtering] {
+            for (nodes, missing) in [(1, vec![]), (2, vec![]), (6, vec![2]), (6, vec![5, 0])] {
+                let w = problem(form, nodes, &missing);
+                let mut model = Analytic;
+                let mut ev = WindowEval::default();
+                let z = z0(nodes);
+                w.evaluate(&mut model, &z, true, &mut ev).unwrap();
+                let direct = direct_cost(&w, &z);
+                assert!((ev.cost() - direct).abs() <= 1e-12 * direct.max(1.0));
+                assert_eq!(ev.n_residuals(), w.n_residuals());
+
+                let nv = 2 * nodes;
+                let rows = ev.n_residuals();
+                let mut g = vec![0.0; nv];
+                ev.gradient_into(&mut g);
+                let mut jac = vec![0.0; rows * nv];
+                ev.dense_jacobian_into(&mut jac);
+                let mut e2 = WindowEval::default();
+                let h = 1e-6;
+                for c in 0..nv {
+                    let mut zp = z.clone();
+                    zp[c] += h;
+                    w.evaluate(&mut model, &zp, false, &mut e2).unwrap();
+                    let (cp, rp) = (e2.cost(), e2.residuals().to_vec());
+                    let mut zm = z.clone();
+                    zm[c] -= h;
+                    w.evaluate(&mut model, &zm, false, &mut e2).unwrap();
+                    let fd = (cp - e2.cost()) / (2.0 * h);
+                    assert!(
+                        (g[c] - fd).abs() <= 1e-6 * (1.0 + fd.abs()),
+                        "{form:?} nodes {nodes} grad {c}: {} vs {fd}",
+                        g[c]
+                    );
+                    for r in 0..rows {
+                        let fdr = (rp[r] - e2.residuals()[r]) / (2.0 * h);
+                        assert!((jac[r * nv + c] - fdr).abs() <= 1e-6 * (1.0 + fdr.abs()));
+                    }
+                }
+
+                // Block-tridiagonal Gauss-Newton Hessian equals the dense 2JᵀJ.
+                let mut diag = vec![0.0; nodes * 4];
+                let mut off = vec![0.0; (nodes - 1) * 4];
+                ev.gauss_newton_blocks_into(&mut diag, &mut off);
+                for a in 0..nv {
+                    for b in 0..nv {
+                        let dense: f64 = (0..rows)
+                            .map(|r| 2.0 * jac[r * nv + a] * jac[r * nv + b])
+                            .sum();
+                        let (ia, ib) = (a / 2, b / 2);
+                        let blk = if ia == ib {
+                            diag[ia * 4 + (a % 2) * 2 + b % 2]
+                        } else if ib == ia + 1 {
+                            off[ia * 4 + (a % 2) * 2 + b % 2]
+                        } else if ia == ib + 1 {
+                            off[ib * 4 + (b % 2) * 2 + a % 2]
+                        } else {
+                            0.0
+                        };
+                        assert!((dense - blk).abs() <= 1e-10 * (1.0 + dense.abs()));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Window gradient and Jacobian against central differences for any model.
+    fn check_derivatives(w: &WindowProblem, model: &mut dyn StageModel, z: &[f64]) {
+        let mut ev = WindowEval::default();
+        w.evaluate(model, z, true, &mut ev).unwrap();
+        let nv = z.len();
+        let rows = ev.n_residuals();
+        let mut g = vec![0.0; nv];
+        ev.gradient_into(&mut g);
+        let mut jac = vec![0.0; rows * nv];
+        ev.dense_jacobian_into(&mut jac);
+        let mut e2 = WindowEval::default();
+        let h = 1e-6;
+        for c in 0..nv {
+            let mut zp = z.to_vec();
+            zp[c] += h;
+            w.evaluate(model, &zp, false, &mut e2).unwrap();
+            let (cp, rp) = (e2.cost(), e2.residuals().to_vec());
+            let mut zm = z.to_vec();
+            zm[c] -= h;
+            w.evaluate(model, &zm, false, &mut e2).unwrap();
+            let fd = (cp - e2.cost()) / (2.0 * h);
+            assert!(
+                (g[c] - fd).abs() <= 1e-5 * (1.0 + fd.abs()),
+                "grad {c}: {} vs {fd}",
+                g[c]
+            );
+            for r in 0..rows {
+                let fdr = (rp[r] - e2.residuals()[r]) / (2.0 * h);
+                assert!((jac[r * nv + c] - fdr).abs() <= 1e-5 * (1.0 + fdr.abs()));
+            }
+        }
+    }
+
+    #[test]
+    fn gp_stage_model_window_derivatives_match_finite_differences() {
+        // Training data from a smooth 2-state, 1-input system on a small grid.
+        let mut x = Vec::new();
+        let (mut yf, mut yh) = (Vec::new(), Vec::new());
+        for a in 0..4 {
+            for b in 0..4 {
+                for c in 0..2 {
+                    let (x0, x1, u) = (0.3 * a as f64, 0.25 * b as f64, 0.5 * c as f64);
+                    x.extend_from_slice(&[x0, x1, u]);
+                    yf.extend_from_slice(&[
+                        x0 + 0.1 * x1.sin() + 0.1 * u,
+                        0.9 * x1 + 0.05 * x0 * x0,
+                    ]);
+                    yh.push(x0 * x1 + u);
+                }
+            }
+        }
+        let th = |sf: f64| [sf.ln(), 0.7f64.ln(), 0.9f64.ln(), 1.2f64.ln(), 0.05f64.ln()];
+        let thetas_f: Vec<f64> = [th(1.0), th(0.8)].concat();
+        let f = MultiGp::new(&x, &yf, &thetas_f).unwrap();
+        let h = MultiGp::new(&x, &yh, &th(1.5)).unwrap();
+        for residual in [false, true] {
+            let mut model = GpStageModel::new(f.clone(), Some(h.clone()), 1, residual).unwrap();
+            for form in [Form::Prediction, Form::Filtering] {
+                let w = problem(form, 5, &[3]);
+                let z: Vec<f64> = z0(5).iter().map(|v| 0.4 * v).collect();
+                check_derivatives(&w, &mut model, &z);
+            }
+        }
+        // The residual form adds the identity to the mean and its gradient.
+        let d = [0.4, 0.3, 0.5];
+        let (mut a, mut b) = (StageEval::default(), StageEval::default());
+        GpStageModel::new(f.clone(), Some(h.clone()), 1, false)
+            .unwrap()
+            .evaluate(&d, &mut a)
+            .unwrap();
+        GpStageModel::new(f.clone(), Some(h.clone()), 1, true)
+            .unwrap()
+            .evaluate(&d, &mut b)
+            .unwrap();
+        assert!((b.mean_x[0] - a.mean_x[0] - 0.4).abs() < 1e-14);
+        assert!((b.mean_x[1] - a.mean_x[1] - 0.3).abs() < 1e-14);
+        assert!((b.dmean_x[4] - a.dmean_x[4] - 1.0).abs() < 1e-14);
+        assert_eq!(a.var_y, b.var_y);
+        assert!(GpStageModel::new(f.clone(), Some(h), 2, false).is_err());
+    }
+
+    #[test]
+    fn residual_count_follows_form_and_missing_outputs() {
+        let w = problem(Form::Prediction, 5, &[1]);
+        // prior 2 + 4 process stages × 2 + outputs at nodes 0, 2, 3.
+        assert_eq!(w.n_residuals(), 2 + 8 + 3);
+        let w = problem(Form::Filtering, 5, &[1]);
+        assert_eq!(w.n_residuals(), 2 + 8 + 4);
+        let w = problem(Form::Prediction, 1, &[]);
+        assert_eq!(w.n_residuals(), 2);
+    }
+
+    #[test]
+    fn bad_inputs_are_rejected_and_keep_the_window() {
+        let mut w = problem(Form::Filtering, 3, &[]);
+        assert!(matches!(
+            w.set_data(&[0.0; 3], &[f64::NAN, 1.0, 1.0], &[true; 3], &[0.0, 0.0]),
+            Err(Error::InvalidInput { ref arg, .. }) if arg == "y"
+        ));
+        // NaN where the output is absent is fine.
+        assert!(w
+            .set_data(
+                &[0.0; 3],
+                &[f64::NAN, 1.0, 1.0],
+                &[false, true, true],
+                &[0.0, 0.0]
+            )
+            .is_ok());
+        assert!(w
+            .set_data(&[0.0; 2], &[1.0; 3], &[true; 3], &[0.0, 0.0])
+            .is_err());
+        assert_eq!(w.n_nodes(), 3);
+        let mut ev = WindowEval::default();
+        assert!(w.evaluate(&mut Analytic, &[0.0; 5], true, &mut ev).is_err());
+        assert!(w
+            .evaluate(
+                &mut Analytic,
+                &[0.0, f64::INFINITY, 0.0, 0.0, 0.0, 0.0],
+                true,
+                &mut ev
+            )
+            .is_err());
+        assert!(WindowProblem::new(
+            2,
+            1,
+            1,
+            1.0,
+            &[1.0; 2],
+            &[1.0],
+            &[1.0, 0.0, 0.0, 1.0],
+            Form::Prediction
+        )
+        .is_err());
+        assert!(WindowProblem::new(
+            2,
+            1,
+            1,
+            0.5,
+            &[1.0, 0.0],
+            &[1.0],
+            &[1.0, 0.0, 0.0, 1.0],
+            Form::Prediction
+        )
+        .is_err());
+        let mut w2 = WindowProblem::new(
+            2,
+            0,
+            1,
+            0.5,
+            &[1.0; 2],
+            &[1.0],
+            &[1.0, 0.0, 0.0, 1.0],
+            Form::Prediction,
+        )
+        .unwrap();
+        w2.set_data(&[], &[1.0, 1.0], &[true; 2], &[0.0, 0.0])
+            .unwrap();
+        assert!(matches!(
+            w2.evaluate(&mut Analytic, &[0.0; 4], true, &mut ev),
+            Err(Error::InvalidInput { ref arg, .. }) if arg == "model"
+        ));
+    }
+}

@@ -1,0 +1,239 @@
+"""The real-time Rust window solver (solver="gauss-newton", gpmhe._core.WindowSolver) against
+SciPy's trust-constr and least-squares from the same start (costs, not states: the window problem
+is non-convex), whole batch-reactor runs against the least-squares path, degenerate windows and bad
+input."""
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.optimize import Bounds, least_squares, minimize
+
+from gpmhe import GPMHE, KnownModel, LearnedModel, MultiOutputGP, _core
+from gpmhe.systems import batch_reactor as br
+
+
+def f3(x, u):
+    return np.array([0.9 * x[0] + 0.1 * x[1] + 0.1 * u[0],
+                     -0.1 * np.sin(x[0]) + 0.95 * x[1] + 0.05 * u[0]])
+
+
+def h3(x, u):
+    return np.array([x[0], x[0] * x[1] + 0.2 * u[0]])
+
+
+@pytest.fixture(scope="module")
+def reactor_gp():
+    states, outputs = br.training_data(5, rng=11)
+    return LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
+
+
+@pytest.fixture(scope="module")
+def synthetic_gp():
+    """GPs with fixed hyperparameters on a system with m = 1 input and p = 2 outputs."""
+    rng = np.random.default_rng(3)
+    D = rng.uniform(-1.5, 1.5, size=(80, 3))
+    Xn = np.array([f3(d[:2], d[2:]) for d in D])
+    Y = np.array([h3(d[:2], d[2:]) for d in D])
+    opts = dict(sigma_f=1.0, lengthscales=[0.8, 0.9, 1.1], sigma_eps=0.05, optimizer=None)
+    return LearnedModel(MultiOutputGP(**opts).fit(D, Xn), MultiOutputGP(**opts).fit(D, Y), dim_u=1)
+
+
+reactor_known = KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
+
+
+def reactor_window(model, rng, nodes, upper):
+    """A prediction-form window of the batch reactor from simulated data, its bounds and a
+    perturbed warm start strictly inside them."""
+    x, y = br.simulate(br.X_TRUE0, nodes + 5, rng)
+    s = int(rng.integers(0, 5))
+    lb, ub = br.X_BOUNDS[0], np.asarray(upper, dtype=float)
+    win = model._make_window(0.91, np.full(2, 1e-3), np.full(1, 1e-2), np.eye(2), False)
+    present = [True] * (nodes - 1) + [False]
+    prior = np.clip(x[s] + 0.3 * rng.standard_normal(2), lb, ub)
+    win.set_data(np.zeros((nodes, 0)), np.ascontiguousarray(y[s:s + nodes]), present, prior)
+    z0 = x[s:s + nodes] + 0.2 * rng.standard_normal((nodes, 2))
+    LB, UB = np.tile(lb, nodes), np.tile(ub, nodes)
+    return win, np.clip(z0.reshape(-1), LB + 1e-3, UB - 1e-3), LB, UB
+
+
+def synthetic_window(model, rng, nodes, box):
+    x = np.zeros((nodes, 2))
+    u = rng.uniform(-1, 1, size=(nodes, 1))
+    x[0] = rng.uniform(-0.5, 0.5, 2)
+    for i in range(nodes - 1):
+        x[i + 1] = f3(x[i], u[i]) + 0.05 * rng.standard_normal(2)
+    y = np.array([h3(x[i], u[i]) for i in range(nodes)]) + 0.05 * rng.standard_normal((nodes, 2))
+    win = model._make_window(0.9, np.full(2, 1e-2), np.full(2, 1e-2), np.eye(2), True)
+    present = [bool(i % 4 != 2) for i in range(nodes)]  # some y=None steps
+    win.set_data(u, y, present, x[0] + 0.2 * rng.standard_normal(2))
+    LB, UB = np.full(2 * nodes, -box), np.full(2 * nodes, box)
+    z0 = np.clip(x.reshape(-1) + 0.3 * rng.standard_normal(2 * nodes), LB + 1e-3, UB - 1e-3)
+    return win, z0, LB, UB
+
+
+def projected_gradient(win, z, LB, UB):
+    _, g = win.cost_grad(z)
+    return np.max(np.abs(z - np.clip(z - g, LB, UB)))
+
+
+def scipy_costs(win, z0, LB, UB):
+    ls = least_squares(win.residuals, z0, jac=win.jacobian, bounds=(LB, UB), method="trf",
+                       ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=500)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        tc = minimize(win.cost_grad, z0, jac=True, hess=win.gn_hessian, method="trust-constr",
+                      bounds=Bounds(LB, UB),
+                      options=dict(gtol=1e-10, xtol=1e-12, maxiter=400,
+                                   initial_barrier_parameter=1e-3))
+    return win.cost(np.clip(ls.x, LB, UB)), win.cost(np.clip(tc.x, LB, UB))
+
+
+CASES = [
+    ("reactor-gp", "paper"), ("reactor-gp", "active"),
+    ("reactor-known", "paper"), ("reactor-known", "active"),
+    ("synthetic-gp", "wide"), ("synthetic-gp", "active"),
+]
+
+
+@pytest.mark.parametrize("system,bounds", CASES)
+def test_rust_optimum_is_no_worse_than_scipy(system, bounds, reactor_gp, synthetic_gp):
+    rng = np.random.default_rng(100 + CASES.index((system, bounds)))
+    n_active = 0
+    for _ in range(2):
+        if system == "synthetic-gp":
+            box = 3.0 if bounds == "wide" else 0.25
+            win, z0, LB, UB = synthetic_window(synthetic_gp, rng, 10, box)
+        else:
+            model = reactor_gp if system == "reactor-gp" else reactor_known
+            upper = [4.5, 4.5] if bounds == "paper" else [4.5, 1.6]
+            win, z0, LB, UB = reactor_window(model, rng, 16, upper)
+        z, cost, status, ok, nit, nfev, pg, _ = _core.WindowSolver().solve(win, z0, LB, UB)
+        assert ok, status
+        assert np.all((z >= LB) & (z <= UB))
+        assert cost == pytest.approx(win.cost(z), rel=1e-12)
+        assert pg <= 1e-6
+        assert projected_gradient(win, z, LB, UB) == pytest.approx(pg, rel=1e-9, abs=1e-15)
+        c_ls, c_tc = scipy_costs(win, z0, LB, UB)
+        assert cost <= min(c_ls, c_tc) * (1 + 1e-6), (cost, c_ls, c_tc)
+        n_active += int(np.sum((z == LB) | (z == UB)))
+    if bounds == "active":
+        assert n_active > 0, "the case must exercise active bounds"
+
+
+def rmse(est, x, y, steps):
+    xs = np.array([est.update(None, y[t]).copy() for t in range(steps)])
+    return np.sqrt(np.mean(np.sum((xs - x[1:steps + 1]) ** 2, axis=1)))
+
+
+def test_whole_runs_match_the_least_squares_path(reactor_gp):
+    """Batch reactor from the poor prior, 10 seeds, 100 steps: the Rust solver's mean RMSE is
+    within 5 % of SciPy least-squares' (trust-constr takes ~0.5 s per step: compared in
+    benches/bench_update.py, not here)."""
+    r_gn, r_ls = [], []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for seed in range(10):
+            x, y = br.simulate(br.X_TRUE0, 100, np.random.default_rng(1000 + seed))
+            for solver, out in (("gauss-newton", r_gn), ("least-squares", r_ls)):
+                est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver=solver,
+                            **br.MHE_SETTINGS)
+                out.append(rmse(est, x, y, 100))
+    assert np.mean(r_gn) <= 1.05 * np.mean(r_ls), (np.mean(r_gn), np.mean(r_ls))
+    assert np.mean(r_gn) < 1.5  # and it converges (the exact-model EKF gives ~3 here)
+
+
+def test_all_bounds_active_returns_the_box():
+    win, z0, LB, UB = reactor_window(reactor_known, np.random.default_rng(0), 5, [4.5, 4.5])
+    fixed = np.linspace(0.5, 1.5, len(z0))
+    z, cost, status, ok, nit, *_ = _core.WindowSolver().solve(win, z0, fixed, fixed)
+    assert np.array_equal(z, fixed) and ok and nit == 0
+    assert cost == pytest.approx(win.cost(fixed))
+
+
+def test_first_step_horizon_one_and_missing_outputs(reactor_gp):
+    rng = np.random.default_rng(7)
+    x, y = br.simulate(br.X_TRUE0, 8, rng)
+    lb, ub = br.X_BOUNDS
+    for horizon, form in ((1, "prediction"), (1, "filtering"), (4, "filtering")):
+        est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, form=form, horizon=horizon,
+                    eta=0.91, Q0=1e-3, R0=1e-2)
+        for t in range(8):
+            est.update(None, None if t % 3 == 1 else y[t])
+            assert est.success and np.all(np.isfinite(est.x))
+            assert np.all((est.x >= lb) & (est.x <= ub))
+            assert est.projected_gradient <= 1e-6
+            if t == 0:
+                assert est.x_window.shape[0] == (2 if form == "prediction" else 1)
+            # least-squares on the same window from a perturbed start does not do better
+            win, nodes = est._core.window, est.x_window.shape[0]
+            LB, UB = np.tile(lb, nodes), np.tile(ub, nodes)
+            z0 = np.clip(est.x_window.reshape(-1) + 0.1 * rng.standard_normal(2 * nodes),
+                         LB + 1e-3, UB - 1e-3)
+            ls = least_squares(win.residuals, z0, jac=win.jacobian, bounds=(LB, UB),
+                               ftol=1e-12, xtol=1e-12, gtol=1e-12)
+            assert est.cost <= win.cost(np.clip(ls.x, LB, UB)) * (1 + 1e-6)
+
+
+def test_window_at_the_gp_prior_variance(synthetic_gp):
+    """States far from all training data: the GP variances sit at σ_f² (and their gradients
+    vanish), so Q and R are constant; the solver still converges to a KKT point."""
+    rng = np.random.default_rng(2)
+    win, z0, LB, UB = synthetic_window(synthetic_gp, rng, 6, 50.0)
+    far = z0 + 30.0
+    _, var_x, _, dvar_x, _, var_y, _, _ = synthetic_gp.stage_eval(
+        np.concatenate([far.reshape(-1, 2), np.zeros((6, 1))], axis=1))
+    assert np.allclose(var_x, 1.0) and np.allclose(var_y, 1.0) and np.allclose(dvar_x, 0.0)
+    z, cost, status, ok, nit, nfev, pg, _ = _core.WindowSolver().solve(win, far, LB, UB)
+    assert ok and pg <= 1e-6 and cost <= win.cost(far)
+
+
+def test_bad_options_and_input_raise_value_errors():
+    with pytest.raises(ValueError, match="interior"):
+        _core.WindowSolver(interior="sometimes")
+    with pytest.raises(ValueError, match="gtol"):
+        _core.WindowSolver(gtol=-1.0)
+    with pytest.raises(ValueError, match="mu_final"):
+        _core.WindowSolver(mu_init=1e-3, mu_final=1e-1)
+    with pytest.raises(ValueError, match="solver_options"):
+        GPMHE(reactor_known, br.X_PRIOR0, solver="gauss-newton", solver_options=dict(foo=1))
+    win, z0, LB, UB = reactor_window(reactor_known, np.random.default_rng(0), 5, [4.5, 4.5])
+    s = _core.WindowSolver()
+    with pytest.raises(ValueError, match="z"):
+        s.solve(win, z0[:-1], LB, UB)
+    with pytest.raises(ValueError, match="bounds"):
+        s.solve(win, z0, UB, LB)
+    with pytest.raises(ValueError, match="z"):
+        s.solve(win, np.full_like(z0, np.nan), LB, UB)
+    # the solver object is still usable afterwards
+    assert s.solve(win, z0, LB, UB)[3]
+
+
+def test_model_exception_propagates():
+    def bad_f(x, u):
+        raise ZeroDivisionError("boom")
+    model = KnownModel(bad_f, br.h, 2, 1)
+    win = model._make_window(0.9, np.ones(2), np.ones(1), np.eye(2), False)
+    win.set_data(np.zeros((3, 0)), np.zeros((3, 1)), [True] * 3, np.ones(2))
+    with pytest.raises(ZeroDivisionError):
+        _core.WindowSolver().solve(win, np.ones(6), np.zeros(6), np.full(6, 5.0))
+
+
+def test_estimator_reports_solver_details(reactor_gp):
+    est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    assert est.solver == "gauss-newton"  # the default
+    x, y = br.simulate(br.X_TRUE0, 3, np.random.default_rng(1))
+    est.update(None, y[0])
+    assert est.success and est.nit >= 1 and est.nfev >= est.nit
+    assert "gradient" in est.message or "tolerance" in est.message
+
+
+def test_covariance_from_the_block_factorisation_matches_the_dense_one(reactor_gp):
+    x, y = br.simulate(br.X_TRUE0, 6, np.random.default_rng(4))
+    est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    for t in range(6):
+        est.update(None, y[t])
+    z = est.x_window.reshape(-1)
+    H = est._core.window.gn_hessian(z)
+    dense = 4.0 * np.linalg.inv(H)[-2:, -2:]
+    assert np.allclose(est.P, dense, rtol=1e-8, atol=1e-12)
