@@ -414,391 +414,6 @@ fn gp_log_marginal_likelihood<'py>(
     Ok((lml, PyArray1::from_vec(py, grad)))
 }
 
-// ===== RGP =====
-// Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
-// python/gpmhe/rgp.py, which validates inputs and calls these once per step.
-
-use crate::rgp::{Rgp, RgpBasis, RgpEkf};
-use faer::MatRef;
-
-/// A (mean, variance) pair of 1-D arrays.
-type MeanVar<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
-
-fn mat_to_array2<'py>(py: Python<'py>, m: MatRef<'_, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-    let (r, c) = (m.nrows(), m.ncols());
-    let mut out = Vec::with_capacity(r * c);
-    for i in 0..r {
-        for j in 0..c {
-            out.push(m[(i, j)]);
-        }
-    }
-    array2(py, out, r, c)
-}
-
-/// Huber's recursive GP on a unit grid of basis vectors (see gpmhe.RecursiveGP).
-#[pyclass(name = "RecursiveGPCore", module = "gpmhe._core")]
-#[derive(Clone)]
-pub struct RgpCore {
-    inner: Rgp,
-}
-
-#[pymethods]
-impl RgpCore {
-    #[new]
-    #[allow(clippy::too_many_arguments)]
-    fn new(
-        lower: PyReadonlyArray1<'_, f64>,
-        upper: PyReadonlyArray1<'_, f64>,
-        n_points: Vec<usize>,
-        sigma_k: f64,
-        l: f64,
-        sigma_r: f64,
-        sigma_p: f64,
-    ) -> PyResult<Self> {
-        let basis = RgpBasis::new(
-            slice1("lower", &lower)?,
-            slice1("upper", &upper)?,
-            &n_points,
-            sigma_k,
-            l,
-            sigma_r,
-            sigma_p,
-        )?;
-        Ok(Self {
-            inner: Rgp::new(basis),
-        })
-    }
-
-    fn copy(&self) -> Self {
-        self.clone()
-    }
-
-    fn update(
-        &mut self,
-        py: Python<'_>,
-        zeta: PyReadonlyArray1<'_, f64>,
-        y: f64,
-        var_y: f64,
-    ) -> PyResult<f64> {
-        let z = slice1("zeta", &zeta)?;
-        let inner = &mut self.inner;
-        Ok(py.detach(|| inner.update(z, y, var_y))?)
-    }
-
-    fn update_many<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: PyReadonlyArray2<'py, f64>,
-        y: PyReadonlyArray1<'py, f64>,
-        var_y: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let (z, _, _) = slice2("zeta", &zeta)?;
-        let (y, v) = (slice1("y", &y)?, slice1("var_y", &var_y)?);
-        let inner = &mut self.inner;
-        let out = py.detach(|| inner.update_many(z, y, v))?;
-        Ok(PyArray1::from_vec(py, out))
-    }
-
-    fn predict<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<MeanVar<'py>> {
-        let (z, _, _) = slice2("zeta", &zeta)?;
-        let inner = &mut self.inner;
-        let (m, v) = py.detach(|| inner.predict(z))?;
-        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
-    }
-
-    fn j_row<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let j = self.inner.j_row(slice1("zeta", &zeta)?)?;
-        Ok(PyArray1::from_vec(py, j))
-    }
-
-    fn set_weights(
-        &mut self,
-        mean: PyReadonlyArray1<'_, f64>,
-        cov: PyReadonlyArray2<'_, f64>,
-    ) -> PyResult<()> {
-        let (c, _, _) = slice2("cov", &cov)?;
-        Ok(self.inner.set_weights(slice1("mean", &mean)?, c)?)
-    }
-
-    #[getter]
-    fn mean<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.mean())
-    }
-
-    #[getter]
-    fn cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.cov())
-    }
-
-    #[getter]
-    fn basis_vectors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let b = self.inner.basis();
-        array2(py, b.basis_vectors(), b.n_basis(), b.dim())
-    }
-
-    #[getter]
-    fn kernel_matrix<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.basis().kernel_matrix())
-    }
-
-    #[getter]
-    fn jitter(&self) -> f64 {
-        self.inner.basis().jitter()
-    }
-}
-
-/// Dimension n + Σ n_b (N in augmented mode) from which the per-step calls of `RGPEKFCore` release the GIL.
-/// Below it a step's kernels take a few µs, less than a release and re-acquisition of the GIL costs
-/// when other threads contend for it (numpy likewise keeps the GIL for small arrays).
-const RGP_STEP_GIL_RELEASE_MIN_DIM: usize = 200;
-
-/// Runs `f` with the GIL released if `release`, else holding it.
-fn detach_if<T: Send>(py: Python<'_>, release: bool, f: impl FnOnce() -> T + Send) -> T {
-    if release {
-        py.detach(f)
-    } else {
-        f()
-    }
-}
-
-/// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF). Constant Jacobians A, e, H are
-/// stored once (`set_constant_jacobians`) so that a step passes only what changes.
-#[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
-pub struct RgpEkfCore {
-    inner: RgpEkf,
-    a_const: Option<Vec<f64>>,
-    e_const: Option<Vec<f64>>,
-    h_const: Option<Vec<f64>>,
-}
-
-/// The argument `given`, else the stored constant, else a `ValueError` naming `arg`.
-fn given_or_const<'a>(
-    arg: &str,
-    given: &'a Option<PyReadonlyArray2<'_, f64>>,
-    stored: &'a Option<Vec<f64>>,
-) -> PyResult<&'a [f64]> {
-    match (given, stored) {
-        (Some(a), _) => Ok(slice2(arg, a)?.0),
-        (None, Some(c)) => Ok(c),
-        (None, None) => Err(PyValueError::new_err(format!(
-            "{arg}: not given and no constant {arg} was stored"
-        ))),
-    }
-}
-
-impl RgpEkfCore {
-    /// [x; μ_z^p] after `infer`: x as an array, μ_z^p as a float for one GP, else an array.
-    fn x_and_z<'py>(
-        &self,
-        py: Python<'py>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
-        let x = PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()]);
-        let z = self.inner.z_pred();
-        let z = if z.len() == 1 {
-            z[0].into_pyobject(py)?.into_any()
-        } else {
-            PyArray1::from_slice(py, z).into_any()
-        };
-        Ok((x, z))
-    }
-}
-
-#[pymethods]
-impl RgpEkfCore {
-    #[new]
-    fn new(
-        x0: PyReadonlyArray1<'_, f64>,
-        p0: PyReadonlyArray2<'_, f64>,
-        gps: Vec<PyRef<'_, RgpCore>>,
-        augmented: bool,
-    ) -> PyResult<Self> {
-        let (p, _, _) = slice2("P0", &p0)?;
-        let gps = gps.iter().map(|g| g.inner.clone()).collect();
-        Ok(Self {
-            inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
-            a_const: None,
-            e_const: None,
-            h_const: None,
-        })
-    }
-
-    /// Stores constant A (n × n), e (n × q), H (p × n) (None: given at every step).
-    #[pyo3(signature = (a=None, e=None, h=None))]
-    fn set_constant_jacobians(
-        &mut self,
-        a: Option<PyReadonlyArray2<'_, f64>>,
-        e: Option<PyReadonlyArray2<'_, f64>>,
-        h: Option<PyReadonlyArray2<'_, f64>>,
-    ) -> PyResult<()> {
-        let copy = |arg: &str, m: &Option<PyReadonlyArray2<'_, f64>>| -> PyResult<_> {
-            m.as_ref()
-                .map(|m| slice2(arg, m).map(|s| s.0.to_vec()))
-                .transpose()
-        };
-        let (a, e, h) = (copy("A", &a)?, copy("e", &e)?, copy("H", &h)?);
-        (self.a_const, self.e_const, self.h_const) = (a, e, h);
-        Ok(())
-    }
-
-    /// J_k of every GP at the inputs ζ (concatenated); returns (x, μ_z^p).
-    fn infer<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
-        let z = slice1("zeta", &zeta)?;
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        detach_if(py, release, || inner.infer(z).map(|_| ()))?;
-        self.x_and_z(py)
-    }
-
-    /// `infer` for a single GP with a scalar input.
-    fn infer_scalar<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: f64,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        detach_if(py, release, || inner.infer(&[zeta]).map(|_| ()))?;
-        self.x_and_z(py)
-    }
-
-    #[pyo3(signature = (x_pred, a, e, q_x))]
-    fn predict(
-        &mut self,
-        py: Python<'_>,
-        x_pred: PyReadonlyArray1<'_, f64>,
-        a: Option<PyReadonlyArray2<'_, f64>>,
-        e: Option<PyReadonlyArray2<'_, f64>>,
-        q_x: PyReadonlyArray2<'_, f64>,
-    ) -> PyResult<()> {
-        let x = slice1("f(x, u, z)", &x_pred)?;
-        let a = given_or_const("A", &a, &self.a_const)?;
-        let e = given_or_const("e", &e, &self.e_const)?;
-        let (q, _, _) = slice2("Q_x", &q_x)?;
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        Ok(detach_if(py, release, || inner.predict(x, a, e, q))?)
-    }
-
-    /// EKF update with the measurement y and h(x⁻) (ν = y − h(x⁻) is formed here).
-    #[pyo3(signature = (y, hx, h, r, learning))]
-    fn update(
-        &mut self,
-        py: Python<'_>,
-        y: PyReadonlyArray1<'_, f64>,
-        hx: PyReadonlyArray1<'_, f64>,
-        h: Option<PyReadonlyArray2<'_, f64>>,
-        r: PyReadonlyArray2<'_, f64>,
-        learning: bool,
-    ) -> PyResult<f64> {
-        let (y, hx) = (slice1("y", &y)?, slice1("h(x)", &hx)?);
-        if hx.len() != y.len() {
-            return Err(PyValueError::new_err(format!(
-                "h: returned {} values but y has {}",
-                hx.len(),
-                y.len()
-            )));
-        }
-        let nu: Vec<f64> = y.iter().zip(hx).map(|(a, b)| a - b).collect();
-        let h = given_or_const("H", &h, &self.h_const)?;
-        let (r, _, _) = slice2("R_x", &r)?;
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        Ok(detach_if(py, release, || {
-            inner.update(&nu, h, r, learning)
-        })?)
-    }
-
-    #[getter]
-    fn z_pred<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.z_pred())
-    }
-
-    fn set_x(&mut self, x: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
-        Ok(self.inner.set_x(slice1("x", &x)?)?)
-    }
-
-    fn set_p(&mut self, p: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
-        Ok(self.inner.set_p(slice2("P", &p)?.0)?)
-    }
-    fn gp_predict<'py>(
-        &mut self,
-        py: Python<'py>,
-        index: usize,
-        zeta: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<MeanVar<'py>> {
-        let (z, _, _) = slice2("zeta", &zeta)?;
-        let inner = &mut self.inner;
-        let (m, v) = py.detach(|| inner.gp_predict(index, z))?;
-        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
-    }
-
-    #[allow(clippy::type_complexity)]
-    fn gp_weights<'py>(
-        &self,
-        py: Python<'py>,
-        index: usize,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray2<f64>>)> {
-        if index >= self.inner.n_gps() {
-            return Err(PyValueError::new_err(format!(
-                "index: there are {} GPs, got {index}",
-                self.inner.n_gps()
-            )));
-        }
-        let (m, c) = self.inner.gp_weights(index);
-        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c.as_ref())?))
-    }
-
-    #[getter]
-    fn x<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()])
-    }
-
-    #[getter(P)]
-    fn p<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let n = self.inner.dim_x();
-        mat_to_array2(py, self.inner.cov().submatrix(0, 0, n, n))
-    }
-
-    #[getter]
-    fn mu<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.mu())
-    }
-
-    #[getter(C)]
-    fn c<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.cov().as_ref())
-    }
-
-    #[getter]
-    fn innovation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.innovation())
-    }
-
-    #[getter(S)]
-    fn s<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        mat_to_array2(py, self.inner.innovation_cov())
-    }
-
-    #[getter]
-    fn log_likelihood(&self) -> f64 {
-        self.inner.log_likelihood()
-
 // ===== MHE window =====
 
 use crate::window::{Form, GpStageModel, StageEval, StageModel, WindowEval, WindowProblem};
@@ -1294,6 +909,393 @@ impl PyWindowSolver {
     }
 }
 
+// ===== RGP =====
+// Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
+// python/gpmhe/rgp.py, which validates inputs and calls these once per step.
+
+use crate::rgp::{Rgp, RgpBasis, RgpEkf};
+use faer::MatRef;
+
+/// A (mean, variance) pair of 1-D arrays.
+type MeanVar<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
+
+fn mat_to_array2<'py>(py: Python<'py>, m: MatRef<'_, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (r, c) = (m.nrows(), m.ncols());
+    let mut out = Vec::with_capacity(r * c);
+    for i in 0..r {
+        for j in 0..c {
+            out.push(m[(i, j)]);
+        }
+    }
+    array2(py, out, r, c)
+}
+
+/// Huber's recursive GP on a unit grid of basis vectors (see gpmhe.RecursiveGP).
+#[pyclass(name = "RecursiveGPCore", module = "gpmhe._core")]
+#[derive(Clone)]
+pub struct RgpCore {
+    inner: Rgp,
+}
+
+#[pymethods]
+impl RgpCore {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        lower: PyReadonlyArray1<'_, f64>,
+        upper: PyReadonlyArray1<'_, f64>,
+        n_points: Vec<usize>,
+        sigma_k: f64,
+        l: f64,
+        sigma_r: f64,
+        sigma_p: f64,
+    ) -> PyResult<Self> {
+        let basis = RgpBasis::new(
+            slice1("lower", &lower)?,
+            slice1("upper", &upper)?,
+            &n_points,
+            sigma_k,
+            l,
+            sigma_r,
+            sigma_p,
+        )?;
+        Ok(Self {
+            inner: Rgp::new(basis),
+        })
+    }
+
+    fn copy(&self) -> Self {
+        self.clone()
+    }
+
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        zeta: PyReadonlyArray1<'_, f64>,
+        y: f64,
+        var_y: f64,
+    ) -> PyResult<f64> {
+        let z = slice1("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        Ok(py.detach(|| inner.update(z, y, var_y))?)
+    }
+
+    fn update_many<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray1<'py, f64>,
+        var_y: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let (y, v) = (slice1("y", &y)?, slice1("var_y", &var_y)?);
+        let inner = &mut self.inner;
+        let out = py.detach(|| inner.update_many(z, y, v))?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    fn predict<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<MeanVar<'py>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        let (m, v) = py.detach(|| inner.predict(z))?;
+        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
+    }
+
+    fn j_row<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let j = self.inner.j_row(slice1("zeta", &zeta)?)?;
+        Ok(PyArray1::from_vec(py, j))
+    }
+
+    fn set_weights(
+        &mut self,
+        mean: PyReadonlyArray1<'_, f64>,
+        cov: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<()> {
+        let (c, _, _) = slice2("cov", &cov)?;
+        Ok(self.inner.set_weights(slice1("mean", &mean)?, c)?)
+    }
+
+    #[getter]
+    fn mean<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.mean())
+    }
+
+    #[getter]
+    fn cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.cov())
+    }
+
+    #[getter]
+    fn basis_vectors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let b = self.inner.basis();
+        array2(py, b.basis_vectors(), b.n_basis(), b.dim())
+    }
+
+    #[getter]
+    fn kernel_matrix<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.basis().kernel_matrix())
+    }
+
+    #[getter]
+    fn jitter(&self) -> f64 {
+        self.inner.basis().jitter()
+    }
+}
+
+/// Dimension n + Σ n_b (N in augmented mode) from which the per-step calls of `RGPEKFCore` release the GIL.
+/// Below it a step's kernels take a few µs, less than a release and re-acquisition of the GIL costs
+/// when other threads contend for it (numpy likewise keeps the GIL for small arrays).
+const RGP_STEP_GIL_RELEASE_MIN_DIM: usize = 200;
+
+/// Runs `f` with the GIL released if `release`, else holding it.
+fn detach_if<T: Send>(py: Python<'_>, release: bool, f: impl FnOnce() -> T + Send) -> T {
+    if release {
+        py.detach(f)
+    } else {
+        f()
+    }
+}
+
+/// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF). Constant Jacobians A, e, H are
+/// stored once (`set_constant_jacobians`) so that a step passes only what changes.
+#[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
+pub struct RgpEkfCore {
+    inner: RgpEkf,
+    a_const: Option<Vec<f64>>,
+    e_const: Option<Vec<f64>>,
+    h_const: Option<Vec<f64>>,
+}
+
+/// The argument `given`, else the stored constant, else a `ValueError` naming `arg`.
+fn given_or_const<'a>(
+    arg: &str,
+    given: &'a Option<PyReadonlyArray2<'_, f64>>,
+    stored: &'a Option<Vec<f64>>,
+) -> PyResult<&'a [f64]> {
+    match (given, stored) {
+        (Some(a), _) => Ok(slice2(arg, a)?.0),
+        (None, Some(c)) => Ok(c),
+        (None, None) => Err(PyValueError::new_err(format!(
+            "{arg}: not given and no constant {arg} was stored"
+        ))),
+    }
+}
+
+impl RgpEkfCore {
+    /// [x; μ_z^p] after `infer`: x as an array, μ_z^p as a float for one GP, else an array.
+    fn x_and_z<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
+        let x = PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()]);
+        let z = self.inner.z_pred();
+        let z = if z.len() == 1 {
+            z[0].into_pyobject(py)?.into_any()
+        } else {
+            PyArray1::from_slice(py, z).into_any()
+        };
+        Ok((x, z))
+    }
+}
+
+#[pymethods]
+impl RgpEkfCore {
+    #[new]
+    fn new(
+        x0: PyReadonlyArray1<'_, f64>,
+        p0: PyReadonlyArray2<'_, f64>,
+        gps: Vec<PyRef<'_, RgpCore>>,
+        augmented: bool,
+    ) -> PyResult<Self> {
+        let (p, _, _) = slice2("P0", &p0)?;
+        let gps = gps.iter().map(|g| g.inner.clone()).collect();
+        Ok(Self {
+            inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
+            a_const: None,
+            e_const: None,
+            h_const: None,
+        })
+    }
+
+    /// Stores constant A (n × n), e (n × q), H (p × n) (None: given at every step).
+    #[pyo3(signature = (a=None, e=None, h=None))]
+    fn set_constant_jacobians(
+        &mut self,
+        a: Option<PyReadonlyArray2<'_, f64>>,
+        e: Option<PyReadonlyArray2<'_, f64>>,
+        h: Option<PyReadonlyArray2<'_, f64>>,
+    ) -> PyResult<()> {
+        let copy = |arg: &str, m: &Option<PyReadonlyArray2<'_, f64>>| -> PyResult<_> {
+            m.as_ref()
+                .map(|m| slice2(arg, m).map(|s| s.0.to_vec()))
+                .transpose()
+        };
+        let (a, e, h) = (copy("A", &a)?, copy("e", &e)?, copy("H", &h)?);
+        (self.a_const, self.e_const, self.h_const) = (a, e, h);
+        Ok(())
+    }
+
+    /// J_k of every GP at the inputs ζ (concatenated); returns (x, μ_z^p).
+    fn infer<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
+        let z = slice1("zeta", &zeta)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
+        let inner = &mut self.inner;
+        detach_if(py, release, || inner.infer(z).map(|_| ()))?;
+        self.x_and_z(py)
+    }
+
+    /// `infer` for a single GP with a scalar input.
+    fn infer_scalar<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: f64,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
+        let inner = &mut self.inner;
+        detach_if(py, release, || inner.infer(&[zeta]).map(|_| ()))?;
+        self.x_and_z(py)
+    }
+
+    #[pyo3(signature = (x_pred, a, e, q_x))]
+    fn predict(
+        &mut self,
+        py: Python<'_>,
+        x_pred: PyReadonlyArray1<'_, f64>,
+        a: Option<PyReadonlyArray2<'_, f64>>,
+        e: Option<PyReadonlyArray2<'_, f64>>,
+        q_x: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<()> {
+        let x = slice1("f(x, u, z)", &x_pred)?;
+        let a = given_or_const("A", &a, &self.a_const)?;
+        let e = given_or_const("e", &e, &self.e_const)?;
+        let (q, _, _) = slice2("Q_x", &q_x)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
+        let inner = &mut self.inner;
+        Ok(detach_if(py, release, || inner.predict(x, a, e, q))?)
+    }
+
+    /// EKF update with the measurement y and h(x⁻) (ν = y − h(x⁻) is formed here).
+    #[pyo3(signature = (y, hx, h, r, learning))]
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        y: PyReadonlyArray1<'_, f64>,
+        hx: PyReadonlyArray1<'_, f64>,
+        h: Option<PyReadonlyArray2<'_, f64>>,
+        r: PyReadonlyArray2<'_, f64>,
+        learning: bool,
+    ) -> PyResult<f64> {
+        let (y, hx) = (slice1("y", &y)?, slice1("h(x)", &hx)?);
+        if hx.len() != y.len() {
+            return Err(PyValueError::new_err(format!(
+                "h: returned {} values but y has {}",
+                hx.len(),
+                y.len()
+            )));
+        }
+        let nu: Vec<f64> = y.iter().zip(hx).map(|(a, b)| a - b).collect();
+        let h = given_or_const("H", &h, &self.h_const)?;
+        let (r, _, _) = slice2("R_x", &r)?;
+        let release =
+            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
+        let inner = &mut self.inner;
+        Ok(detach_if(py, release, || {
+            inner.update(&nu, h, r, learning)
+        })?)
+    }
+
+    #[getter]
+    fn z_pred<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.z_pred())
+    }
+
+    fn set_x(&mut self, x: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
+        Ok(self.inner.set_x(slice1("x", &x)?)?)
+    }
+
+    fn set_p(&mut self, p: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
+        Ok(self.inner.set_p(slice2("P", &p)?.0)?)
+    }
+    fn gp_predict<'py>(
+        &mut self,
+        py: Python<'py>,
+        index: usize,
+        zeta: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<MeanVar<'py>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        let (m, v) = py.detach(|| inner.gp_predict(index, z))?;
+        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn gp_weights<'py>(
+        &self,
+        py: Python<'py>,
+        index: usize,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray2<f64>>)> {
+        if index >= self.inner.n_gps() {
+            return Err(PyValueError::new_err(format!(
+                "index: there are {} GPs, got {index}",
+                self.inner.n_gps()
+            )));
+        }
+        let (m, c) = self.inner.gp_weights(index);
+        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c.as_ref())?))
+    }
+
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()])
+    }
+
+    #[getter(P)]
+    fn p<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let n = self.inner.dim_x();
+        mat_to_array2(py, self.inner.cov().submatrix(0, 0, n, n))
+    }
+
+    #[getter]
+    fn mu<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.mu())
+    }
+
+    #[getter(C)]
+    fn c<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.cov().as_ref())
+    }
+
+    #[getter]
+    fn innovation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.innovation())
+    }
+
+    #[getter(S)]
+    fn s<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.innovation_cov())
+    }
+
+    #[getter]
+    fn log_likelihood(&self) -> f64 {
+        self.inner.log_likelihood()
+    }
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("NumericalError", m.py().get_type::<NumericalError>())?;
@@ -1302,14 +1304,11 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyGp>()?;
     m.add_class::<PyMultiGp>()?;
     m.add_function(wrap_pyfunction!(gp_log_marginal_likelihood, m)?)?;
-
-    // RGP
-    m.add_class::<RgpCore>()?;
-    m.add_class::<RgpEkfCore>()?;
-
     // MHE window
     m.add_class::<PyMheWindow>()?;
     // Window solver
     m.add_class::<PyWindowSolver>()?;
+    m.add_class::<RgpCore>()?;
+    m.add_class::<RgpEkfCore>()?;
     Ok(())
 }
