@@ -102,9 +102,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m gpmhe demo", description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=100, help="time steps (default 100)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (data and run)")
-    ap.add_argument("--solver", default="least-squares",
-                    help="GP-MHE window solver: least-squares (default, fast) or trust-constr "
-                         "(SciPy interior point, ~0.3-1 s per step)")
+    ap.add_argument("--solver", default="gauss-newton",
+                    help="GP-MHE window solver: gauss-newton (default, the Rust solver), "
+                         "least-squares (SciPy TRF) or trust-constr (SciPy interior point, "
+                         "~0.3-1 s per step)")
     ap.add_argument("--restarts", type=int, default=3, help="GP hyperparameter restarts")
     ap.add_argument("--out", default=None, help="write a Fig.-1-like PNG here (needs matplotlib)")
     args = ap.parse_args(argv)
