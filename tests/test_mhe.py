@@ -245,7 +245,7 @@ def test_demo_runs_and_prints_the_table(capsys, tmp_path):
     assert main(args) == 0
     out = capsys.readouterr().out
     for name in ("GP-MHE (5 traj.)", "GP-MHE (3 traj.)", "exact-model MHE", "filterpy EKF (exact)",
-                 "GP-EKF (5 traj.)", "MHE solver: least-squares"):
+                 "GP-EKF (5 traj.)", "MHE solver: gauss-newton"):
         assert name in out
     if plot:
         assert (tmp_path / "fig.png").stat().st_size > 0
