@@ -120,6 +120,8 @@ fn array_nd<'py, const D: usize>(
 }
 
 type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
+/// mean, var and, when asked for, (dmean_dd, dvar_dd).
+type Predicted<'py> = (Arr<'py>, Arr<'py>, Option<(Arr<'py>, Arr<'py>)>);
 
 /// Runs a batch prediction of `q` outputs at the points `d` with the GIL released and returns
 /// (mean, var[, dmean, dvar]) shaped (k, q...) / (k, q..., n_d); `squeeze` drops the q axis.
@@ -129,7 +131,7 @@ fn predict_arrays<'py>(
     d: &PyReadonlyArray2<'py, f64>,
     gradients: bool,
     squeeze: bool,
-) -> PyResult<Vec<Arr<'py>>> {
+) -> PyResult<Predicted<'py>> {
     // Named "D" as in the Python API; the wrappers leave the NaN/inf scan to this O(k) check.
     let (d, k, cols) = slice2("D", d)?;
     let (q, nd) = (model.n_outputs(), model.dim());
@@ -147,23 +149,36 @@ fn predict_arrays<'py>(
             Ok((m, v, Vec::new(), Vec::new()))
         }
     })?;
-    let mut out = Vec::with_capacity(4);
     if squeeze {
-        out.push(array_nd(py, mean, [k])?);
-        out.push(array_nd(py, var, [k])?);
-        if gradients {
-            out.push(array_nd(py, dmean, [k, nd])?);
-            out.push(array_nd(py, dvar, [k, nd])?);
-        }
+        let grads = match gradients {
+            true => Some((array_nd(py, dmean, [k, nd])?, array_nd(py, dvar, [k, nd])?)),
+            false => None,
+        };
+        Ok((array_nd(py, mean, [k])?, array_nd(py, var, [k])?, grads))
     } else {
-        out.push(array_nd(py, mean, [k, q])?);
-        out.push(array_nd(py, var, [k, q])?);
-        if gradients {
-            out.push(array_nd(py, dmean, [k, q, nd])?);
-            out.push(array_nd(py, dvar, [k, q, nd])?);
-        }
+        let grads = match gradients {
+            true => Some((
+                array_nd(py, dmean, [k, q, nd])?,
+                array_nd(py, dvar, [k, q, nd])?,
+            )),
+            false => None,
+        };
+        Ok((
+            array_nd(py, mean, [k, q])?,
+            array_nd(py, var, [k, q])?,
+            grads,
+        ))
     }
-    Ok(out)
+}
+
+/// (mean, var, gradients) of the four-array prediction, as a Python tuple.
+fn with_gradients<'py>(p: Predicted<'py>) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+    match p {
+        (m, v, Some((dm, dv))) => Ok((m, v, dm, dv)),
+        _ => Err(PyRuntimeError::new_err(
+            "internal: gradients were not computed",
+        )),
+    }
 }
 
 /// One exact zero-mean GP with the SE-ARD kernel; the Cholesky factor is cached at construction.
@@ -264,13 +279,8 @@ impl PyGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.inner, &d, false, true)?.into_iter();
-        match (out.next(), out.next()) {
-            (Some(m), Some(v)) => Ok((m, v)),
-            _ => Err(PyRuntimeError::new_err(
-                "internal: missing prediction outputs",
-            )),
-        }
+        let (m, v, _) = predict_arrays(py, &self.inner, &d, false, true)?;
+        Ok((m, v))
     }
 
     /// (mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d).
@@ -279,13 +289,7 @@ impl PyGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.inner, &d, true, true)?.into_iter();
-        match (out.next(), out.next(), out.next(), out.next()) {
-            (Some(m), Some(v), Some(dm), Some(dv)) => Ok((m, v, dm, dv)),
-            _ => Err(PyRuntimeError::new_err(
-                "internal: missing prediction outputs",
-            )),
-        }
+        with_gradients(predict_arrays(py, &self.inner, &d, true, true)?)
     }
 }
 
@@ -371,13 +375,8 @@ impl PyMultiGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.inner, &d, false, false)?.into_iter();
-        match (out.next(), out.next()) {
-            (Some(m), Some(v)) => Ok((m, v)),
-            _ => Err(PyRuntimeError::new_err(
-                "internal: missing prediction outputs",
-            )),
-        }
+        let (m, v, _) = predict_arrays(py, &self.inner, &d, false, false)?;
+        Ok((m, v))
     }
 
     /// (mean, var, dmean_dd, dvar_dd) of shapes (k, q), (k, q), (k, q, n_d), (k, q, n_d).
@@ -386,13 +385,7 @@ impl PyMultiGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
-        let mut out = predict_arrays(py, &self.inner, &d, true, false)?.into_iter();
-        match (out.next(), out.next(), out.next(), out.next()) {
-            (Some(m), Some(v), Some(dm), Some(dv)) => Ok((m, v, dm, dv)),
-            _ => Err(PyRuntimeError::new_err(
-                "internal: missing prediction outputs",
-            )),
-        }
+        with_gradients(predict_arrays(py, &self.inner, &d, true, false)?)
     }
 }
 

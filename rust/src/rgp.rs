@@ -209,6 +209,12 @@ impl RgpBasis {
         self.lower.len()
     }
 
+    /// Checks that `zetas` holds finite row-major inputs of dimension n_X (an error naming
+    /// `zeta` otherwise) and returns how many.
+    pub fn count_inputs(&self, zetas: &[f64]) -> Result<usize> {
+        self.kernel.count_points("zeta", zetas)
+    }
+
     /// Number of basis vectors n_b.
     pub fn n_basis(&self) -> usize {
         self.basis.len() / self.dim()
@@ -524,18 +530,7 @@ impl Rgp {
 
     /// Mean and variance (σ_r² included) at the row-major inputs `zetas`.
     pub fn predict(&mut self, zetas: &[f64]) -> Result<(Vec<f64>, Vec<f64>)> {
-        let nx = self.basis.dim();
-        if zetas.len() % nx != 0 {
-            return Err(Error::invalid(
-                "zeta",
-                format!(
-                    "{} values do not form inputs of dimension {nx}",
-                    zetas.len()
-                ),
-            ));
-        }
-        check_finite("zeta", zetas)?;
-        let m = zetas.len() / nx;
+        let m = self.basis.count_inputs(zetas)?;
         let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
         let Self {
             basis,
@@ -847,18 +842,7 @@ impl RgpEkf {
         if !self.augmented {
             return self.gps[g].predict(zetas);
         }
-        let nx = self.gps[g].basis.dim();
-        if zetas.len() % nx != 0 {
-            return Err(Error::invalid(
-                "zeta",
-                format!(
-                    "{} values do not form inputs of dimension {nx}",
-                    zetas.len()
-                ),
-            ));
-        }
-        check_finite("zeta", zetas)?;
-        let m = zetas.len() / nx;
+        let m = self.gps[g].basis.count_inputs(zetas)?;
         let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
         let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
         let Self {
