@@ -43,6 +43,16 @@ pub trait BlockLsqProblem {
     /// 2JᵀJ at the last point evaluated with derivatives: `diag` holds the n×n diagonal blocks
     /// (block i row-major at i·n·n), `off` the blocks (i, i+1).
     fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]);
+    /// The rounding noise of J at the last point evaluated, if the problem can estimate it
+    /// (cost changes below it cannot be measured); 0 when J is exact to rounding.
+    fn cost_noise(&self) -> f64 {
+        0.0
+    }
+    /// The rounding noise of the gradient (largest entry) at the last point evaluated with
+    /// derivatives, if the problem can estimate it; 0 otherwise.
+    fn gradient_noise(&self) -> f64 {
+        0.0
+    }
 }
 
 /// The GP-MHE window of `window.rs` (its model and evaluation buffers) as a [`BlockLsqProblem`].
@@ -69,6 +79,12 @@ impl BlockLsqProblem for WindowLsq<'_> {
     }
     fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
         self.eval.gauss_newton_blocks_into(diag, off);
+    }
+    fn cost_noise(&self) -> f64 {
+        self.eval.cost_noise()
+    }
+    fn gradient_noise(&self) -> f64 {
+        self.eval.gradient_noise()
     }
 }
 
@@ -158,6 +174,11 @@ pub enum Status {
     StepTolerance,
     /// An accepted step lowered the cost by less than `ftol` relative.
     CostTolerance,
+    /// The next (nearly undamped) Gauss-Newton step predicts a decrease of J below J's
+    /// rounding noise as estimated by the problem, and the projected gradient is within a
+    /// small multiple of the gradient's rounding noise (GPs fitted to a large σ_f): neither the
+    /// cost nor the gradient can verify further progress.
+    NoiseFloor,
     /// `max_iter` reached.
     MaxIterations,
     /// No step could lower the cost (damping exhausted); the best point found is returned.
@@ -170,6 +191,7 @@ impl Status {
             Status::GradientTolerance => "gradient-tolerance",
             Status::StepTolerance => "step-tolerance",
             Status::CostTolerance => "cost-tolerance",
+            Status::NoiseFloor => "noise-floor",
             Status::MaxIterations => "max-iterations",
             Status::NoProgress => "no-progress",
         }
@@ -178,7 +200,10 @@ impl Status {
     pub fn is_success(&self) -> bool {
         matches!(
             self,
-            Status::GradientTolerance | Status::StepTolerance | Status::CostTolerance
+            Status::GradientTolerance
+                | Status::StepTolerance
+                | Status::CostTolerance
+                | Status::NoiseFloor
         )
     }
 }
@@ -401,6 +426,10 @@ pub struct BoxLsqSolver {
     yu: Vec<f64>,
     dyl: Vec<f64>,
     dyu: Vec<f64>,
+    /// The problem's cost and gradient noise at the point whose derivatives are in `g`, `diag`,
+    /// `off`.
+    noise_at_z: f64,
+    gnoise_at_z: f64,
 }
 
 /// Mutable state shared by the two phases.
@@ -417,6 +446,10 @@ const LAMBDA_MAX: f64 = 1e16;
 /// Relative size below which a predicted decrease of J cannot be verified by evaluating J
 /// (the floor of the solver's running noise estimate).
 const NOISE: f64 = 1e-10;
+/// A projected gradient within this multiple of the gradient's rounding noise is noise (the
+/// noise estimate is an ∞-norm of standard deviations; the steepest components sit in
+/// directions of large curvature, where a large gradient is a tiny distance).
+const NOISE_PG: f64 = 10.0;
 /// Longest extrapolated step (in multiples of the Gauss-Newton step) tried along flat directions.
 const EXTRAP_MAX: f64 = 10.0;
 
@@ -472,6 +505,8 @@ impl BoxLsqSolver {
     }
 
     fn take_derivatives<P: BlockLsqProblem + ?Sized>(&mut self, prob: &P) {
+        self.noise_at_z = prob.cost_noise();
+        self.gnoise_at_z = prob.gradient_noise();
         prob.gradient_into(&mut self.g);
         prob.gauss_newton_blocks_into(&mut self.diag, &mut self.off);
     }
@@ -1004,6 +1039,7 @@ impl BoxLsqSolver {
             if pnorm <= opts.xtol * (opts.xtol + znorm) {
                 return Status::StepTolerance;
             }
+            let known_noise = noise_est.max(self.noise_at_z);
             block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.step, &mut self.hp);
             let mut pred = 0.0;
             for k in 0..len {
@@ -1040,6 +1076,14 @@ impl BoxLsqSolver {
                     }
                 }
             }
+            if !clipped
+                && lambda <= 1.0
+                && pred <= 2.0 * known_noise
+                && pg <= NOISE_PG * self.gnoise_at_z
+            {
+                // Nothing left that J or ∇J can resolve: stop before spending an evaluation.
+                return Status::NoiseFloor;
+            }
             let gp: f64 = (0..len).map(|k| self.g[k] * self.step[k]).sum();
             let ct = prob.evaluate(&self.trial, true).unwrap_or(f64::INFINITY);
             pr.nfev += 1;
@@ -1048,7 +1092,7 @@ impl BoxLsqSolver {
             // the gain ratio is meaningless: accept the step if it lowers the projected
             // gradient instead, and stop if it does not.
             let mut accept = ct.is_finite() && pred > 0.0 && rho > ARMIJO;
-            let mut noise = noise_est.max(NOISE * pr.cost.abs().max(1.0));
+            let mut noise = known_noise.max(NOISE * pr.cost.abs().max(1.0));
             let mismatch = (ct - (pr.cost - pred)).abs();
             if !accept && ct.is_finite() && pred > 0.0 && mismatch > 10.0 * pred {
                 // A small step that "failed" by far more than its predicted decrease: the
