@@ -953,4 +953,3 @@ mod tests {
         assert!(MultiGp::from_gps(vec![]).is_err());
     }
 }
-
