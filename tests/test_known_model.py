@@ -257,3 +257,20 @@ def test_finite_difference_errors_and_predict_name_the_callable():
     with pytest.raises(ValueError, match=r"^f: returned shape \(1, 2\), expected \(15, 2\) .*the 3 points and "
                        r"their 12 finite-difference shifts"):
         wrong_rows.stage_eval(points(0, 3))
+
+
+@pytest.mark.parametrize("dim_u", [0, 1])
+def test_no_outputs(dim_u):
+    """dim_y = 0: h is never called; both modes agree on the stage evaluation and a short run."""
+    def never(*args):
+        raise AssertionError("h called with dim_y = 0")
+    per_point = KnownModel(lambda x, u: br.f(x), never, 2, 0, dim_u=dim_u)
+    vec = KnownModel(lambda X, U: br.f_batch(X), never, 2, 0, dim_u=dim_u, vectorized=True)
+    d = points(dim_u, 7)
+    for a, b in zip(per_point.stage_eval(d), vec.stage_eval(d)):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12)
+    us = np.zeros((5, dim_u))
+    xs = [GPMHE(model, br.X_PRIOR0, x_bounds=br.X_BOUNDS, horizon=3, Q0=1e-3)
+          .batch_filter([None] * 5, us if dim_u else None)[0] for model in (per_point, vec)]
+    np.testing.assert_allclose(xs[1], xs[0], rtol=0, atol=1e-9)
