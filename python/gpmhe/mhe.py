@@ -97,7 +97,8 @@ class GPMHE:
         "trust-constr" (SciPy interior point, exact gradient and Gauss-Newton Hessian from
         Rust; slow but the general reference) or "least-squares" (SciPy's bounded TRF on the
         stacked residuals with the Rust Jacobian). With a KnownModel, "gauss-newton" still
-        solves in Rust but calls the model's Python functions for every point evaluation.
+        solves in Rust but calls the model's Python functions at every window evaluation: once
+        per window point, or once for all points with `KnownModel(..., vectorized=True)`.
     solver_options : dict overriding gpmhe's tuned defaults: passed to the SciPy solver, or for
         "gauss-newton" any of max_iter (100), gtol (1e-6, on ‖z − P(z − ∇J)‖∞), xtol (1e-12),
         ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (0.01), mu_init

@@ -42,18 +42,38 @@ class KnownModel(_SharedOnCopy):
 
     Parameters
     ----------
-    f : callable f(x, u) -> (dim_x,) array, the noise-free x(t+1) for one point (1-D arrays; `u`
-        is an empty array when dim_u = 0).
-    h : callable h(x, u) -> (dim_y,) array, the noise-free output y(t).
+    f : callable, the noise-free x(t+1). Per point (default): f(x, u) -> (dim_x,) array for 1-D
+        `x` (dim_x,) and `u` (dim_u,) (`u` is an empty array when dim_u = 0).
+    h : callable, the noise-free output y(t): h(x, u) -> (dim_y,) array.
     dim_x, dim_y, dim_u : the dimensions n, p, m.
     f_jacobian, h_jacobian : optional callables returning ∂f/∂x (n, n) and ∂h/∂x (p, n); central
         finite differences with step `fd_step`·max(1, |x_i|) when not given.
+    vectorized : bool (default False). If True, every callable receives all points of a window
+        evaluation at once: `X` of shape (k, n) and `U` of shape (k, m) (k ≥ 1 rows; `U` has m = 0
+        columns when dim_u = 0), and returns f(X, U) (k, n), h(X, U) (k, p),
+        f_jacobian(X, U) (k, n, n), h_jacobian(X, U) (k, p, n); row i belongs to point i. Without
+        Jacobians, the central differences stack the 2n shifted copies of X with X itself and
+        call f (and h) once on those (2n+1)k rows. The callables must not modify X, U in place.
+        `predict` calls f with k = 1.
+
+    A window evaluation of the MHE (all M+1 window points) then costs one Python call per
+    callable instead of k (per point: k calls each, plus 2nk without Jacobians), which is what
+    bounds the exact-model MHE's time with the Rust solver (see README, "Real-time window
+    solver"). Every returned array is checked for its shape and for NaN/inf in both modes; a
+    violation raises ValueError naming the callable. At the window's start point, `GPMHE.update`
+    then raises it and leaves the estimator's state unchanged; at a trial point of the Rust
+    solver it only rejects that step (the SciPy solvers stop there: `success` False, a warning).
 
     The variances are zero, so the MHE weights reduce to Q0 and R0. Gradients with respect to u
     are not needed by the estimator (u is data) and are reported as zero.
+
+    Attributes
+    ----------
+    f, h, f_jacobian, h_jacobian, dim_x, dim_y, dim_u, vectorized, fd_step : as given.
     """
 
-    def __init__(self, f, h, dim_x, dim_y, dim_u=0, f_jacobian=None, h_jacobian=None, fd_step=1e-6):
+    def __init__(self, f, h, dim_x, dim_y, dim_u=0, f_jacobian=None, h_jacobian=None,
+                 fd_step=1e-6, vectorized=False):
         for name, fn in (("f", f), ("h", h)):
             if not callable(fn):
                 raise ValueError(f"{name}: must be callable")
@@ -65,11 +85,15 @@ class KnownModel(_SharedOnCopy):
                 raise ValueError(f"{name}: must be an integer >= {lo}, got {v!r}")
         if not (np.isfinite(fd_step) and fd_step > 0):
             raise ValueError(f"fd_step: must be positive, got {fd_step!r}")
+        if not isinstance(vectorized, (bool, np.bool_)):
+            raise ValueError(f"vectorized: must be True or False, got {vectorized!r}")
         self.f, self.h = f, h
         self.f_jacobian, self.h_jacobian = f_jacobian, h_jacobian
         self.dim_x, self.dim_y, self.dim_u = int(dim_x), int(dim_y), int(dim_u)
         self.fd_step = float(fd_step)
+        self.vectorized = bool(vectorized)
 
+    # ---- per point (vectorized=False) ------------------------------------------------------
     def _call(self, fn, x, u, size, name):
         v = np.asarray(fn(x, u), dtype=np.float64).reshape(-1)
         if v.size != size:
@@ -91,11 +115,72 @@ class KnownModel(_SharedOnCopy):
             J[:, i] = (self._call(fn, xp, u, size, name) - self._call(fn, xm, u, size, name)) / (2 * step)
         return J
 
+    def _points_loop(self, d, k):
+        n, m, p = self.dim_x, self.dim_u, self.dim_y
+        mx, jx = np.empty((k, n)), np.empty((k, n, n))
+        my, jy = np.empty((k, p)), np.empty((k, p, n))
+        for i in range(k):
+            x, u = d[i, :n].copy(), d[i, n:].copy()
+            mx[i] = self._call(self.f, x, u, n, "f")
+            jx[i] = self._jac(self.f, self.f_jacobian, x, u, n, "f")
+            if p:
+                my[i] = self._call(self.h, x, u, p, "h")
+                jy[i] = self._jac(self.h, self.h_jacobian, x, u, p, "h")
+        return mx, jx, my, jy
+
+    # ---- vectorised (vectorized=True) ------------------------------------------------------
+    def _call_batch(self, fn, X, U, size, name, rows="one row per point"):
+        v = np.asarray(fn(X, U), dtype=np.float64)
+        if v.shape != (X.shape[0], size):
+            raise ValueError(f"{name}: returned shape {v.shape}, expected {(X.shape[0], size)} "
+                             f"(vectorized=True: {rows})")
+        return v
+
+    def _value_and_jac_batch(self, fn, jac, X, U, size, name):
+        """Values (k, size) and ∂/∂x (k, size, n) at all k points: the analytic Jacobian, or
+        central differences from one call on the (2n+1)k stacked points."""
+        k, n = X.shape
+        if jac is not None:
+            v = self._call_batch(fn, X, U, size, name)
+            J = np.asarray(jac(X, U), dtype=np.float64)
+            if J.shape != (k, size, n):
+                raise ValueError(f"{name}_jacobian: returned shape {J.shape}, expected "
+                                 f"{(k, size, n)} (vectorized=True: one matrix per point)")
+            return v, J
+        steps = self.fd_step * np.maximum(1.0, np.abs(X))          # (k, n), as per point
+        shifted = np.repeat(X[None], 2 * n + 1, axis=0)              # (2n+1, k, n)
+        idx = np.arange(n)
+        shifted[1 + idx, :, idx] += steps.T                          # x + step_i e_i
+        shifted[1 + n + idx, :, idx] -= steps.T                      # x − step_i e_i
+        Us = np.tile(U, (2 * n + 1, 1))
+        rows = f"one row per point: the {k} points and their {2 * n * k} finite-difference shifts"
+        out = self._call_batch(fn, shifted.reshape(-1, n), Us, size, name, rows).reshape(
+            2 * n + 1, k, size)
+        J = (out[1:n + 1] - out[n + 1:]) / (2.0 * steps.T[:, :, None])  # (n, k, size)
+        return out[0], np.ascontiguousarray(J.transpose(1, 2, 0))
+
+    def _points_batch(self, d):
+        n, p = self.dim_x, self.dim_y
+        X, U = d[:, :n].copy(), d[:, n:].copy()  # contiguous; shared by the calls below
+        mx, jx = self._value_and_jac_batch(self.f, self.f_jacobian, X, U, n, "f")
+        if p:
+            my, jy = self._value_and_jac_batch(self.h, self.h_jacobian, X, U, p, "h")
+        else:
+            my, jy = np.zeros((d.shape[0], 0)), np.zeros((d.shape[0], 0, n))
+        return mx, jx, my, jy
+
+    # ----------------------------------------------------------------------------------------
     def predict(self, x, u=None):
         """m_x: the one-step prediction f(x, u) as a (dim_x,) array."""
         x = np.asarray(x, dtype=np.float64).reshape(-1)
         u = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(-1)
-        return self._call(self.f, x, u, self.dim_x, "f")
+        if self.vectorized:
+            v = self._call_batch(self.f, x[None, :], u[None, :], self.dim_x, "f")[0]
+        else:
+            v = self._call(self.f, x, u, self.dim_x, "f")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("f: returned NaN or inf")
+        return v
 
     def stage_eval(self, d):
         """For points d (k, n+m): (mean_x, var_x, dmean_x, dvar_x, mean_y, var_y, dmean_y,
@@ -104,17 +189,20 @@ class KnownModel(_SharedOnCopy):
         nd = n + m
         d = _as_points(d, nd)
         k = d.shape[0]
-        mx, dmx = np.zeros((k, n)), np.zeros((k, n, nd))
-        my, dmy = np.zeros((k, p)), np.zeros((k, p, nd))
-        for i in range(k):
-            x, u = d[i, :n].copy(), d[i, n:].copy()
-            mx[i] = self._call(self.f, x, u, n, "f")
-            dmx[i, :, :n] = self._jac(self.f, self.f_jacobian, x, u, n, "f")
-            if p:
-                my[i] = self._call(self.h, x, u, p, "h")
-                dmy[i, :, :n] = self._jac(self.h, self.h_jacobian, x, u, p, "h")
-        return (mx, np.zeros((k, n)), dmx, np.zeros((k, n, nd)), my, np.zeros((k, p)), dmy,
-                np.zeros((k, p, nd)))
+        mx, jx, my, jy = self._points_batch(d) if self.vectorized else self._points_loop(d, k)
+        fd = " (finite differences)"
+        for a, name in ((mx, "f"), (my, "h"),
+                        (jx, "f_jacobian" if self.f_jacobian is not None else "f" + fd),
+                        (jy, "h_jacobian" if self.h_jacobian is not None else "h" + fd)):
+            if not np.isfinite(a).all():
+                raise ValueError(f"{name}: returned NaN or inf")
+        if m:
+            dmx, dmy = np.zeros((k, n, nd)), np.zeros((k, p, nd))
+            dmx[:, :, :n], dmy[:, :, :n] = jx, jy
+        else:
+            dmx, dmy = np.ascontiguousarray(jx), np.ascontiguousarray(jy)
+        return (np.ascontiguousarray(mx), np.zeros((k, n)), dmx, np.zeros((k, n, nd)),
+                np.ascontiguousarray(my), np.zeros((k, p)), dmy, np.zeros((k, p, nd)))
 
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering):
         return _core.MheWindow.with_callback(

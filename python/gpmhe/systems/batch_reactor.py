@@ -54,6 +54,40 @@ def h_jacobian(x, u=None):
     return np.array([[1.0, 1.0]])
 
 
+def f_batch(X, U=None):
+    """`f` for k points at once (the `KnownModel(..., vectorized=True)` form): X (k, 2) ->
+    (k, 2); the same arithmetic as `f`, so the values are identical."""
+    X = np.asarray(X, dtype=np.float64)
+    x1, x2 = X[:, 0], X[:, 1]
+    out = np.empty((X.shape[0], 2))
+    out[:, 0] = x1 + T * (-2.0 * K1 * x1 * x1 + 2.0 * K2 * x2)
+    out[:, 1] = x2 + T * (K1 * x1 * x1 - K2 * x2)
+    return out
+
+
+def f_jacobian_batch(X, U=None):
+    """∂f/∂x for k points: X (k, 2) -> (k, 2, 2)."""
+    X = np.asarray(X, dtype=np.float64)
+    x1 = X[:, 0]
+    J = np.empty((X.shape[0], 2, 2))
+    J[:, 0, 0] = 1.0 - 4.0 * T * K1 * x1
+    J[:, 0, 1] = 2.0 * T * K2
+    J[:, 1, 0] = 2.0 * T * K1 * x1
+    J[:, 1, 1] = 1.0 - T * K2
+    return J
+
+
+def h_batch(X, U=None):
+    """`h` for k points: X (k, 2) -> (k, 1)."""
+    X = np.asarray(X, dtype=np.float64)
+    return X[:, 0:1] + X[:, 1:2]
+
+
+def h_jacobian_batch(X, U=None):
+    """∂h/∂x for k points: X (k, 2) -> (k, 1, 2)."""
+    return np.ones((np.shape(X)[0], 1, 2))
+
+
 def simulate(x0, steps, rng, sigma_w=SIGMA_W, sigma_v=SIGMA_V):
     """True states (steps+1, 2) and noisy outputs (steps+1, 1) from x0 with process noise."""
     x = np.empty((steps + 1, DIM_X))
