@@ -1006,7 +1006,36 @@ mod tests {
         assert!((b.mean_x[1] - a.mean_x[1] - 0.3).abs() < 1e-14);
         assert!((b.dmean_x[4] - a.dmean_x[4] - 1.0).abs() < 1e-14);
         assert_eq!(a.var_y, b.var_y);
-        assert!(GpStageModel::new(f.clone(), Some(h), 2, false).is_err());
+        assert!(GpStageModel::new(f.clone(), Some(h.clone()), 2, false).is_err());
+
+        // Values reused from the previous evaluation equal a fresh evaluation: a window shifted
+        // by one node (one new point), a point moved by 1e-15, and a repeated point.
+        for residual in [false, true] {
+            let fresh = GpStageModel::new(f.clone(), Some(h.clone()), 1, residual).unwrap();
+            let mut model = fresh.clone();
+            let d1: Vec<f64> = (0..6 * 3).map(|t| 0.05 * t as f64 - 0.2).collect();
+            let mut d2 = d1[3..].to_vec();
+            d2.extend_from_slice(&[0.5, 0.1, 0.0, d1[6], d1[7], d1[8]]);
+            d2[0] += 1e-15;
+            let (mut first, mut reused, mut direct) = Default::default();
+            model.evaluate(&d1, &mut first).unwrap();
+            model.evaluate(&d2, &mut reused).unwrap();
+            fresh.clone().evaluate(&d2, &mut direct).unwrap();
+            let close = |a: &[f64], b: &[f64]| {
+                a.len() == b.len()
+                    && a.iter()
+                        .zip(b)
+                        .all(|(u, v)| (u - v).abs() <= 1e-14 * (1.0 + v.abs()))
+            };
+            let (r, e): (&StageEval, &StageEval) = (&reused, &direct);
+            assert!(close(&r.mean_x, &e.mean_x) && close(&r.var_x, &e.var_x));
+            assert!(close(&r.dmean_x, &e.dmean_x) && close(&r.dvar_x, &e.dvar_x));
+            assert!(close(&r.mean_y, &e.mean_y) && close(&r.var_y, &e.var_y));
+            assert!(close(&r.dmean_y, &e.dmean_y) && close(&r.dvar_y, &e.dvar_y));
+            assert_eq!(r.mean_x_rounding, e.mean_x_rounding);
+            // The reused point really is the old one (bit-identical to the first evaluation).
+            assert_eq!(r.mean_x[2..4], first.mean_x[4..6]);
+        }
     }
 
     #[test]
