@@ -604,7 +604,7 @@ fn scaled_exp_loop(v: &mut [f64], s: f64) {
 #[inline(always)]
 fn exp_nonpositive(x: f64) -> f64 {
     const LN2_HI: f64 = 0.693_145_751_953_125;
-    const LN2_LO: f64 = 1.428_606_820_309_417_232_1e-6;
+    const LN2_LO: f64 = 1.428_606_820_309_417_3e-6;
     // Adding 1.5·2⁵² rounds to an integer in the low mantissa bits.
     const SHIFTER: f64 = 6_755_399_441_055_744.0;
     const C: [f64; 12] = [
