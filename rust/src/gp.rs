@@ -404,8 +404,51 @@ impl Gp {
     /// values c_ij = k(x_i, d_j) and weights b_ij (α_i for the mean, β_ij = [(K + σ²I)⁻¹k*_j]_i
     /// for the variance), s_j = Σ_i c_ij b_ij and g_lj = Σ_i c_ij b_ij x_il, and
     /// ∂/∂d_jl of Σ_i b_i k(x_i, d_j) = −w_l (d_jl s_j − g_lj).
+    ///
+    /// The loops (kernel columns with their exponentials, products, sums) are built for AVX2 as
+    /// well and that build runs when the CPU has it (detected at run time; a portable wheel
+    /// targets SSE2; faer dispatches its own kernels). Both builds perform the same operations
+    /// in the same order (no fused multiply-add), so their results are identical.
     #[allow(clippy::too_many_arguments)]
     fn predict_block(
+        &self,
+        d: &[f64],
+        k: usize,
+        o: usize,
+        q: usize,
+        mean: &mut [f64],
+        var: Option<&mut [f64]>,
+        grads: Option<(&mut [f64], &mut [f64])>,
+        ws: &mut GpWorkspace,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2")]
+            #[allow(clippy::too_many_arguments)]
+            fn avx2(
+                gp: &Gp,
+                d: &[f64],
+                k: usize,
+                o: usize,
+                q: usize,
+                mean: &mut [f64],
+                var: Option<&mut [f64]>,
+                grads: Option<(&mut [f64], &mut [f64])>,
+                ws: &mut GpWorkspace,
+            ) {
+                gp.predict_block_impl(d, k, o, q, mean, var, grads, ws)
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2, checked just above.
+                return unsafe { avx2(self, d, k, o, q, mean, var, grads, ws) };
+            }
+        }
+        self.predict_block_impl(d, k, o, q, mean, var, grads, ws)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn predict_block_impl(
         &self,
         d: &[f64],
         k: usize,
@@ -475,6 +518,7 @@ impl Gp {
 
     /// For P = `prod` (N × k column-major), column j of `sums` (at j·(n_d+1)) gets
     /// (Σ_i p_ij x_i1, …, Σ_i p_ij x_i,n_d, Σ_i p_ij).
+    #[inline(always)]
     fn weighted_sums(&self, prod: &[f64], k: usize, sums: &mut [f64]) {
         let (n, nd) = (self.n_train(), self.dim());
         for (pc, sj) in prod[..n * k]
@@ -484,28 +528,27 @@ impl Gp {
             for (l, xl) in self.xt.chunks_exact(n).enumerate() {
                 sj[l] = dot(pc, xl);
             }
-            sj[nd] = pc.iter().sum4();
+            sj[nd] = sum(pc);
         }
     }
 }
 
-/// Sums with four partial sums, so that the loops vectorise (a plain `sum` is a serial chain).
-trait Sum4 {
-    fn sum4(self) -> f64;
-}
-
-impl<'a, I: Iterator<Item = &'a f64>> Sum4 for I {
-    fn sum4(self) -> f64 {
-        let mut acc = [0.0; 4];
-        for (i, t) in self.enumerate() {
-            acc[i % 4] += t;
+/// Σ a_i with four partial sums, so that the loop vectorises (a plain `sum` is a serial chain).
+#[inline(always)]
+fn sum(a: &[f64]) -> f64 {
+    let mut acc = [0.0; 4];
+    let chunks = a.chunks_exact(4);
+    let tail: f64 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for l in 0..4 {
+            acc[l] += c[l];
         }
-        (acc[0] + acc[1]) + (acc[2] + acc[3])
     }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
 /// Σ a_i b_i (four partial sums).
-#[inline]
+#[inline(always)]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     let mut acc = [0.0; 4];
     let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
@@ -524,7 +567,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// Σ v_i² (four partial sums).
-#[inline]
+#[inline(always)]
 fn sum_of_squares(v: &[f64]) -> f64 {
     dot(v, v)
 }
@@ -532,8 +575,8 @@ fn sum_of_squares(v: &[f64]) -> f64 {
 /// out_i = σ_f² exp(−½ Σ_l w_l (d_l − x_il)²) for the training points x (N × n_d row-major).
 /// The scaled squared distances are formed first (the input dimension a compile-time constant
 /// for n_d ≤ 4 so the inner loop unrolls), then exponentiated by a vectorised exp
-/// ([`scaled_exp_in_place`]): the exponentials are the largest part of a kernel column.
-#[inline]
+/// ([`scaled_exp`]): the exponentials are the largest part of a kernel column.
+#[inline(always)]
 fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
     #[inline(always)]
     fn fixed<const ND: usize>(x: &[f64], d: &[f64], w: &[f64], out: &mut [f64]) {
@@ -549,6 +592,7 @@ fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
             *c = -0.5 * r2;
         }
     }
+    #[inline(always)]
     fn generic(x: &[f64], d: &[f64], w: &[f64], out: &mut [f64]) {
         for (c, xi) in out.iter_mut().zip(x.chunks_exact(d.len())) {
             let r2: f64 = d
@@ -567,30 +611,12 @@ fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
         4 => fixed::<4>(x, d, w, out),
         _ => generic(x, d, w, out),
     }
-    scaled_exp_in_place(out, s2);
+    scaled_exp(out, s2);
 }
 
-/// v_i ← s·exp(v_i) for kernel exponents v_i ≤ 0, in a form the compiler vectorises, built
-/// for AVX2 as well when the CPU has it (detected at run time; a portable wheel targets SSE2).
-/// Both builds perform the same operations in the same order, so their results are identical.
-#[inline]
-fn scaled_exp_in_place(v: &mut [f64], s: f64) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        fn avx2(v: &mut [f64], s: f64) {
-            scaled_exp_loop(v, s)
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2, checked just above.
-            return unsafe { avx2(v, s) };
-        }
-    }
-    scaled_exp_loop(v, s)
-}
-
+/// v_i ← s·exp(v_i) for kernel exponents v_i ≤ 0, in a form the compiler vectorises.
 #[inline(always)]
-fn scaled_exp_loop(v: &mut [f64], s: f64) {
+fn scaled_exp(v: &mut [f64], s: f64) {
     for t in v.iter_mut() {
         *t = s * exp_nonpositive(*t);
     }
@@ -897,6 +923,29 @@ mod tests {
     }
 
     #[test]
+    fn dispatched_and_baseline_builds_predict_identically() {
+        for nd in [1, 2, 3, 5] {
+            let (x, y) = data(37, nd, nd as u64);
+            let gp = Gp::new(&x, &y, &theta(nd)).unwrap();
+            let k = 7;
+            let (d, _) = data(k, nd, 5);
+            let run = |dispatched: bool| {
+                let mut ws = GpWorkspace::default();
+                let (mut m, mut v) = (vec![0.0; k], vec![0.0; k]);
+                let (mut dm, mut dv) = (vec![0.0; k * nd], vec![0.0; k * nd]);
+                let grads = Some((&mut dm[..], &mut dv[..]));
+                if dispatched {
+                    gp.predict_block(&d, k, 0, 1, &mut m, Some(&mut v), grads, &mut ws);
+                } else {
+                    gp.predict_block_impl(&d, k, 0, 1, &mut m, Some(&mut v), grads, &mut ws);
+                }
+                [m, v, dm, dv]
+            };
+            assert_eq!(run(true), run(false));
+        }
+    }
+
+    #[test]
     fn input_gradients_match_finite_differences() {
         let nd = 3;
         let (x, y) = data(30, nd, 7);
@@ -1052,11 +1101,8 @@ mod tests {
             -708.5,
         ]);
         let mut out = v.clone();
-        scaled_exp_in_place(&mut out, 1.0);
-        let mut base = v.clone();
-        scaled_exp_loop(&mut base, 1.0); // the SSE2 build: identical results
-        for ((&x, &e), &b) in v.iter().zip(&out).zip(&base) {
-            assert_eq!(e.to_bits(), b.to_bits(), "x = {x}");
+        scaled_exp(&mut out, 1.0);
+        for (&x, &e) in v.iter().zip(&out) {
             let want = x.exp();
             if x < -708.0 {
                 assert!(e == 0.0 && want < 4e-308, "x = {x}");
