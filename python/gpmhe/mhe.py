@@ -102,7 +102,10 @@ class GPMHE:
     solver_options : dict overriding gpmhe's tuned defaults: passed to the SciPy solver, or for
         "gauss-newton" any of max_iter (100), gtol (1e-6, on ‖z − P(z − ∇J)‖∞), xtol (1e-12),
         ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (0.01), mu_init
-        (0.1), mu_final (1e-5).
+        (0.1), mu_final (1e-5). The Rust solver also stops at the cost's rounding noise
+        (message "noise-floor", a success): when a GP fit ran to a large σ_f, J is only
+        accurate to ~1e-6 relative and its gradient to ~1e-3, so gtol cannot be reached; the
+        solver stops once its next step predicts less decrease than that noise.
 
     Attributes
     ----------
@@ -113,8 +116,11 @@ class GPMHE:
         Gauss-Newton Hessian of J (J is 4× a negative log-likelihood); a rough indication, exact
         only for linear-Gaussian models and η = 1.
     cost, success, nit, message : the last window's optimal cost, solver status, iterations and
-        message. With "gauss-newton" also `nfev` (window evaluations) and `projected_gradient`. On failure (`success` False, a RuntimeWarning), the window keeps whichever of the
-        solver's last finite iterate and the warm start costs less; `x` is never NaN.
+        message. With "gauss-newton" also `nfev` (window evaluations) and `projected_gradient`;
+        its message starts with the stopping reason (gradient-tolerance, step-tolerance,
+        cost-tolerance, noise-floor; max-iterations and no-progress are failures). On failure
+        (`success` False, a RuntimeWarning), the window keeps whichever of the solver's last
+        finite iterate and the warm start costs less; `x` is never NaN.
     t : number of updates so far.
 
     With filterpy's `Saver`, every attribute is recorded; `Saver.to_array()` needs equal shapes,
