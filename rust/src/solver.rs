@@ -751,6 +751,12 @@ impl BoxLsqSolver {
                 ysum += self.yl[k] + self.yu[k];
             }
             let s_d = (ysum / n_bounded as f64).max(100.0) / 100.0;
+            // A dual error within the gradient's rounding noise is as small as it can get.
+            let e_dual = if e_dual <= NOISE_PG * self.gnoise_at_z {
+                0.0
+            } else {
+                e_dual
+            };
             if (e_dual / s_d).max(e_comp) <= 10.0 * mu {
                 if mu <= opts.mu_final {
                     break;
