@@ -266,7 +266,7 @@ class WindowSolver:
         xtol: float = 1e-12,
         ftol: float = 1e-15,
         interior: str = "auto",
-        interior_zone: float = 0.01,
+        interior_zone: float = 1e-5,
         mu_init: float = 0.1,
         mu_final: float = 1e-5,
     ) -> None: ...

@@ -101,7 +101,7 @@ class GPMHE:
         per window point, or once for all points with `KnownModel(..., vectorized=True)`.
     solver_options : dict overriding gpmhe's tuned defaults: passed to the SciPy solver, or for
         "gauss-newton" any of max_iter (100), gtol (1e-6, on ‖z − P(z − ∇J)‖∞), xtol (1e-12),
-        ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (0.01), mu_init
+        ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (1e-5), mu_init
         (0.1), mu_final (1e-5). The Rust solver also stops at the cost's rounding noise
         (message "noise-floor", a success): when a GP fit ran to a large σ_f, J is only
         accurate to ~1e-6 relative and its gradient to ~1e-3, so gtol cannot be reached; the

@@ -113,7 +113,11 @@ pub struct SolverOptions {
     pub ftol: f64,
     pub interior: InteriorMode,
     /// `Auto` runs the interior phase when a free variable is within interior_zone·w of a bound
-    /// (w = upper − lower, or max(1, |bound|) for one-sided bounds).
+    /// (w = upper − lower, or max(1, |bound|) for one-sided bounds). The default 1e-5 means "on
+    /// the bound" (GPMHE's warm start keeps 1e-6·w away from it): starts near but off a bound
+    /// are handled well by the active-set phase, and late in a batch-reactor run the true x1
+    /// sits close to its bound, where a wider zone ran the barrier phase at almost every step
+    /// (0.01 did: 2-3x the evaluations at the same RMSE).
     pub interior_zone: f64,
     /// First and last barrier parameter of the interior phase.
     pub mu_init: f64,
@@ -128,7 +132,7 @@ impl Default for SolverOptions {
             xtol: 1e-12,
             ftol: 1e-15,
             interior: InteriorMode::Auto,
-            interior_zone: 0.01,
+            interior_zone: 1e-5,
             mu_init: 0.1,
             mu_final: 1e-5,
         }
@@ -1081,6 +1085,39 @@ impl BoxLsqSolver {
                         self.trial[k] = (z[k] + self.shift[k]).clamp(lower[k], upper[k]);
                     }
                 }
+                // Shorter points on the projection arc P(z + αu) (Bertsekas' projected Newton
+                // search), judged by the model before any evaluation: a projected step can
+                // predict an increase when many coupled variables sit at a bound, while a
+                // shorter one along the arc still descends. `dyu` is free scratch here.
+                let mut alpha = 1.0;
+                for _ in 0..6 {
+                    alpha *= 0.5;
+                    for k in 0..len {
+                        self.dyu[k] = (z[k] + alpha * self.dyl[k]).clamp(lower[k], upper[k]) - z[k];
+                    }
+                    block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.dyu, &mut self.hp);
+                    let mut pred_a = 0.0;
+                    for k in 0..len {
+                        pred_a -= self.g[k] * self.dyu[k] + 0.5 * self.dyu[k] * self.hp[k];
+                    }
+                    if pred_a > pred {
+                        pred = pred_a;
+                        for k in 0..len {
+                            self.step[k] = self.dyu[k];
+                            self.trial[k] = z[k] + self.dyu[k];
+                        }
+                    }
+                }
+            }
+            if pred <= 0.0 && pred.abs() > 2.0 * known_noise.max(NOISE * pr.cost.abs().max(1.0)) {
+                // The model predicts no decrease along any candidate: damp harder and recompute
+                // (factorisations are cheap next to an evaluation), do not evaluate.
+                lambda *= nu;
+                nu *= 2.0;
+                if lambda > LAMBDA_MAX {
+                    return Status::NoProgress;
+                }
+                continue;
             }
             if !clipped
                 && lambda <= 1.0
