@@ -315,10 +315,11 @@ class GPMHE:
         """(lower, upper) of the stacked window states for `nodes` nodes (cached: constant
         once the window is full)."""
         cached = getattr(self._core, "bounds", None)
-        if cached is None or len(cached[0]) != nodes * self.dim_x:
-            cached = (np.tile(self.x_bounds[0], nodes), np.tile(self.x_bounds[1], nodes))
+        if cached is None or cached[0] is not self.x_bounds or len(cached[1]) != nodes * self.dim_x:
+            cached = (self.x_bounds, np.tile(self.x_bounds[0], nodes),
+                      np.tile(self.x_bounds[1], nodes))
             self._core.bounds = cached
-        return cached
+        return cached[1], cached[2]
 
     def _warm_start(self, s0, nodes, u_win):
         """Shifted previous solution with the model's one-step prediction appended, clipped
@@ -336,10 +337,19 @@ class GPMHE:
                 z[0] = prev[-1]
             else:
                 z[i] = self.model.predict(z[i - 1], u_win[i - 1])
-        lb, ub = self.x_bounds
-        width = np.where(np.isfinite(ub - lb), ub - lb, 1.0)
-        np.clip(z, lb + 1e-6 * width, ub - 1e-6 * width, out=z)
+        lo, hi = self._inner_box()
+        np.clip(z, lo, hi, out=z)
         return z.reshape(-1)
+
+    def _inner_box(self):
+        """x_bounds shrunk by 1e-6 of their width (1e-6 for infinite widths), cached."""
+        cached = getattr(self._core, "inner_box", None)
+        if cached is None or cached[0] is not self.x_bounds:
+            lb, ub = self.x_bounds
+            width = np.where(np.isfinite(ub - lb), ub - lb, 1.0)
+            cached = (self.x_bounds, (lb + 1e-6 * width, ub - 1e-6 * width))
+            self._core.inner_box = cached
+        return cached[1]
 
     def _covariance(self, window, z):
         n = self.dim_x
@@ -349,8 +359,8 @@ class GPMHE:
             Hinv_last = self._core.solver.last_block_inverse(window)
             if Hinv_last is None:
                 return self.P.copy()
-            P = 4.0 * 0.5 * (Hinv_last + Hinv_last.T)
-            return P if np.all(np.isfinite(P)) else self.P.copy()
+            P = 2.0 * (Hinv_last + Hinv_last.T)
+            return P if np.isfinite(P).all() else self.P.copy()
         H = window.gn_hessian(z)
         try:
             Hinv_last = np.linalg.solve(H, np.eye(len(z))[:, -n:])[-n:]
