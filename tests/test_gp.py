@@ -118,6 +118,8 @@ def test_predict_with_gradients_agrees_with_predict():
     m2, v2, _, _ = gp.predict_with_gradients(Dt)
     np.testing.assert_array_equal(mean, m2)
     np.testing.assert_allclose(std**2, v2, rtol=1e-14)
+    # Without return_std only the means are computed (no triangular solves): the same numbers.
+    np.testing.assert_array_equal(gp.predict(Dt), mean)
 
 
 # ----------------------------------------------------------------------------- fitting
@@ -272,6 +274,7 @@ def test_multi_output_matches_independent_gps():
         assert lml >= single.log_marginal_likelihood_value - 1e-3 * abs(lml)
     mean2, std2 = mgp.predict(Dt, return_std=True)
     np.testing.assert_array_equal(mean2, mean)
+    np.testing.assert_array_equal(mgp.predict(Dt), mean)
     np.testing.assert_allclose(std2**2, var, rtol=1e-14)
 
 

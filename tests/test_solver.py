@@ -237,3 +237,54 @@ def test_covariance_from_the_block_factorisation_matches_the_dense_one(reactor_g
     H = est._core.window.gn_hessian(z)
     dense = 4.0 * np.linalg.inv(H)[-2:, -2:]
     assert np.allclose(est.P, dense, rtol=1e-8, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- rounding noise
+
+@pytest.fixture(scope="module")
+def reactor_gp_ill():
+    """The batch-reactor GPs with the hyperparameters a fit on seed 0's data ran to: the second
+    f-GP at sigma_f = 1000 and lengthscales (155, 1000) imitates a linear map, so its means
+    jitter by ~3e-7 and its variances by ~3e-10 (the window cost is noisy at ~1e-6 relative)."""
+    states, outputs = br.training_data(5, rng=np.random.default_rng(0))
+    D = np.vstack([s[:-1] for s in states])
+    Xn = np.vstack([s[1:] for s in states])
+    Dh, Y = np.vstack(states), np.vstack(outputs)
+    f = MultiOutputGP([4.40, 1000.0], [[9.10, 1000.0], [155.2, 1000.0]], [1.68e-2, 1e-5],
+                      optimizer=None).fit(D, Xn)
+    h = MultiOutputGP(19.3, [23.9, 31.0], 0.104, optimizer=None).fit(Dh, Y)
+    return LearnedModel(f, h)
+
+
+@pytest.mark.parametrize("which", ["well", "ill"])
+def test_rounding_noise_estimates_match_the_observed_spread(which, reactor_gp, reactor_gp_ill):
+    """The window's estimates of the rounding noise of J and of its gradient (what the solver's
+    noise-floor stop relies on) are within a small factor of the spread seen when z moves by
+    1e-12 (real changes of J and ∇J at that scale are far below the noise)."""
+    model = reactor_gp if which == "well" else reactor_gp_ill
+    rng = np.random.default_rng(5)
+    for _ in range(2):
+        win, z0, LB, UB = reactor_window(model, rng, 16, [4.5, 4.5])
+        cg = [win.cost_grad(z0 + 1e-12 * rng.standard_normal(z0.size)) for _ in range(100)]
+        J_std = np.std([c for c, _ in cg])
+        g_std = np.max(np.std([g for _, g in cg], axis=0))
+        noise_J, noise_g = win.rounding_noise(z0)
+        assert 0.7 <= noise_J / J_std <= 5.0, (noise_J, J_std)
+        assert 0.7 <= noise_g / g_std <= 5.0, (noise_g, g_std)
+        if which == "ill":
+            assert noise_g > 100 * 1e-6  # gtol = 1e-6 is out of reach: the noise-floor stop's case
+
+
+def test_noisy_window_stops_at_the_noise_floor(reactor_gp_ill):
+    """With a cost only resolvable to ~1e-6 relative, the solver stops once its next step
+    predicts less than that ('noise-floor', a success) instead of iterating in the noise, at a
+    cost within a few noise units of SciPy's optima from the same start."""
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        win, z0, LB, UB = reactor_window(reactor_gp_ill, rng, 16, [4.5, 4.5])
+        z, cost, status, ok, nit, nfev, pg, _ = _core.WindowSolver().solve(win, z0, LB, UB)
+        noise_J, noise_g = win.rounding_noise(z)
+        assert ok and status == "noise-floor", status
+        assert pg <= 10 * noise_g
+        c_ls, c_tc = scipy_costs(win, z0, LB, UB)
+        assert cost <= min(c_ls, c_tc) + 5 * noise_J, (cost, c_ls, c_tc, noise_J)

@@ -58,6 +58,7 @@ class GP:
         npt.NDArray[np.float64],
         npt.NDArray[np.float64],
     ]: ...
+    def predict_mean(self, d: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 
 class MultiGP:
     """q independent SE-ARD GPs on shared inputs (rust/src/gp.rs)."""
@@ -92,6 +93,7 @@ class MultiGP:
         npt.NDArray[np.float64],
         npt.NDArray[np.float64],
     ]: ...
+    def predict_mean(self, d: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 
 def log_marginal_likelihood(
     x: npt.NDArray[np.float64],
@@ -242,6 +244,9 @@ class MheWindow:
     def n_nodes(self) -> int: ...
     @property
     def n_residuals(self) -> int: ...
+    def rounding_noise(self, z: _F) -> tuple[float, float]:
+        """(noise of J, largest noise of ∇J) at z, estimated from the GPs' rounding."""
+        ...
     def cost(self, z: _F) -> float: ...
     def cost_grad(self, z: _F) -> tuple[float, _F]: ...
     def gn_hessian(self, z: _F) -> _F: ...
@@ -261,7 +266,7 @@ class WindowSolver:
         xtol: float = 1e-12,
         ftol: float = 1e-15,
         interior: str = "auto",
-        interior_zone: float = 0.01,
+        interior_zone: float = 1e-5,
         mu_init: float = 0.1,
         mu_final: float = 1e-5,
     ) -> None: ...
@@ -272,7 +277,9 @@ class WindowSolver:
         lower: npt.NDArray[np.float64],
         upper: npt.NDArray[np.float64],
     ) -> tuple[npt.NDArray[np.float64], float, str, bool, int, int, float, int]:
-        """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations)"""
+        """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations); status
+        is one of gradient-tolerance, step-tolerance, cost-tolerance, noise-floor (successes),
+        max-iterations, no-progress."""
         ...
     def last_block_inverse(self, window: MheWindow) -> npt.NDArray[np.float64] | None:
         """Last n×n block of (2JᵀJ)⁻¹ at the window's cached evaluation (None if singular)."""

@@ -375,8 +375,10 @@ class GaussianProcess:
     def predict(self, D: Any, return_std: bool = False):
         """Posterior mean (k,) at D (k, n_d); with ``return_std`` also the std of the latent f."""
         m = self._model()
+        if not return_std:
+            return m.predict_mean(_check_points(D, m.dim))
         mean, var = m.predict(_check_points(D, m.dim))
-        return (mean, np.sqrt(var)) if return_std else mean
+        return mean, np.sqrt(var)
 
     def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d); var is the
@@ -597,8 +599,10 @@ class MultiOutputGP:
     def predict(self, D: Any, return_std: bool = False):
         """Posterior means (k, q) at D (k, n_d); with ``return_std`` also latent stds (k, q)."""
         m = self._model()
+        if not return_std:
+            return m.predict_mean(_check_points(D, m.dim))
         mean, var = m.predict(_check_points(D, m.dim))
-        return (mean, np.sqrt(var)) if return_std else mean
+        return mean, np.sqrt(var)
 
     def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(mean, var, dmean_dd, dvar_dd) of shapes (k, q), (k, q), (k, q, n_d), (k, q, n_d)."""

@@ -101,8 +101,11 @@ class GPMHE:
         per window point, or once for all points with `KnownModel(..., vectorized=True)`.
     solver_options : dict overriding gpmhe's tuned defaults: passed to the SciPy solver, or for
         "gauss-newton" any of max_iter (100), gtol (1e-6, on ‖z − P(z − ∇J)‖∞), xtol (1e-12),
-        ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (0.01), mu_init
-        (0.1), mu_final (1e-5).
+        ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone (1e-5), mu_init
+        (0.1), mu_final (1e-5). The Rust solver also stops at the cost's rounding noise
+        (message "noise-floor", a success): when a GP fit ran to a large σ_f, J is only
+        accurate to ~1e-6 relative and its gradient to ~1e-3, so gtol cannot be reached; the
+        solver stops once its next step predicts less decrease than that noise.
 
     Attributes
     ----------
@@ -113,8 +116,11 @@ class GPMHE:
         Gauss-Newton Hessian of J (J is 4× a negative log-likelihood); a rough indication, exact
         only for linear-Gaussian models and η = 1.
     cost, success, nit, message : the last window's optimal cost, solver status, iterations and
-        message. With "gauss-newton" also `nfev` (window evaluations) and `projected_gradient`. On failure (`success` False, a RuntimeWarning), the window keeps whichever of the
-        solver's last finite iterate and the warm start costs less; `x` is never NaN.
+        message. With "gauss-newton" also `nfev` (window evaluations) and `projected_gradient`;
+        its message starts with the stopping reason (gradient-tolerance, step-tolerance,
+        cost-tolerance, noise-floor; max-iterations and no-progress are failures). On failure
+        (`success` False, a RuntimeWarning), the window keeps whichever of the solver's last
+        finite iterate and the warm start costs less; `x` is never NaN.
     t : number of updates so far.
 
     With filterpy's `Saver`, every attribute is recorded; `Saver.to_array()` needs equal shapes,
@@ -284,8 +290,7 @@ class GPMHE:
         window = self._core.window
         window.set_data(np.ascontiguousarray(u_win), np.ascontiguousarray(y_win),
                         present_win, np.ascontiguousarray(x_prior))
-        lb = np.tile(self.x_bounds[0], nodes)
-        ub = np.tile(self.x_bounds[1], nodes)
+        lb, ub = self._window_bounds(nodes)
         z, cost, success, nit, message = self._solve(window, z0, lb, ub)
 
         # Commit (everything above may raise without changing the estimator).
@@ -306,34 +311,56 @@ class GPMHE:
         self.cost, self.success, self.nit, self.message = cost, success, nit, message
         self.t = t + 1
 
+    def _window_bounds(self, nodes):
+        """(lower, upper) of the stacked window states for `nodes` nodes (cached: constant
+        once the window is full)."""
+        cached = getattr(self._core, "bounds", None)
+        if cached is None or cached[0] is not self.x_bounds or len(cached[1]) != nodes * self.dim_x:
+            cached = (self.x_bounds, np.tile(self.x_bounds[0], nodes),
+                      np.tile(self.x_bounds[1], nodes))
+            self._core.bounds = cached
+        return cached[1], cached[2]
+
     def _warm_start(self, s0, nodes, u_win):
         """Shifted previous solution with the model's one-step prediction appended, clipped
-        strictly inside the bounds."""
-        n = self.dim_x
-        z = np.empty((nodes, n))
+        strictly inside the bounds (rows that already are inside stay bit-identical, so the
+        Rust window reuses its GP values there)."""
+        z = np.empty((nodes, self.dim_x))
         prev, prev_t0 = self.x_window, self._core.window_t0
-        for i in range(nodes):
-            s = s0 + i
-            j = s - prev_t0
-            if 0 <= j < len(prev):
-                z[i] = prev[j]
+        # Window times s0 .. s0+nodes-1; the previous window covers prev_t0 .. prev_t0+len-1.
+        first = s0 - prev_t0
+        kept = max(0, min(nodes, len(prev) - first)) if first >= 0 else 0
+        if kept:
+            z[:kept] = prev[first:first + kept]
+        for i in range(kept, nodes):
+            if i == 0:  # no overlap at all (cannot happen for consecutive updates)
+                z[0] = prev[-1]
             else:
                 z[i] = self.model.predict(z[i - 1], u_win[i - 1])
-        lb, ub = self.x_bounds
-        width = np.where(np.isfinite(ub - lb), ub - lb, 1.0)
-        z = np.clip(z, lb + 1e-6 * width, ub - 1e-6 * width)
+        lo, hi = self._inner_box()
+        np.clip(z, lo, hi, out=z)
         return z.reshape(-1)
+
+    def _inner_box(self):
+        """x_bounds shrunk by 1e-6 of their width (1e-6 for infinite widths), cached."""
+        cached = getattr(self._core, "inner_box", None)
+        if cached is None or cached[0] is not self.x_bounds:
+            lb, ub = self.x_bounds
+            width = np.where(np.isfinite(ub - lb), ub - lb, 1.0)
+            cached = (self.x_bounds, (lb + 1e-6 * width, ub - 1e-6 * width))
+            self._core.inner_box = cached
+        return cached[1]
 
     def _covariance(self, window, z):
         n = self.dim_x
         if self.solver == "gauss-newton":
-            # The same quantity in O(M n³) from the block-tridiagonal factorisation.
-            window.cost_grad(z)  # evaluation with derivatives at z (cached after the solve)
+            # The same quantity in O(M n³) from the block-tridiagonal factorisation of the
+            # window's evaluation, which the solver leaves at the returned z.
             Hinv_last = self._core.solver.last_block_inverse(window)
             if Hinv_last is None:
                 return self.P.copy()
-            P = 4.0 * 0.5 * (Hinv_last + Hinv_last.T)
-            return P if np.all(np.isfinite(P)) else self.P.copy()
+            P = 2.0 * (Hinv_last + Hinv_last.T)
+            return P if np.isfinite(P).all() else self.P.copy()
         H = window.gn_hessian(z)
         try:
             Hinv_last = np.linalg.solve(H, np.eye(len(z))[:, -n:])[-n:]
@@ -344,8 +371,9 @@ class GPMHE:
 
     # ---- solvers: one method per solver, dispatched through _SOLVERS ------------------------
     def _solve(self, window, z0, lb, ub):
-        # The Rust solver never returns a point costlier than its start: skip that evaluation.
-        cost0 = None if self.solver == "gauss-newton" else window.cost(z0)
+        if self.solver == "gauss-newton":
+            return self._solve_rust(window, z0, lb, ub)
+        cost0 = window.cost(z0)
         try:
             z, nit, ok, message = getattr(self, self._SOLVERS[self.solver])(window, z0, lb, ub)
             z = np.clip(np.asarray(z, dtype=np.float64), lb, ub)
@@ -396,10 +424,26 @@ class GPMHE:
             core.solver = self._rust_solver()
         z, cost, status, ok, nit, nfev, pg, n_interior = core.solver.solve(window, z0, lb, ub)
         self.projected_gradient, self.nfev = float(pg), int(nfev)
-        return z, nit, ok, f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
+        return z, cost, nit, ok, f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
+
+    def _solve_rust(self, window, z0, lb, ub):
+        """The Rust path of `_solve`: the solver returns a finite z inside the bounds whose cost
+        is never above the warm start's, with the window's evaluation left at z (no Python-side
+        re-evaluation needed); a solver error keeps the warm start."""
+        try:
+            z, cost, nit, ok, message = self._solve_gauss_newton(window, z0, lb, ub)
+        except (ValueError, ArithmeticError, RuntimeError) as e:
+            # (cost_grad: the covariance below needs an evaluation with derivatives at z.)
+            z, cost, nit, ok = z0, window.cost_grad(z0)[0], 0, False
+            message = f"solver raised: {e}"
+        if not ok:
+            warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={self.t}: "
+                          f"{message}; keeping the better of its last iterate and the warm start",
+                          RuntimeWarning, stacklevel=4)
+        return z, float(cost), bool(ok), int(nit), str(message)
 
     _SOLVERS = {
-        "gauss-newton": "_solve_gauss_newton",
+        "gauss-newton": "_solve_rust",  # (short-circuited in _solve: it needs no re-check)
         "trust-constr": "_solve_trust_constr",
         "least-squares": "_solve_least_squares",
     }

@@ -30,14 +30,27 @@ const JITTER_START: f64 = 1e-10;
 const JITTER_MAX: f64 = 1e-6;
 /// Number of jittered attempts: 1e-10, 1e-9, …, 1e-6 (relative).
 const JITTER_STEPS: i32 = 5;
+/// Units in the last place of σ_f² for the typical rounding error of a latent variance
+/// (measured standard deviation on the batch-reactor f-GP with σ_f = 1000: ~2.5 ulp).
+const VARIANCE_ULPS: f64 = 3.0;
 
-/// Scratch memory for batch predictions: two N × k column-major buffers. It only grows, so once
-/// it has been sized for the largest (N, k) in use, the GP code allocates nothing per prediction
-/// (faer's triangular-solve kernels manage their own small scratch).
+/// Scratch memory for batch predictions: three N × k column-major buffers and a small
+/// (n_d + 1) × k one. It only grows, so once it has been sized for the largest (N, k) in use,
+/// the GP code allocates nothing per prediction (faer's kernels manage their own small scratch).
 #[derive(Default, Clone, Debug)]
 pub struct GpWorkspace {
     kstar: Vec<f64>,
     v: Vec<f64>,
+    prod: Vec<f64>,
+    sums: Vec<f64>,
+}
+
+/// The buffers of one prediction, see [`GpWorkspace`].
+struct Buffers<'a> {
+    kstar: &'a mut [f64],
+    v: &'a mut [f64],
+    prod: &'a mut [f64],
+    sums: &'a mut [f64],
 }
 
 impl GpWorkspace {
@@ -45,12 +58,21 @@ impl GpWorkspace {
         Self::default()
     }
 
-    fn buffers(&mut self, len: usize) -> (&mut [f64], &mut [f64]) {
+    fn buffers(&mut self, len: usize, sums: usize) -> Buffers<'_> {
         if self.kstar.len() < len {
             self.kstar.resize(len, 0.0);
             self.v.resize(len, 0.0);
+            self.prod.resize(len, 0.0);
         }
-        (&mut self.kstar[..len], &mut self.v[..len])
+        if self.sums.len() < sums {
+            self.sums.resize(sums, 0.0);
+        }
+        Buffers {
+            kstar: &mut self.kstar[..len],
+            v: &mut self.v[..len],
+            prod: &mut self.prod[..len],
+            sums: &mut self.sums[..sums],
+        }
     }
 }
 
@@ -71,6 +93,9 @@ pub struct Gp {
     chol: Mat<f64>,
     /// (K + (σ_ε² + jitter) I)⁻¹ y.
     alpha: Vec<f64>,
+    /// Xᵀ, n_d × N row-major (each input coordinate contiguous, for the weighted sums of
+    /// `predict_block`).
+    xt: Vec<f64>,
     lml: f64,
 }
 
@@ -213,6 +238,7 @@ impl Gp {
             jitter,
             chol,
             alpha,
+            xt: (0..nd * n).map(|t| x[(t % n) * nd + t / n]).collect(),
             lml,
         })
     }
@@ -314,6 +340,24 @@ impl Gp {
         g
     }
 
+    /// Typical absolute rounding error (about one standard deviation) of a computed latent
+    /// variance σ_f² − ‖L⁻¹k*‖²: a few units in the last place of σ_f², since the subtraction
+    /// cancels when the variance is small next to σ_f². With [`Gp::mean_rounding`] it lets a
+    /// solver tell the rounding noise of a cost built from GP predictions from real progress;
+    /// it matters for GPs whose fit ran to a large σ_f (e.g. σ_f = 1000, ℓ = 1000 imitating a
+    /// linear function: variances then jitter by ~3e-10 and means by ~3e-7).
+    pub fn variance_rounding(&self) -> f64 {
+        VARIANCE_ULPS * f64::EPSILON * self.kernel.variance()
+    }
+
+    /// Typical absolute rounding error of a computed posterior mean m = Σ_i k_i α_i: the
+    /// kernel values carry relative errors of order ε, so m jitters by ~ε·‖k ∘ α‖₂ ≤
+    /// ε·σ_f²·‖α‖₂ (large when the fit is ill-conditioned and α is large).
+    pub fn mean_rounding(&self) -> f64 {
+        let a2: f64 = self.alpha.iter().map(|a| a * a).sum::<f64>().sqrt();
+        f64::EPSILON * self.kernel.variance() * a2
+    }
+
     /// Posterior means and latent variances at k test points `d` (k × n_d row-major) into
     /// `mean` (k) and `var` (k).
     pub fn predict_into(
@@ -355,8 +399,56 @@ impl Gp {
     /// `mean[j*q + o]`, `var[j*q + o]` and the gradients at `[(j*q + o)*nd ..]`. With `var` None
     /// only means (and mean gradients if asked) are computed, O(N) per point; variances cost two
     /// (with gradients) or one triangular solve with k right-hand sides.
+    ///
+    /// Every mean and gradient is a weighted sum over the training points: with the kernel
+    /// values c_ij = k(x_i, d_j) and weights b_ij (α_i for the mean, β_ij = [(K + σ²I)⁻¹k*_j]_i
+    /// for the variance), s_j = Σ_i c_ij b_ij and g_lj = Σ_i c_ij b_ij x_il, and
+    /// ∂/∂d_jl of Σ_i b_i k(x_i, d_j) = −w_l (d_jl s_j − g_lj).
+    ///
+    /// The loops (kernel columns with their exponentials, products, sums) are built for AVX2 as
+    /// well and that build runs when the CPU has it (detected at run time; a portable wheel
+    /// targets SSE2; faer dispatches its own kernels). Both builds perform the same operations
+    /// in the same order (no fused multiply-add), so their results are identical.
     #[allow(clippy::too_many_arguments)]
     fn predict_block(
+        &self,
+        d: &[f64],
+        k: usize,
+        o: usize,
+        q: usize,
+        mean: &mut [f64],
+        var: Option<&mut [f64]>,
+        grads: Option<(&mut [f64], &mut [f64])>,
+        ws: &mut GpWorkspace,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2")]
+            #[allow(clippy::too_many_arguments)]
+            fn avx2(
+                gp: &Gp,
+                d: &[f64],
+                k: usize,
+                o: usize,
+                q: usize,
+                mean: &mut [f64],
+                var: Option<&mut [f64]>,
+                grads: Option<(&mut [f64], &mut [f64])>,
+                ws: &mut GpWorkspace,
+            ) {
+                gp.predict_block_impl(d, k, o, q, mean, var, grads, ws)
+            }
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2, checked just above.
+                return unsafe { avx2(self, d, k, o, q, mean, var, grads, ws) };
+            }
+        }
+        self.predict_block_impl(d, k, o, q, mean, var, grads, ws)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn predict_block_impl(
         &self,
         d: &[f64],
         k: usize,
@@ -370,22 +462,31 @@ impl Gp {
         let n = self.n_train();
         let nd = self.dim();
         let w = self.kernel.inv_lengthscales_sq();
-        let (kstar, v) = ws.buffers(n * k);
+        let s2 = self.kernel.variance();
+        let Buffers {
+            kstar,
+            v,
+            prod,
+            sums,
+        } = ws.buffers(n * k, (nd + 1) * k);
         // k*: column j holds k(x_i, d_j) for i = 0..N.
         for (j, dj) in d.chunks_exact(nd).enumerate() {
-            let col = &mut kstar[j * n..(j + 1) * n];
-            kernel_column(&self.x, dj, w, self.kernel.variance(), col);
-            // m = k*ᵀ α; ∂m/∂d_l = −w_l Σ_i α_i k_i (d_l − x_il).
-            let mut m = 0.0;
-            for (c, a) in col.iter().zip(&self.alpha) {
-                m += c * a;
+            kernel_column(&self.x, dj, w, s2, &mut kstar[j * n..(j + 1) * n]);
+        }
+        // Means m_j = s_j with b = α; their gradients −w_l (d_jl m_j − g_lj).
+        for (pc, kc) in prod.chunks_exact_mut(n).zip(kstar.chunks_exact(n)) {
+            for ((p, c), a) in pc.iter_mut().zip(kc).zip(&self.alpha) {
+                *p = c * a;
             }
-            mean[j * q + o] = m;
+        }
+        self.weighted_sums(prod, k, sums);
+        for (j, dj) in d.chunks_exact(nd).enumerate() {
+            let sj = &sums[j * (nd + 1)..(j + 1) * (nd + 1)];
+            mean[j * q + o] = sj[nd];
             if let Some((dmean, _)) = grads.as_mut() {
                 let g = &mut dmean[(j * q + o) * nd..(j * q + o + 1) * nd];
-                weighted_offset_sum(col, &self.alpha, &self.x, dj, g);
-                for (gl, wl) in g.iter_mut().zip(w) {
-                    *gl *= -wl;
+                for l in 0..nd {
+                    g[l] = -w[l] * (dj[l] * sj[nd] - sj[l]);
                 }
             }
         }
@@ -393,38 +494,94 @@ impl Gp {
         v.copy_from_slice(kstar);
         let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
         solve_lower_triangular_in_place(self.chol.as_ref(), vm.as_mut(), Par::Seq);
-        let s2 = self.kernel.variance();
         for j in 0..k {
-            let vj = &v[j * n..(j + 1) * n];
-            let sq: f64 = vj.iter().map(|t| t * t).sum();
             // Clamp round-off negatives (test points on top of noise-free data) at 0.
-            var[j * q + o] = (s2 - sq).max(0.0);
+            var[j * q + o] = (s2 - sum_of_squares(&v[j * n..(j + 1) * n])).max(0.0);
         }
         let Some((_, dvar)) = grads else { return };
-        // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_l = 2 w_l Σ_i β_i k_i (d_l − x_il).
+        // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_jl = −2 ∂(Σ_i β_ij k_ij)/∂d_jl |_β fixed
+        // = 2 w_l (d_jl s_j − g_lj) with b = β.
         let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
         solve_upper_triangular_in_place(self.chol.as_ref(), vm.as_mut(), Par::Seq);
+        for ((p, c), b) in prod.iter_mut().zip(kstar.iter()).zip(v.iter()) {
+            *p = c * b;
+        }
+        self.weighted_sums(prod, k, sums);
         for (j, dj) in d.chunks_exact(nd).enumerate() {
-            let col = &kstar[j * n..(j + 1) * n];
-            let beta = &v[j * n..(j + 1) * n];
+            let sj = &sums[j * (nd + 1)..(j + 1) * (nd + 1)];
             let g = &mut dvar[(j * q + o) * nd..(j * q + o + 1) * nd];
-            weighted_offset_sum(col, beta, &self.x, dj, g);
-            for (gl, wl) in g.iter_mut().zip(w) {
-                *gl *= 2.0 * wl;
+            for l in 0..nd {
+                g[l] = 2.0 * w[l] * (dj[l] * sj[nd] - sj[l]);
             }
+        }
+    }
+
+    /// For P = `prod` (N × k column-major), column j of `sums` (at j·(n_d+1)) gets
+    /// (Σ_i p_ij x_i1, …, Σ_i p_ij x_i,n_d, Σ_i p_ij).
+    #[inline(always)]
+    fn weighted_sums(&self, prod: &[f64], k: usize, sums: &mut [f64]) {
+        let (n, nd) = (self.n_train(), self.dim());
+        for (pc, sj) in prod[..n * k]
+            .chunks_exact(n)
+            .zip(sums.chunks_exact_mut(nd + 1))
+        {
+            for (l, xl) in self.xt.chunks_exact(n).enumerate() {
+                sj[l] = dot(pc, xl);
+            }
+            sj[nd] = sum(pc);
         }
     }
 }
 
-/// out_i = σ_f² exp(−½ Σ_l w_l (d_l − x_il)²) for the training points x (N × n_d row-major): the
-/// same arithmetic as `SeArd::eval`, with the input dimension a compile-time constant for
-/// n_d ≤ 4 so the inner loop unrolls (the kernel column is a large share of a prediction).
-#[inline]
+/// Σ a_i with four partial sums, so that the loop vectorises (a plain `sum` is a serial chain).
+#[inline(always)]
+fn sum(a: &[f64]) -> f64 {
+    let mut acc = [0.0; 4];
+    let chunks = a.chunks_exact(4);
+    let tail: f64 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for l in 0..4 {
+            acc[l] += c[l];
+        }
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// Σ a_i b_i (four partial sums).
+#[inline(always)]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            acc[l] += x[l] * y[l];
+        }
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// Σ v_i² (four partial sums).
+#[inline(always)]
+fn sum_of_squares(v: &[f64]) -> f64 {
+    dot(v, v)
+}
+
+/// out_i = σ_f² exp(−½ Σ_l w_l (d_l − x_il)²) for the training points x (N × n_d row-major).
+/// The scaled squared distances are formed first (the input dimension a compile-time constant
+/// for n_d ≤ 4 so the inner loop unrolls), then exponentiated by a vectorised exp
+/// ([`scaled_exp`]): the exponentials are the largest part of a kernel column.
+#[inline(always)]
 fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
     #[inline(always)]
-    fn fixed<const ND: usize>(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+    fn fixed<const ND: usize>(x: &[f64], d: &[f64], w: &[f64], out: &mut [f64]) {
         let (Ok(d), Ok(w)) = (<&[f64; ND]>::try_from(d), <&[f64; ND]>::try_from(w)) else {
-            return generic(x, d, w, s2, out);
+            return generic(x, d, w, out);
         };
         for (c, xi) in out.iter_mut().zip(x.chunks_exact(ND)) {
             let mut r2 = 0.0;
@@ -432,10 +589,11 @@ fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
                 let t = d[l] - xi[l];
                 r2 += t * t * w[l];
             }
-            *c = s2 * (-0.5 * r2).exp();
+            *c = -0.5 * r2;
         }
     }
-    fn generic(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+    #[inline(always)]
+    fn generic(x: &[f64], d: &[f64], w: &[f64], out: &mut [f64]) {
         for (c, xi) in out.iter_mut().zip(x.chunks_exact(d.len())) {
             let r2: f64 = d
                 .iter()
@@ -443,33 +601,68 @@ fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
                 .zip(w)
                 .map(|((a, b), wl)| (a - b) * (a - b) * wl)
                 .sum();
-            *c = s2 * (-0.5 * r2).exp();
+            *c = -0.5 * r2;
         }
     }
     match d.len() {
-        1 => fixed::<1>(x, d, w, s2, out),
-        2 => fixed::<2>(x, d, w, s2, out),
-        3 => fixed::<3>(x, d, w, s2, out),
-        4 => fixed::<4>(x, d, w, s2, out),
-        _ => generic(x, d, w, s2, out),
+        1 => fixed::<1>(x, d, w, out),
+        2 => fixed::<2>(x, d, w, out),
+        3 => fixed::<3>(x, d, w, out),
+        4 => fixed::<4>(x, d, w, out),
+        _ => generic(x, d, w, out),
+    }
+    scaled_exp(out, s2);
+}
+
+/// v_i ← s·exp(v_i) for kernel exponents v_i ≤ 0, in a form the compiler vectorises.
+#[inline(always)]
+fn scaled_exp(v: &mut [f64], s: f64) {
+    for t in v.iter_mut() {
+        *t = s * exp_nonpositive(*t);
     }
 }
 
-/// g_l = Σ_i c_i b_i (d_l − x_il) for training points x (N × n_d row-major).
-#[inline]
-fn weighted_offset_sum(c: &[f64], b: &[f64], x: &[f64], d: &[f64], g: &mut [f64]) {
-    let nd = d.len();
-    g.iter_mut().for_each(|v| *v = 0.0);
-    let mut s = 0.0;
-    for ((ci, bi), xi) in c.iter().zip(b).zip(x.chunks_exact(nd)) {
-        let cb = ci * bi;
-        s += cb;
-        for (gl, xl) in g.iter_mut().zip(xi) {
-            *gl += cb * xl;
-        }
+/// exp(x) for x ≤ 0, within 1 ulp of libm's on the kernel's range (tested), branch-free so that
+/// loops over it vectorise: x = n ln2 + r with |r| ≤ ln2/2 (Cody-Waite, ln2 split in two),
+/// exp(r) by its degree-13 Taylor polynomial (truncation below 1e-17 relative), 2ⁿ from the
+/// exponent bits; 0 below −708 (where exp underflows to subnormals). The same scheme as
+/// `wide::f64x4::exp`, which cannot be selected at run time.
+#[inline(always)]
+fn exp_nonpositive(x: f64) -> f64 {
+    const LN2_HI: f64 = 0.693_145_751_953_125;
+    const LN2_LO: f64 = 1.428_606_820_309_417_3e-6;
+    // Adding 1.5·2⁵² rounds to an integer in the low mantissa bits.
+    const SHIFTER: f64 = 6_755_399_441_055_744.0;
+    const C: [f64; 12] = [
+        1.0 / 6_227_020_800.0,
+        1.0 / 479_001_600.0,
+        1.0 / 39_916_800.0,
+        1.0 / 3_628_800.0,
+        1.0 / 362_880.0,
+        1.0 / 40_320.0,
+        1.0 / 5_040.0,
+        1.0 / 720.0,
+        1.0 / 120.0,
+        1.0 / 24.0,
+        1.0 / 6.0,
+        0.5,
+    ];
+    let xc = x.max(-708.0);
+    let t = xc * std::f64::consts::LOG2_E + SHIFTER;
+    let n = t - SHIFTER;
+    let r = (xc - n * LN2_HI) - n * LN2_LO;
+    let mut p = C[0];
+    for c in &C[1..] {
+        p = p * r + c;
     }
-    for (gl, dl) in g.iter_mut().zip(d) {
-        *gl = s * dl - *gl;
+    let er = (p * r * r + r) + 1.0;
+    // n is in [−1022, 0]: its biased exponent is the low bits of t plus 1023.
+    let k = (t.to_bits() as i64).wrapping_sub(SHIFTER.to_bits() as i64);
+    let two_n = f64::from_bits(((k + 1023) as u64) << 52);
+    if x < -708.0 {
+        0.0
+    } else {
+        er * two_n
     }
 }
 
@@ -577,6 +770,15 @@ impl MultiGp {
 
     pub fn gps(&self) -> &[Gp] {
         &self.gps
+    }
+
+    /// [`Gp::mean_rounding`] and [`Gp::variance_rounding`] of every output into `mean` and
+    /// `var` (q values each).
+    pub fn rounding_into(&self, mean: &mut [f64], var: &mut [f64]) {
+        for ((m, v), g) in mean.iter_mut().zip(var.iter_mut()).zip(&self.gps) {
+            *m = g.mean_rounding();
+            *v = g.variance_rounding();
+        }
     }
 
     fn check_io(&self, d: &[f64], outs: &[(&str, &[f64], usize)]) -> Result<usize> {
@@ -721,6 +923,29 @@ mod tests {
     }
 
     #[test]
+    fn dispatched_and_baseline_builds_predict_identically() {
+        for nd in [1, 2, 3, 5] {
+            let (x, y) = data(37, nd, nd as u64);
+            let gp = Gp::new(&x, &y, &theta(nd)).unwrap();
+            let k = 7;
+            let (d, _) = data(k, nd, 5);
+            let run = |dispatched: bool| {
+                let mut ws = GpWorkspace::default();
+                let (mut m, mut v) = (vec![0.0; k], vec![0.0; k]);
+                let (mut dm, mut dv) = (vec![0.0; k * nd], vec![0.0; k * nd]);
+                let grads = Some((&mut dm[..], &mut dv[..]));
+                if dispatched {
+                    gp.predict_block(&d, k, 0, 1, &mut m, Some(&mut v), grads, &mut ws);
+                } else {
+                    gp.predict_block_impl(&d, k, 0, 1, &mut m, Some(&mut v), grads, &mut ws);
+                }
+                [m, v, dm, dv]
+            };
+            assert_eq!(run(true), run(false));
+        }
+    }
+
+    #[test]
     fn input_gradients_match_finite_differences() {
         let nd = 3;
         let (x, y) = data(30, nd, 7);
@@ -859,6 +1084,34 @@ mod tests {
         }
         let again = MultiGp::from_gps(multi.gps().to_vec()).unwrap();
         assert_eq!(again.n_outputs(), q);
+    }
+
+    #[test]
+    fn vectorised_exp_matches_libm_to_one_ulp() {
+        let mut v: Vec<f64> = (0..200_001)
+            .map(|i| -750.0 * (i as f64 / 200_000.0).powi(3))
+            .collect();
+        v.extend([
+            0.0,
+            -1e-300,
+            -5e-324,
+            -1e-12,
+            -0.5 * std::f64::consts::LN_2,
+            -708.0,
+            -708.5,
+        ]);
+        let mut out = v.clone();
+        scaled_exp(&mut out, 1.0);
+        for (&x, &e) in v.iter().zip(&out) {
+            let want = x.exp();
+            if x < -708.0 {
+                assert!(e == 0.0 && want < 4e-308, "x = {x}");
+            } else {
+                let ulp = f64::EPSILON * want;
+                assert!((e - want).abs() <= ulp, "x = {x}: {e} vs {want}");
+            }
+        }
+        assert_eq!(exp_nonpositive(0.0), 1.0);
     }
 
     #[test]

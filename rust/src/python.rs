@@ -125,6 +125,26 @@ type Predicted<'py> = (Arr<'py>, Arr<'py>, Option<(Arr<'py>, Arr<'py>)>);
 
 /// Runs a batch prediction of `q` outputs at the points `d` with the GIL released and returns
 /// (mean, var[, dmean, dvar]) shaped (k, q...) / (k, q..., n_d); `squeeze` drops the q axis.
+/// Posterior means at the points `d`: shape (k,) with `squeeze` (one output), else (k, q).
+fn mean_array<'py>(
+    py: Python<'py>,
+    model: &MultiGp,
+    d: &PyReadonlyArray2<'py, f64>,
+    squeeze: bool,
+) -> PyResult<Arr<'py>> {
+    let (d, k, cols) = slice2("D", d)?;
+    let q = model.n_outputs();
+    check_cols("D", cols, model.dim())?;
+    crate::error::check_finite("D", d)?;
+    let mut mean = vec![0.0; k * q];
+    model.predict_mean_into(d, &mut mean, &mut GpWorkspace::default())?;
+    if squeeze {
+        array_nd(py, mean, [k])
+    } else {
+        array_nd(py, mean, [k, q])
+    }
+}
+
 fn predict_arrays<'py>(
     py: Python<'py>,
     model: &MultiGp,
@@ -291,6 +311,15 @@ impl PyGp {
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
         with_gradients(predict_arrays(py, &self.inner, &d, true, true)?)
     }
+
+    /// Means only, shape (k,): O(N) per point (no triangular solve).
+    fn predict_mean<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Arr<'py>> {
+        mean_array(py, &self.inner, &d, true)
+    }
 }
 
 /// q independent GPs on shared inputs, each with its own hyperparameters.
@@ -386,6 +415,15 @@ impl PyMultiGp {
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
         with_gradients(predict_arrays(py, &self.inner, &d, true, false)?)
+    }
+
+    /// Means only, shape (k, q): O(N) per point and output (no triangular solves).
+    fn predict_mean<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Arr<'py>> {
+        mean_array(py, &self.inner, &d, false)
     }
 }
 
@@ -487,7 +525,7 @@ impl StageModel for CallbackModel<'_, '_> {
 /// The model behind a window: a Python callback (known model) or the learned GPs.
 enum WindowModel {
     Callback(Py<PyAny>),
-    Gp(GpStageModel),
+    Gp(Box<GpStageModel>),
 }
 
 /// One MHE window problem with its model and evaluation buffers (DESIGN.md §3). The Python
@@ -522,7 +560,7 @@ impl PyMheWindow {
         let result = match &mut self.model {
             WindowModel::Gp(model) => {
                 let (problem, eval) = (&self.problem, &mut self.eval);
-                py.detach(|| problem.evaluate(model, z, want_jacobian, eval))
+                py.detach(|| problem.evaluate(&mut **model, z, want_jacobian, eval))
             }
             WindowModel::Callback(func) => {
                 let func = func.bind(py);
@@ -635,7 +673,7 @@ impl PyMheWindow {
         )?;
         Ok(Self {
             problem,
-            model: WindowModel::Gp(model),
+            model: WindowModel::Gp(Box::new(model)),
             eval: WindowEval::default(),
             last_z: Vec::new(),
         })
@@ -672,6 +710,18 @@ impl PyMheWindow {
     fn cost(&mut self, py: Python<'_>, z: PyReadonlyArray1<'_, f64>) -> PyResult<f64> {
         self.ensure(py, slice1("z", &z)?, false)?;
         Ok(self.eval.cost())
+    }
+
+    /// (noise of J, noise of ∇J (largest entry)) at z: the estimated rounding noise of the cost
+    /// and gradient from the model's mean and variance rounding (0 for a model computed to
+    /// full precision).
+    fn rounding_noise(
+        &mut self,
+        py: Python<'_>,
+        z: PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<(f64, f64)> {
+        self.ensure(py, slice1("z", &z)?, true)?;
+        Ok((self.eval.cost_noise(), self.eval.gradient_noise()))
     }
 
     /// (J(z), ∇J(z) = 2Jᵀr).
@@ -768,7 +818,7 @@ impl PyWindowSolver {
     #[new]
     #[allow(clippy::too_many_arguments)]
     #[pyo3(signature = (max_iter=100, gtol=1e-6, xtol=1e-12, ftol=1e-15, interior="auto",
-                        interior_zone=0.01, mu_init=0.1, mu_final=1e-5))]
+                        interior_zone=1e-5, mu_init=0.1, mu_final=1e-5))]
     fn new(
         max_iter: usize,
         gtol: f64,
@@ -841,7 +891,7 @@ impl PyWindowSolver {
                 py.detach(|| {
                     let mut lsq = WindowLsq {
                         problem,
-                        model,
+                        model: &mut **model,
                         eval,
                     };
                     solver.solve(&mut lsq, &mut z, lower, upper, opts)

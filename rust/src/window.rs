@@ -34,6 +34,13 @@ pub struct StageEval {
     pub var_y: Vec<f64>,
     pub dmean_y: Vec<f64>,
     pub dvar_y: Vec<f64>,
+    /// Typical absolute rounding errors of each output's mean and variance (n and p values,
+    /// the same at every point; zero for a model computed to full precision): how much of a
+    /// change in the window cost is noise (see `WindowEval::cost_noise`).
+    pub mean_x_rounding: Vec<f64>,
+    pub var_x_rounding: Vec<f64>,
+    pub mean_y_rounding: Vec<f64>,
+    pub var_y_rounding: Vec<f64>,
 }
 
 impl StageEval {
@@ -48,10 +55,35 @@ impl StageEval {
         self.var_y.resize(k * p, 0.0);
         self.dmean_y.resize(k * p * nd, 0.0);
         self.dvar_y.resize(k * p * nd, 0.0);
+        // Full precision unless the model says otherwise.
+        for (v, len) in [
+            (&mut self.mean_x_rounding, n),
+            (&mut self.var_x_rounding, n),
+            (&mut self.mean_y_rounding, p),
+            (&mut self.var_y_rounding, p),
+        ] {
+            v.clear();
+            v.resize(len, 0.0);
+        }
     }
 }
 
 impl StageEval {
+    /// Copies point `i` of `src` into point `j` of `self` (both sized for dimensions n, p, nd).
+    fn copy_point(&mut self, j: usize, src: &StageEval, i: usize, n: usize, p: usize, nd: usize) {
+        fn row(dst: &mut [f64], src: &[f64], j: usize, i: usize, w: usize) {
+            dst[j * w..(j + 1) * w].copy_from_slice(&src[i * w..(i + 1) * w]);
+        }
+        row(&mut self.mean_x, &src.mean_x, j, i, n);
+        row(&mut self.var_x, &src.var_x, j, i, n);
+        row(&mut self.dmean_x, &src.dmean_x, j, i, n * nd);
+        row(&mut self.dvar_x, &src.dvar_x, j, i, n * nd);
+        row(&mut self.mean_y, &src.mean_y, j, i, p);
+        row(&mut self.var_y, &src.var_y, j, i, p);
+        row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
+        row(&mut self.dvar_y, &src.dvar_y, j, i, p * nd);
+    }
+
     /// Fails unless every buffer has the size for k points (guards against a model that
     /// resized them wrongly).
     fn check_sizes(&self, k: usize, n: usize, m: usize, p: usize) -> Result<()> {
@@ -63,7 +95,11 @@ impl StageEval {
             && self.mean_y.len() == k * p
             && self.var_y.len() == k * p
             && self.dmean_y.len() == k * p * nd
-            && self.dvar_y.len() == k * p * nd;
+            && self.dvar_y.len() == k * p * nd
+            && self.mean_x_rounding.len() == n
+            && self.var_x_rounding.len() == n
+            && self.mean_y_rounding.len() == p
+            && self.var_y_rounding.len() == p;
         if ok {
             Ok(())
         } else {
@@ -85,6 +121,10 @@ pub trait StageModel {
 /// The learned model of GP-MHE: n independent GPs for f (regression targets x(t+1), or the
 /// increment x(t+1) − x(t) when `f_residual`, i.e. prior mean x) and p GPs for h, all on the
 /// inputs d = [x; u]. The variances are the GPs' latent variances (DESIGN.md §2).
+///
+/// The values at the points of the last evaluation are kept: a point given again with exactly
+/// the same coordinates is copied instead of recomputed. A moving-horizon window starts from the
+/// previous solution shifted by one step, so its first evaluation recomputes only the new point.
 #[derive(Debug, Clone)]
 pub struct GpStageModel {
     f: MultiGp,
@@ -93,6 +133,14 @@ pub struct GpStageModel {
     n: usize,
     m: usize,
     ws: GpWorkspace,
+    /// Points (k × nd) and values of the last evaluation.
+    last_d: Vec<f64>,
+    last: StageEval,
+    /// Scratch: the points not found in `last`, their values, and where each point comes from
+    /// (`Ok(i)`: point i of `last`; `Err(i)`: point i of `fresh`).
+    miss_d: Vec<f64>,
+    fresh: StageEval,
+    source: Vec<std::result::Result<usize, usize>>,
 }
 
 impl GpStageModel {
@@ -129,29 +177,30 @@ impl GpStageModel {
             n,
             m: dim_u,
             ws: GpWorkspace::default(),
+            last_d: Vec::new(),
+            last: StageEval::default(),
+            miss_d: Vec::new(),
+            fresh: StageEval::default(),
+            source: Vec::new(),
         })
     }
 
-    pub fn f_residual(&self) -> bool {
-        self.f_residual
+    /// Index of a point of the last evaluation equal to `dj` (trying `hint` first: a shifted
+    /// window finds point j of the new window at j + 1 of the old).
+    fn find_last(&self, dj: &[f64], hint: usize) -> Option<usize> {
+        let nd = dj.len();
+        let k_last = self.last_d.len() / nd;
+        let same = |i: usize| self.last_d[i * nd..(i + 1) * nd] == *dj;
+        if hint < k_last && same(hint) {
+            return Some(hint);
+        }
+        (0..k_last).find(|&i| same(i))
     }
-}
 
-impl StageModel for GpStageModel {
-    fn dim_x(&self) -> usize {
-        self.n
-    }
-    fn dim_u(&self) -> usize {
-        self.m
-    }
-    fn dim_y(&self) -> usize {
-        self.h.as_ref().map_or(0, |h| h.n_outputs())
-    }
-    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
-        let (n, m, p) = (self.n, self.m, self.dim_y());
-        let nd = n + m;
+    /// GP values at the k points `d` into `out` (already sized for k points).
+    fn predict(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, nd) = (self.n, self.n + self.m);
         let k = d.len() / nd;
-        out.resize(k, n, m, p);
         self.f.predict_with_gradients_into(
             d,
             &mut out.mean_x,
@@ -178,6 +227,79 @@ impl StageModel for GpStageModel {
                 &mut self.ws,
             )?;
         }
+        Ok(())
+    }
+
+    pub fn f_residual(&self) -> bool {
+        self.f_residual
+    }
+}
+
+impl StageModel for GpStageModel {
+    fn dim_x(&self) -> usize {
+        self.n
+    }
+    fn dim_u(&self) -> usize {
+        self.m
+    }
+    fn dim_y(&self) -> usize {
+        self.h.as_ref().map_or(0, |h| h.n_outputs())
+    }
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.dim_y());
+        let nd = n + m;
+        if d.len() % nd != 0 {
+            return Err(Error::invalid(
+                "d",
+                format!(
+                    "length {} is not a multiple of dim_x + dim_u = {nd}",
+                    d.len()
+                ),
+            ));
+        }
+        let k = d.len() / nd;
+        out.resize(k, n, m, p);
+        self.f
+            .rounding_into(&mut out.mean_x_rounding, &mut out.var_x_rounding);
+        if let Some(h) = &self.h {
+            h.rounding_into(&mut out.mean_y_rounding, &mut out.var_y_rounding);
+        }
+        self.source.clear();
+        self.miss_d.clear();
+        for (j, dj) in d.chunks_exact(nd).enumerate() {
+            match self.find_last(dj, j + 1) {
+                Some(i) => self.source.push(Ok(i)),
+                None => {
+                    self.source.push(Err(self.miss_d.len() / nd));
+                    self.miss_d.extend_from_slice(dj);
+                }
+            }
+        }
+        let misses = self.miss_d.len() / nd;
+        if misses == k {
+            self.predict(d, out)?;
+        } else {
+            if misses > 0 {
+                let (miss_d, mut fresh) = (
+                    std::mem::take(&mut self.miss_d),
+                    std::mem::take(&mut self.fresh),
+                );
+                fresh.resize(misses, n, m, p);
+                let r = self.predict(&miss_d, &mut fresh);
+                self.miss_d = miss_d;
+                self.fresh = fresh;
+                r?;
+            }
+            for j in 0..k {
+                match self.source[j] {
+                    Ok(i) => out.copy_point(j, &self.last, i, n, p, nd),
+                    Err(i) => out.copy_point(j, &self.fresh, i, n, p, nd),
+                }
+            }
+        }
+        self.last_d.clear();
+        self.last_d.extend_from_slice(d);
+        self.last.clone_from(out);
         Ok(())
     }
 }
@@ -390,6 +512,7 @@ impl WindowProblem {
         let WindowEval {
             stage: st,
             r: out_r,
+            dr: out_dr,
             node: out_node,
             process: out_process,
             ja: out_ja,
@@ -426,6 +549,11 @@ impl WindowProblem {
                     out_r[row] = res;
                     out_node[row] = i;
                     out_process[row] = false;
+                    out_dr[row] = residual_rounding(
+                        res,
+                        a * inv_sqrt * st.mean_y_rounding[kk],
+                        st.var_y_rounding[kk] / s,
+                    );
                     if want_jacobian {
                         let g = (i * p + kk) * nd;
                         for l in 0..n {
@@ -444,6 +572,11 @@ impl WindowProblem {
                     out_r[row] = res;
                     out_node[row] = i;
                     out_process[row] = true;
+                    out_dr[row] = residual_rounding(
+                        res,
+                        a * inv_sqrt * st.mean_x_rounding[kk],
+                        st.var_x_rounding[kk] / s,
+                    );
                     if want_jacobian {
                         let g = (i * n + kk) * nd;
                         for l in 0..n {
@@ -458,6 +591,13 @@ impl WindowProblem {
             }
         }
         debug_assert_eq!(row, rows);
+        out.noise = out
+            .r
+            .iter()
+            .zip(&out.dr)
+            .map(|(r, d)| (2.0 * r * d).powi(2))
+            .sum::<f64>()
+            .sqrt();
         if out.r.iter().any(|v| !v.is_finite()) {
             return Err(Error::numerical(
                 "window residuals are not finite (model returned NaN/inf)",
@@ -465,6 +605,14 @@ impl WindowProblem {
         }
         Ok(())
     }
+}
+
+/// Typical rounding error of a residual r = a (target − m) / √s from the rounding δr_m =
+/// a δm / √s it gets through the mean and the relative rounding δs/s of its variance s
+/// (∂r/∂s = −r / 2s), independent errors added in quadrature.
+#[inline]
+fn residual_rounding(r: f64, dr_mean: f64, ds_rel: f64) -> f64 {
+    dr_mean.hypot(0.5 * r * ds_rel)
 }
 
 /// Residuals and the block-banded Jacobian of one window evaluation. Row `k` belongs to node
@@ -483,6 +631,12 @@ pub struct WindowEval {
     /// Scratch reused between evaluations: the k×nd stage points and the model's values there.
     d: Vec<f64>,
     stage: StageEval,
+    /// Typical rounding error δr_k of each residual (see `residual_rounding`), from the model's
+    /// mean and variance rounding.
+    dr: Vec<f64>,
+    /// The typical rounding noise of J = Σ r_k²: √Σ_k (2 r_k δr_k)² (first order, independent
+    /// errors).
+    noise: f64,
 }
 
 impl WindowEval {
@@ -491,6 +645,8 @@ impl WindowEval {
         self.nodes = nodes;
         self.has_jacobian = want_jacobian;
         self.r.resize(rows, 0.0);
+        self.dr.clear();
+        self.dr.resize(rows, 0.0);
         self.node.resize(rows, 0);
         self.process.resize(rows, false);
         if want_jacobian {
@@ -503,6 +659,33 @@ impl WindowEval {
     /// The model's values at the window's stage points of the last evaluation.
     pub fn stage(&self) -> &StageEval {
         &self.stage
+    }
+
+    /// Estimated rounding noise of [`WindowEval::cost`] from the model's means and variances (0
+    /// for a model computed to full precision); see the field docs.
+    pub fn cost_noise(&self) -> f64 {
+        self.noise
+    }
+
+    /// Estimated rounding noise of the gradient 2Jᵀr (largest over the variables): the residual
+    /// rounding δr carried through the Jacobian, √Σ_k (2 J_kj δr_k)². Needs an evaluation with
+    /// the Jacobian (0 otherwise).
+    pub fn gradient_noise(&self) -> f64 {
+        if !self.has_jacobian {
+            return 0.0;
+        }
+        let n = self.n;
+        let mut sq = vec![0.0; self.nodes * n];
+        for (k, &d) in self.dr.iter().enumerate() {
+            let i = self.node[k];
+            for l in 0..n {
+                sq[i * n + l] += (2.0 * self.ja[k * n + l] * d).powi(2);
+                if self.process[k] {
+                    sq[(i + 1) * n + l] += (2.0 * self.jb[k * n + l] * d).powi(2);
+                }
+            }
+        }
+        sq.iter().fold(0.0f64, |a, &b| a.max(b)).sqrt()
     }
 
     /// ‖r‖².
@@ -823,7 +1006,36 @@ mod tests {
         assert!((b.mean_x[1] - a.mean_x[1] - 0.3).abs() < 1e-14);
         assert!((b.dmean_x[4] - a.dmean_x[4] - 1.0).abs() < 1e-14);
         assert_eq!(a.var_y, b.var_y);
-        assert!(GpStageModel::new(f.clone(), Some(h), 2, false).is_err());
+        assert!(GpStageModel::new(f.clone(), Some(h.clone()), 2, false).is_err());
+
+        // Values reused from the previous evaluation equal a fresh evaluation: a window shifted
+        // by one node (one new point), a point moved by 1e-15, and a repeated point.
+        for residual in [false, true] {
+            let fresh = GpStageModel::new(f.clone(), Some(h.clone()), 1, residual).unwrap();
+            let mut model = fresh.clone();
+            let d1: Vec<f64> = (0..6 * 3).map(|t| 0.05 * t as f64 - 0.2).collect();
+            let mut d2 = d1[3..].to_vec();
+            d2.extend_from_slice(&[0.5, 0.1, 0.0, d1[6], d1[7], d1[8]]);
+            d2[0] += 1e-15;
+            let (mut first, mut reused, mut direct) = Default::default();
+            model.evaluate(&d1, &mut first).unwrap();
+            model.evaluate(&d2, &mut reused).unwrap();
+            fresh.clone().evaluate(&d2, &mut direct).unwrap();
+            let close = |a: &[f64], b: &[f64]| {
+                a.len() == b.len()
+                    && a.iter()
+                        .zip(b)
+                        .all(|(u, v)| (u - v).abs() <= 1e-14 * (1.0 + v.abs()))
+            };
+            let (r, e): (&StageEval, &StageEval) = (&reused, &direct);
+            assert!(close(&r.mean_x, &e.mean_x) && close(&r.var_x, &e.var_x));
+            assert!(close(&r.dmean_x, &e.dmean_x) && close(&r.dvar_x, &e.dvar_x));
+            assert!(close(&r.mean_y, &e.mean_y) && close(&r.var_y, &e.var_y));
+            assert!(close(&r.dmean_y, &e.dmean_y) && close(&r.dvar_y, &e.dvar_y));
+            assert_eq!(r.mean_x_rounding, e.mean_x_rounding);
+            // The reused point really is the old one (bit-identical to the first evaluation).
+            assert_eq!(r.mean_x[2..4], first.mean_x[4..6]);
+        }
     }
 
     #[test]
