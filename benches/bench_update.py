@@ -3,7 +3,9 @@
     python benches/bench_update.py [--seed 0] [--steps 100] [--tc-steps 40] [--quick]
 
 1. The paper's size (batch reactor, n = 2, p = 1, M = 15, GPs on the 5 training trajectories:
-   150 points for the f-GPs, 155 for the h-GP): one run of `--steps` updates from the poor prior
+   150 points for the f-GPs, 155 for the h-GP, fitted with 3 restarts as in the demo; one row
+   also with the 2-restart fit, which on seed 0 lands on a worse, numerically noisy LML optimum
+   where the solver stops at the cost's noise floor): one run of `--steps` updates from the poor prior
    [0.1, 4.5] (transient included) per estimator; median and p95 of the time per update, and the
    ratio of the medians to filterpy's EKF (predict + update) measured in the same run.
    trust-constr (~0.5 s per step) runs only the first `--tc-steps` steps. The exact-model MHE
@@ -106,10 +108,17 @@ def main(argv=None):
     warnings.simplefilter("ignore")  # optimiser chatter; failed windows are counted instead
 
     t0 = time.perf_counter()
-    gp5 = LearnedModel.from_trajectories(*br.training_data(5, rng=rng), n_restarts=2,
-                                         random_state=args.seed)
+    data = br.training_data(5, rng=rng)
+    gp5 = LearnedModel.from_trajectories(*data, n_restarts=3, random_state=args.seed)
     print(f"GPs fitted on 5 trajectories in {time.perf_counter() - t0:.1f} s "
           f"(N = {gp5.f_gp._core_model.n_train} per f-GP, {gp5.h_gp._core_model.n_train} for h)")
+    # With 2 restarts the second f-GP's fit lands on a worse local optimum of the LML (on seed 0:
+    # sigma_f = 1000, length-scales (155, 1000), imitating a linear map) whose cost is only
+    # resolvable to ~1e-6 relative: the solver then stops at that noise floor.
+    gp5_2r = LearnedModel.from_trajectories(*data, n_restarts=2, random_state=args.seed)
+    for name, g in (("3 restarts", gp5), ("2 restarts", gp5_2r)):
+        print(f"  {name}: f-GP sigma_f {np.round(g.f_gp.sigma_f, 2)}, LML "
+              f"{np.round(g.f_gp.log_marginal_likelihood(), 1)}")
     known = KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
     known_vec = KnownModel(br.f_batch, br.h_batch, 2, 1, f_jacobian=br.f_jacobian_batch,
                            h_jacobian=br.h_jacobian_batch, vectorized=True)
@@ -124,10 +133,11 @@ def main(argv=None):
     runs["filterpy UKF (exact model)"] = timed_run(make_ukf(Q, R), y, steps)
     runs["GP-EKF (5 traj.)"] = timed_run(ekf_step(GPEKF(gp5, br.X_PRIOR0, np.eye(2), Q, R)),
                                          y, steps)
-    failed = {}
+    failed, nfev = {}, {}
     mhes = [
         ("GPMHE Rust gauss-newton", gp5, "gauss-newton", {}, steps),
         ("GPMHE Rust gauss-newton, gtol=1e-4", gp5, "gauss-newton", {"gtol": 1e-4}, steps),
+        ("GPMHE Rust gauss-newton, 2-restart GPs", gp5_2r, "gauss-newton", {}, steps),
         ("GPMHE least-squares (SciPy)", gp5, "least-squares", {}, steps),
         ("GPMHE trust-constr (SciPy)", gp5, "trust-constr", {}, tc_steps),
         ("exact-model MHE, Rust gauss-newton", known, "gauss-newton", {}, steps),
@@ -139,21 +149,27 @@ def main(argv=None):
         fails = []
         step = mhe_step(est)
 
-        def counted(yt, step=step, est=est, fails=fails):
+        evals = []
+
+        def counted(yt, step=step, est=est, fails=fails, evals=evals):
             out = step(yt)
             fails.append(not est.success)
+            evals.append(est.nfev)
             return out
         runs[name] = timed_run(counted, y, n_steps)
         failed[name] = sum(fails)
+        if solver == "gauss-newton":
+            nfev[name] = float(np.median(evals))
 
     ekf_med = np.median(runs["filterpy EKF (exact model)"][1])
     print(f"\n## Time per update, batch reactor from the poor prior ({steps} steps, seed "
           f"{args.seed}; trust-constr: first {tc_steps} steps)\n")
     print("| estimator                                      | median ms |   p95 ms | ×EKF med "
-          "| RMSE (failed windows)")
+          "| RMSE (failed windows) [median window evaluations]")
     print("|" + "-" * 48 + "|-----------|-----------|----------|-----")
     for name, (xs, ts) in runs.items():
         extra = f" {rmse(xs, x):.3f}" + (f" ({failed[name]})" if name in failed else "")
+        extra += f" [{nfev[name]:.0f} evaluations]" if name in nfev else ""
         row(name, ts, ekf_med, extra)
     gn, ls = np.median(runs["GPMHE Rust gauss-newton"][1]), np.median(
         runs["GPMHE least-squares (SciPy)"][1])
