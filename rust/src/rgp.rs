@@ -20,6 +20,9 @@ use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
 
+mod simd;
+use simd::{dot, symv_column};
+
 /// Largest relative jitter (times σ_K²) added to K's diagonal before giving up on its Cholesky.
 const MAX_REL_JITTER: f64 = 1e-6;
 
@@ -81,6 +84,8 @@ pub struct RgpBasis {
     chol: Mat<f64>,
     /// Its transpose Lᵀ, stored so that the back substitution runs over contiguous columns too.
     chol_t: Mat<f64>,
+    /// 1 / diag(L), for the substitutions.
+    inv_diag: Vec<f64>,
     jitter: f64,
     sigma_r2: f64,
     sigma_p2: f64,
@@ -196,6 +201,7 @@ impl RgpBasis {
             kernel,
             k,
             chol_t: chol.transpose().to_owned(),
+            inv_diag: (0..nb).map(|i| 1.0 / chol[(i, i)]).collect(),
             chol,
             jitter,
             sigma_r2: sigma_r * sigma_r,
@@ -284,9 +290,9 @@ impl RgpBasis {
                 s2 * (-0.5 * r2).exp()
             };
         }
-        forward_substitution(&self.chol, j);
+        forward_substitution(&self.chol, &self.inv_diag, j);
         let jkj = dot(j, j);
-        back_substitution(&self.chol_t, j);
+        back_substitution(&self.chol_t, &self.inv_diag, j);
         jkj
     }
 
@@ -318,26 +324,6 @@ impl RgpBasis {
     }
 }
 
-/// a · b with four independent partial sums (so that it vectorises).
-#[inline(always)]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..4 {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
-}
-
 /// y += α x.
 #[inline(always)]
 fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
@@ -346,59 +332,80 @@ fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
     }
 }
 
-/// y += α x and returns x · v, in one pass (one column of a symmetric matrix-vector product).
+/// y −= a₀ x₀, then −= a₁ x₁, −= a₂ x₂, −= a₃ x₃, in one pass over y (the four axpys of a block of
+/// four columns in a substitution, with the same operations in the same order per entry).
 #[inline(always)]
-fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
-    let n = y.len().min(x.len()).min(v.len());
-    let (y, x, v) = (&mut y[..n], &x[..n], &v[..n]);
-    let mut acc = [0.0; 4];
-    let m = n / 4 * 4;
-    for ((yc, xc), vc) in y[..m]
-        .chunks_exact_mut(4)
-        .zip(x[..m].chunks_exact(4))
-        .zip(v[..m].chunks_exact(4))
-    {
-        for l in 0..4 {
-            yc[l] += alpha * xc[l];
-            acc[l] += xc[l] * vc[l];
-        }
+fn sub4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
+    let n = y
+        .len()
+        .min(x[0].len())
+        .min(x[1].len())
+        .min(x[2].len())
+        .min(x[3].len());
+    let (x0, x1, x2, x3) = (&x[0][..n], &x[1][..n], &x[2][..n], &x[3][..n]);
+    for ((((yi, v0), v1), v2), v3) in y[..n].iter_mut().zip(x0).zip(x1).zip(x2).zip(x3) {
+        *yi = (((*yi - a[0] * v0) - a[1] * v1) - a[2] * v2) - a[3] * v3;
     }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for i in m..n {
-        y[i] += alpha * x[i];
-        s += x[i] * v[i];
-    }
-    s
 }
 
 // The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
 // right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
-// multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so the
-// column-oriented textbook loops (contiguous axpy / dot over the factor's columns) are used.
+// multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so
+// column-oriented loops are used: blocks of four columns, each solved in its own 4 × 4 triangle
+// and then subtracted from the rest of v in one pass (`sub4`). The diagonal is applied as a
+// multiplication by its precomputed reciprocal: a division's latency would otherwise dominate
+// the sequential part.
 
-/// Solves L v = b in place (L lower triangular, column-major).
+/// Solves L v = b in place (L lower triangular, column-major; `inv_diag` = 1 / diag(L)).
 #[inline(always)]
-fn forward_substitution(l: &Mat<f64>, v: &mut [f64]) {
-    for jj in 0..v.len() {
-        let col = l.col_as_slice(jj);
-        let vj = v[jj] / col[jj];
-        v[jj] = vj;
-        if vj != 0.0 {
-            axpy(&mut v[jj + 1..], -vj, &col[jj + 1..]);
+fn forward_substitution(l: &Mat<f64>, inv_diag: &[f64], v: &mut [f64]) {
+    let nb = v.len();
+    let mut j0 = 0;
+    while j0 < nb {
+        let j1 = (j0 + 4).min(nb);
+        for j in j0..j1 {
+            let vj = v[j] * inv_diag[j];
+            v[j] = vj;
+            let col = l.col_as_slice(j);
+            for s in j + 1..j1 {
+                v[s] -= vj * col[s];
+            }
         }
+        if j1 - j0 == 4 && j1 < nb {
+            let a = [v[j0], v[j0 + 1], v[j0 + 2], v[j0 + 3]];
+            if a != [0.0; 4] {
+                let c = |t: usize| &l.col_as_slice(j0 + t)[j1..];
+                sub4(&mut v[j1..], a, [c(0), c(1), c(2), c(3)]);
+            }
+        }
+        j0 = j1;
     }
 }
 
-/// Solves U v = b in place (U upper triangular, column-major), column by column (axpy form).
+/// Solves U v = b in place (U upper triangular, column-major; `inv_diag` = 1 / diag(U)), from the
+/// last column to the first.
 #[inline(always)]
-fn back_substitution(u: &Mat<f64>, v: &mut [f64]) {
-    for jj in (0..v.len()).rev() {
-        let col = u.col_as_slice(jj);
-        let vj = v[jj] / col[jj];
-        v[jj] = vj;
-        if vj != 0.0 {
-            axpy(&mut v[..jj], -vj, &col[..jj]);
+fn back_substitution(u: &Mat<f64>, inv_diag: &[f64], v: &mut [f64]) {
+    let mut j1 = v.len();
+    while j1 > 0 {
+        let j0 = j1.saturating_sub(4);
+        for j in (j0..j1).rev() {
+            let vj = v[j] * inv_diag[j];
+            v[j] = vj;
+            let col = u.col_as_slice(j);
+            for s in j0..j {
+                v[s] -= vj * col[s];
+            }
         }
+        if j1 - j0 == 4 && j0 > 0 {
+            let a = [v[j1 - 1], v[j1 - 2], v[j1 - 3], v[j1 - 4]];
+            if a != [0.0; 4] {
+                let c = |j: usize| &u.col_as_slice(j)[..j0];
+                let (head, _) = v.split_at_mut(j0);
+                sub4(head, a, [c(j1 - 1), c(j1 - 2), c(j1 - 3), c(j1 - 4)]);
+            }
+        }
+        j1 = j0;
     }
 }
 
@@ -408,13 +415,52 @@ fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     let mut s = 0.0;
     for (jj, vj) in v.iter().enumerate() {
         let col = c.col(jj);
-        let mut t = 0.0;
-        for (i, vi) in v.iter().enumerate() {
-            t += col[i] * vi;
-        }
+        let t = match col.try_as_col_major() {
+            Some(col) => dot(col.as_slice(), v),
+            None => (0..v.len()).map(|i| col[i] * v[i]).sum(),
+        };
         s += t * vj;
     }
     s
+}
+
+/// The lower Cholesky factor L (row-major, zero above the diagonal) of the symmetric p × p
+/// matrix `s` (row-major); false if `s` is not positive definite. The innovation covariance has a
+/// handful of rows: up to 8 a textbook loop (faer's setup would cost more than the arithmetic),
+/// beyond that faer's Cholesky.
+fn cholesky(s: &[f64], p: usize, l: &mut [f64]) -> bool {
+    if p > 8 {
+        let Ok(llt) = Llt::new(MatRef::from_row_major_slice(s, p, p), Side::Lower) else {
+            return false;
+        };
+        let lf = llt.L();
+        for i in 0..p {
+            for jj in 0..p {
+                l[i * p + jj] = if jj <= i { lf[(i, jj)] } else { 0.0 };
+            }
+        }
+        return true;
+    }
+    l[..p * p].fill(0.0);
+    for jj in 0..p {
+        let mut d = s[jj * p + jj];
+        for k in 0..jj {
+            d -= l[jj * p + k] * l[jj * p + k];
+        }
+        if !(d > 0.0 && d.is_finite()) {
+            return false;
+        }
+        let djj = d.sqrt();
+        l[jj * p + jj] = djj;
+        for i in jj + 1..p {
+            let mut v = s[i * p + jj];
+            for k in 0..jj {
+                v -= l[i * p + k] * l[jj * p + k];
+            }
+            l[i * p + jj] = v / djj;
+        }
+    }
+    true
 }
 
 /// C −= W Wᵀ (W: N × p, column-major) on the stored part of the augmented covariance (see
@@ -656,12 +702,16 @@ pub struct RgpEkf {
     /// μ_z^p per disturbance.
     mu_zp: Vec<f64>,
     inferred: bool,
-    /// Scratch: Ã's top rows times C (n × N, column-major); J C_z (q × N, row-major); T J
+    /// Scratch: Ã's top rows times C (n × N, row-major); J C_z (q × N, row-major); T J
     /// (n × q, row-major); C H̃ᵀ, then W (N × p, column-major).
     t: Vec<f64>,
     jc: Vec<f64>,
     tj: Vec<f64>,
     pht: Vec<f64>,
+    /// Scratch of the update: S (p × p), its Cholesky factor L_S (both row-major), L_S⁻¹ ν.
+    s_buf: Vec<f64>,
+    ls: Vec<f64>,
+    w: Vec<f64>,
     /// Last innovation, its covariance and log-likelihood.
     innovation: Vec<f64>,
     s: Mat<f64>,
@@ -728,6 +778,9 @@ impl RgpEkf {
             jc: vec![0.0; q * nt],
             tj: vec![0.0; n * q],
             pht: Vec::new(),
+            s_buf: Vec::new(),
+            ls: Vec::new(),
+            w: Vec::new(),
             innovation: Vec::new(),
             s: Mat::zeros(0, 0),
             log_likelihood: 0.0,
@@ -964,29 +1017,22 @@ impl RgpEkf {
                 }
             }
         }
-        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, column-major: t[c n + r])
-        // C[x, c] for c < n is stored in column c, for c ≥ n as C[c, x] in columns 0..n
-        for c in 0..n {
-            let cc = &self.cov.col_as_slice(c)[..n];
-            for r in 0..n {
-                self.t[c * n + r] = dot(&a[r * n..(r + 1) * n], cc);
-            }
-        }
-        self.t[n * n..].fill(0.0);
-        for k in 0..n {
-            let colk = self.cov.col_as_slice(k);
-            for (c, tc) in self.t.chunks_exact_mut(n).enumerate().skip(n) {
-                let v = colk[c];
-                for (r, t) in tc.iter_mut().enumerate() {
-                    *t += a[r * n + k] * v;
+        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, row-major: t[r N + c]). Row r
+        // is Σ_k A[r, k] C[:, k] + Σ_g e[r, g] jc[g, :]: axpys over the complete columns 0..n of C
+        // (C[x, c] = C[c, x] for every c, the state block being exactly symmetric).
+        for (r, row) in self.t.chunks_exact_mut(nt).enumerate() {
+            row.fill(0.0);
+            for k in 0..n {
+                let ark = a[r * n + k];
+                if ark != 0.0 {
+                    axpy(row, ark, self.cov.col_as_slice(k));
                 }
             }
-        }
-        if self.augmented {
-            for (c, tc) in self.t.chunks_exact_mut(n).enumerate() {
-                for (r, t) in tc.iter_mut().enumerate() {
-                    for g in 0..q {
-                        *t += e[r * q + g] * self.jc[g * nt + c];
+            if self.augmented {
+                for g in 0..q {
+                    let erg = e[r * q + g];
+                    if erg != 0.0 {
+                        axpy(row, erg, &self.jc[g * nt..(g + 1) * nt]);
                     }
                 }
             }
@@ -1000,11 +1046,8 @@ impl RgpEkf {
                     self.gps[g].basis.n_basis(),
                 );
                 for r in 0..n {
-                    let mut s = 0.0;
-                    for (b, jb) in self.j[jo..jo + nb].iter().enumerate() {
-                        s += self.t[(o + b) * n + r] * jb;
-                    }
-                    self.tj[r * q + g] = s;
+                    self.tj[r * q + g] =
+                        dot(&self.t[r * nt + o..r * nt + o + nb], &self.j[jo..jo + nb]);
                 }
             }
         }
@@ -1014,7 +1057,7 @@ impl RgpEkf {
             for r in c..n {
                 let mut s = 0.5 * (q_x[r * n + c] + q_x[c * n + r]);
                 for k in 0..n {
-                    s += self.t[k * n + r] * a[c * n + k];
+                    s += self.t[r * nt + k] * a[c * n + k];
                 }
                 for g in 0..q {
                     if self.augmented {
@@ -1029,10 +1072,8 @@ impl RgpEkf {
         if self.augmented {
             // C[z, x] = T[:, z]ᵀ (C[x, z] above the diagonal is not stored); C[z, z] += σ_p² I
             for r in 0..n {
-                let col = self.cov.col_as_slice_mut(r);
-                for (c, v) in col.iter_mut().enumerate().skip(n) {
-                    *v = self.t[c * n + r];
-                }
+                self.cov.col_as_slice_mut(r)[n..]
+                    .copy_from_slice(&self.t[r * nt + n..(r + 1) * nt]);
             }
             for g in 0..q {
                 let (o, nb, sp2) = (
@@ -1040,8 +1081,10 @@ impl RgpEkf {
                     self.gps[g].basis.n_basis(),
                     self.gps[g].basis.sigma_p2,
                 );
-                for i in o..o + nb {
-                    self.cov[(i, i)] += sp2;
+                if sp2 != 0.0 {
+                    for i in o..o + nb {
+                        self.cov.col_as_slice_mut(i)[i] += sp2;
+                    }
                 }
             }
         }
@@ -1085,41 +1128,53 @@ impl RgpEkf {
                 }
             }
         }
-        // S = H C[x, :] H̃ᵀ + R_x, exactly symmetric
-        let mut s = Mat::<f64>::zeros(p, p);
+        // S = H C[x, :] H̃ᵀ + R_x, exactly symmetric (row-major)
+        let s = &mut self.s_buf;
+        s.resize(p * p, 0.0);
         for i in 0..p {
             for jj in 0..=i {
                 let v = 0.5
                     * (dot(&h[i * n..(i + 1) * n], &self.pht[jj * nt..jj * nt + n])
                         + dot(&h[jj * n..(jj + 1) * n], &self.pht[i * nt..i * nt + n]))
                     + 0.5 * (r[i * p + jj] + r[jj * p + i]);
-                s[(i, jj)] = v;
-                s[(jj, i)] = v;
+                s[i * p + jj] = v;
+                s[jj * p + i] = v;
             }
         }
-        let llt = Llt::new(s.as_ref(), Side::Lower).map_err(|_| {
-            Error::numerical("the innovation covariance H P Hᵀ + R_x is not positive definite")
-        })?;
-        let ls = llt.L();
-        // W = C H̃ᵀ L_S⁻ᵀ, row by row in place (each row solves L_S wᵀ = row), w = L_S⁻¹ ν
-        for i in 0..nt {
-            for k in 0..p {
-                let mut v = self.pht[k * nt + i];
-                for m in 0..k {
-                    v -= ls[(k, m)] * self.pht[m * nt + i];
+        let ls = &mut self.ls;
+        ls.resize(p * p, 0.0);
+        if !cholesky(s, p, ls) {
+            return Err(Error::numerical(
+                "the innovation covariance H P Hᵀ + R_x is not positive definite",
+            ));
+        }
+        // W = C H̃ᵀ L_S⁻ᵀ, column by column in place (column k: (column k − Σ_{m<k} L_S[k, m]
+        // W[:, m]) / L_S[k, k]); w = L_S⁻¹ ν
+        for k in 0..p {
+            let (done, rest) = self.pht.split_at_mut(k * nt);
+            let col = &mut rest[..nt];
+            for m in 0..k {
+                let lkm = ls[k * p + m];
+                for (v, wm) in col.iter_mut().zip(&done[m * nt..(m + 1) * nt]) {
+                    *v -= lkm * wm;
                 }
-                self.pht[k * nt + i] = v / ls[(k, k)];
+            }
+            let d = ls[k * p + k];
+            for v in col.iter_mut() {
+                *v /= d;
             }
         }
-        let mut w = nu.to_vec();
+        let w = &mut self.w;
+        w.clear();
+        w.extend_from_slice(nu);
         for k in 0..p {
             let mut v = w[k];
             for m in 0..k {
-                v -= ls[(k, m)] * w[m];
+                v -= ls[k * p + m] * w[m];
             }
-            w[k] = v / ls[(k, k)];
+            w[k] = v / ls[k * p + k];
         }
-        let logdet: f64 = (0..p).map(|i| ls[(i, i)].ln()).sum::<f64>() * 2.0;
+        let logdet: f64 = (0..p).map(|i| ls[i * p + i].ln()).sum::<f64>() * 2.0;
         let mahal: f64 = w.iter().map(|v| v * v).sum();
         let rows = if learning || !self.augmented { nt } else { n };
         for (k, wk) in w.iter().enumerate() {
@@ -1129,7 +1184,14 @@ impl RgpEkf {
         rank_p_downdate(&mut self.cov, &self.pht, p, n, rows == nt);
         self.innovation.clear();
         self.innovation.extend_from_slice(nu);
-        self.s = s;
+        if self.s.nrows() != p {
+            self.s = Mat::zeros(p, p);
+        }
+        for i in 0..p {
+            for jj in 0..p {
+                self.s[(i, jj)] = self.s_buf[i * p + jj];
+            }
+        }
         self.log_likelihood =
             -0.5 * (mahal + logdet + p as f64 * (2.0 * std::f64::consts::PI).ln());
         Ok(self.log_likelihood)
@@ -1234,21 +1296,45 @@ mod tests {
         use faer::linalg::triangular_solve::{
             solve_lower_triangular_in_place, solve_upper_triangular_in_place,
         };
-        let b = RgpBasis::new(&[0.0], &[1.0], &[40], 2.0, 3.0, 0.0, 0.0).unwrap();
-        let rhs: Vec<f64> = (0..40).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
-        let (mut ours, mut theirs) = (rhs.clone(), rhs.clone());
-        forward_substitution(&b.chol, &mut ours);
-        let mut col = MatMut::from_column_major_slice_mut(&mut theirs, 40, 1);
-        solve_lower_triangular_in_place(b.chol.as_ref(), col.as_mut(), Par::Seq);
-        for (o, t) in ours.iter().zip(&theirs) {
-            assert!((o - t).abs() <= 1e-10 * (1.0 + t.abs()), "{o} vs {t}");
+        // sizes around and between the blocks of four columns
+        for nb in [2, 3, 4, 5, 7, 8, 9, 37, 40, 43] {
+            let b = RgpBasis::new(&[0.0], &[1.0], &[nb], 2.0, 0.5, 0.0, 0.0).unwrap();
+            let rhs: Vec<f64> = (0..nb).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+            let (mut ours, mut theirs) = (rhs.clone(), rhs.clone());
+            forward_substitution(&b.chol, &b.inv_diag, &mut ours);
+            let mut col = MatMut::from_column_major_slice_mut(&mut theirs, nb, 1);
+            solve_lower_triangular_in_place(b.chol.as_ref(), col.as_mut(), Par::Seq);
+            for (o, t) in ours.iter().zip(&theirs) {
+                assert!((o - t).abs() <= 1e-10 * (1.0 + t.abs()), "{nb}: {o} vs {t}");
+            }
+            let (mut ours, mut theirs) = (rhs.clone(), rhs);
+            back_substitution(&b.chol_t, &b.inv_diag, &mut ours);
+            let mut col = MatMut::from_column_major_slice_mut(&mut theirs, nb, 1);
+            solve_upper_triangular_in_place(b.chol.transpose(), col.as_mut(), Par::Seq);
+            for (o, t) in ours.iter().zip(&theirs) {
+                assert!((o - t).abs() <= 1e-8 * (1.0 + t.abs()), "{nb}: {o} vs {t}");
+            }
         }
-        let (mut ours, mut theirs) = (rhs.clone(), rhs);
-        back_substitution(&b.chol_t, &mut ours);
-        let mut col = MatMut::from_column_major_slice_mut(&mut theirs, 40, 1);
-        solve_upper_triangular_in_place(b.chol.transpose(), col.as_mut(), Par::Seq);
-        for (o, t) in ours.iter().zip(&theirs) {
-            assert!((o - t).abs() <= 1e-8 * (1.0 + t.abs()), "{o} vs {t}");
+    }
+
+    #[test]
+    fn small_cholesky_matches_faer_and_rejects_indefinite() {
+        for p in [1, 2, 3, 5, 8, 9, 12] {
+            let g = Mat::<f64>::from_fn(p, p, |i, j| ((i * 7 + j * 3) % 5) as f64 - 2.0);
+            let a = &g * g.transpose() + Mat::<f64>::identity(p, p);
+            let s: Vec<f64> = (0..p * p).map(|k| a[(k / p, k % p)]).collect();
+            let mut l = vec![f64::NAN; p * p];
+            assert!(cholesky(&s, p, &mut l));
+            let want = Llt::new(a.as_ref(), Side::Lower).unwrap();
+            for i in 0..p {
+                for jj in 0..p {
+                    let w = if jj <= i { want.L()[(i, jj)] } else { 0.0 };
+                    assert!((l[i * p + jj] - w).abs() < 1e-12, "p = {p}");
+                }
+            }
+            let mut bad = s.clone();
+            bad[p * p - 1] = -1.0;
+            assert!(!cholesky(&bad, p, &mut l), "p = {p}");
         }
     }
 
