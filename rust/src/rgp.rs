@@ -21,10 +21,19 @@ use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
 
 mod simd;
-use simd::{dot, symv_column};
+use simd::{dot, dot4, symv_column};
 
 /// Largest relative jitter (times σ_K²) added to K's diagonal before giving up on its Cholesky.
 const MAX_REL_JITTER: f64 = 1e-6;
+
+/// Magnitudes below this, relative to their scale (σ_K² for K and k(x, X), σ_K for K's factor L
+/// and for L⁻¹ k(X, x), 1 for J), are set to 0. Far from the diagonal K and L decay like the
+/// kernel, and far from the input so do k(x, X) and the solves; products of such numbers fall
+/// below the normal range (2.2e-308), and every operation producing or reading a subnormal number
+/// costs a microcode assist (~100 times a normal one): it made some steps 1.5 times slower. Numbers
+/// this small are more than 120 orders of magnitude below rounding error, and products of two of
+/// them stay normal for σ_K above 1e-14.
+const TINY_REL: f64 = 1e-140;
 
 /// Runs `self.method(args)` compiled for AVX2 when the CPU has it (detected at run time, cached by
 /// std), else the baseline (SSE2) build a portable wheel is compiled for. The per-step loops are
@@ -82,8 +91,6 @@ pub struct RgpBasis {
     k: Mat<f64>,
     /// Lower Cholesky factor of K + jitter·I.
     chol: Mat<f64>,
-    /// Its transpose Lᵀ, stored so that the back substitution runs over contiguous columns too.
-    chol_t: Mat<f64>,
     /// 1 / diag(L), for the substitutions.
     inv_diag: Vec<f64>,
     jitter: f64,
@@ -154,8 +161,15 @@ impl RgpBasis {
                 rest /= n_points[i];
             }
         }
-        let k = kernel.gram(&basis);
+        let mut k = kernel.gram(&basis);
         let s2 = kernel.variance();
+        for c in 0..nb {
+            for v in k.col_as_slice_mut(c) {
+                if v.abs() < TINY_REL * s2 {
+                    *v = 0.0;
+                }
+            }
+        }
         let mut jitter = 0.0;
         let chol = loop {
             let mut kj = k.clone();
@@ -164,11 +178,8 @@ impl RgpBasis {
             }
             if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
                 let mut l = llt.L().to_owned();
-                // Far from the diagonal the factor of a squared-exponential K decays like the
-                // kernel, down to subnormal numbers, and every product with those (in each
-                // step's triangular solves) is ~100 times slower than normal arithmetic. Entries
-                // below 1e-250 σ_K contribute nothing above rounding error; they are set to 0.
-                let tiny = 1e-250 * s2.sqrt();
+                // see TINY_REL
+                let tiny = TINY_REL * s2.sqrt();
                 for c in 0..nb {
                     for v in l.col_as_slice_mut(c) {
                         if v.abs() < tiny {
@@ -200,7 +211,6 @@ impl RgpBasis {
             basis,
             kernel,
             k,
-            chol_t: chol.transpose().to_owned(),
             inv_diag: (0..nb).map(|i| 1.0 / chol[(i, i)]).collect(),
             chol,
             jitter,
@@ -277,22 +287,22 @@ impl RgpBasis {
         {
             *x = (z - lo) * sc;
         }
-        // k(x, X); values below e^-575 σ_K² ≈ 1e-250 σ_K² are set to 0 without calling exp (as in
-        // K's factor: nothing above rounding error, and no slow subnormal arithmetic)
+        // k(x, X); values below e^-322 σ_K² ≈ 1e-140 σ_K² are set to 0 without calling exp (see
+        // TINY_REL)
         let s2 = self.kernel.variance();
         for (b, jb) in j.iter_mut().enumerate() {
             let r2 = self
                 .kernel
                 .scaled_sq_dist(&self.xk, &self.basis[b * nx..(b + 1) * nx]);
-            *jb = if r2 > 1150.0 {
+            *jb = if r2 > 644.0 {
                 0.0
             } else {
                 s2 * (-0.5 * r2).exp()
             };
         }
-        forward_substitution(&self.chol, &self.inv_diag, j);
+        forward_substitution(&self.chol, &self.inv_diag, TINY_REL * s2.sqrt(), j);
         let jkj = dot(j, j);
-        back_substitution(&self.chol_t, &self.inv_diag, j);
+        back_substitution(&self.chol, &self.inv_diag, TINY_REL, j);
         jkj
     }
 
@@ -351,20 +361,24 @@ fn sub4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
 // The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
 // right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
 // multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so
-// column-oriented loops are used: blocks of four columns, each solved in its own 4 × 4 triangle
-// and then subtracted from the rest of v in one pass (`sub4`). The diagonal is applied as a
-// multiplication by its precomputed reciprocal: a division's latency would otherwise dominate
-// the sequential part.
+// both work on blocks of four columns of L (the forward one subtracts a solved block from the
+// rest of v in one pass, `sub4`; the backward one takes four dot products in one pass, `dot4`).
+// The diagonal is applied as a multiplication by its precomputed reciprocal: a division's
+// latency would otherwise dominate the sequential part.
 
-/// Solves L v = b in place (L lower triangular, column-major; `inv_diag` = 1 / diag(L)).
+/// Solves L v = b in place (L lower triangular, column-major; `inv_diag` = 1 / diag(L)); entries
+/// of v below `tiny` in magnitude are set to 0 (see TINY_REL).
 #[inline(always)]
-fn forward_substitution(l: &Mat<f64>, inv_diag: &[f64], v: &mut [f64]) {
+fn forward_substitution(l: &Mat<f64>, inv_diag: &[f64], tiny: f64, v: &mut [f64]) {
     let nb = v.len();
     let mut j0 = 0;
     while j0 < nb {
         let j1 = (j0 + 4).min(nb);
         for j in j0..j1 {
-            let vj = v[j] * inv_diag[j];
+            let mut vj = v[j] * inv_diag[j];
+            if vj.abs() < tiny {
+                vj = 0.0;
+            }
             v[j] = vj;
             let col = l.col_as_slice(j);
             for s in j + 1..j1 {
@@ -382,30 +396,37 @@ fn forward_substitution(l: &Mat<f64>, inv_diag: &[f64], v: &mut [f64]) {
     }
 }
 
-/// Solves U v = b in place (U upper triangular, column-major; `inv_diag` = 1 / diag(U)), from the
-/// last column to the first.
+/// Solves Lᵀ v = b in place with the same lower factor L (column-major; `inv_diag` = 1 / diag(L))
+/// in dot form, from the last row to the first: v_i = (b_i − L[i+1.., i] · v[i+1..]) / L_ii, four
+/// rows at a time (their dots with the already solved part in one pass, `dot4`). Reading L's
+/// columns again, still in cache from the forward substitution, instead of a stored Lᵀ halves the
+/// memory a step streams through. Entries of v below `tiny` in magnitude are set to 0.
 #[inline(always)]
-fn back_substitution(u: &Mat<f64>, inv_diag: &[f64], v: &mut [f64]) {
-    let mut j1 = v.len();
-    while j1 > 0 {
-        let j0 = j1.saturating_sub(4);
-        for j in (j0..j1).rev() {
-            let vj = v[j] * inv_diag[j];
-            v[j] = vj;
-            let col = u.col_as_slice(j);
-            for s in j0..j {
-                v[s] -= vj * col[s];
+fn back_substitution(l: &Mat<f64>, inv_diag: &[f64], tiny: f64, v: &mut [f64]) {
+    let nb = v.len();
+    let mut i1 = nb;
+    while i1 > 0 {
+        let i0 = i1.saturating_sub(4);
+        let d = if i1 - i0 == 4 && i1 < nb {
+            let c = |t: usize| &l.col_as_slice(i0 + t)[i1..];
+            dot4([c(0), c(1), c(2), c(3)], &v[i1..])
+        } else {
+            let mut d = [0.0; 4];
+            for (t, dt) in d.iter_mut().enumerate().take(i1 - i0) {
+                *dt = dot(&l.col_as_slice(i0 + t)[i1..], &v[i1..]);
             }
-        }
-        if j1 - j0 == 4 && j0 > 0 {
-            let a = [v[j1 - 1], v[j1 - 2], v[j1 - 3], v[j1 - 4]];
-            if a != [0.0; 4] {
-                let c = |j: usize| &u.col_as_slice(j)[..j0];
-                let (head, _) = v.split_at_mut(j0);
-                sub4(head, a, [c(j1 - 1), c(j1 - 2), c(j1 - 3), c(j1 - 4)]);
+            d
+        };
+        for i in (i0..i1).rev() {
+            let col = l.col_as_slice(i);
+            let mut s = v[i] - d[i - i0];
+            for jj in i + 1..i1 {
+                s -= col[jj] * v[jj];
             }
+            let vi = s * inv_diag[i];
+            v[i] = if vi.abs() < tiny { 0.0 } else { vi };
         }
-        j1 = j0;
+        i1 = i0;
     }
 }
 
@@ -1301,14 +1322,14 @@ mod tests {
             let b = RgpBasis::new(&[0.0], &[1.0], &[nb], 2.0, 0.5, 0.0, 0.0).unwrap();
             let rhs: Vec<f64> = (0..nb).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
             let (mut ours, mut theirs) = (rhs.clone(), rhs.clone());
-            forward_substitution(&b.chol, &b.inv_diag, &mut ours);
+            forward_substitution(&b.chol, &b.inv_diag, 0.0, &mut ours);
             let mut col = MatMut::from_column_major_slice_mut(&mut theirs, nb, 1);
             solve_lower_triangular_in_place(b.chol.as_ref(), col.as_mut(), Par::Seq);
             for (o, t) in ours.iter().zip(&theirs) {
                 assert!((o - t).abs() <= 1e-10 * (1.0 + t.abs()), "{nb}: {o} vs {t}");
             }
             let (mut ours, mut theirs) = (rhs.clone(), rhs);
-            back_substitution(&b.chol_t, &b.inv_diag, &mut ours);
+            back_substitution(&b.chol, &b.inv_diag, 0.0, &mut ours);
             let mut col = MatMut::from_column_major_slice_mut(&mut theirs, nb, 1);
             solve_upper_triangular_in_place(b.chol.transpose(), col.as_mut(), Par::Seq);
             for (o, t) in ours.iter().zip(&theirs) {
