@@ -130,10 +130,11 @@ def test_exact_at_basis_vectors_equals_batch_gp():
     np.testing.assert_allclose(np.sqrt(np.diag(gp.cov)), std_b, rtol=1e-7, atol=1e-9)
 
 
-def test_rgpekf_reproduces_recursive_gp_section_3_5():
+@pytest.mark.parametrize("sigma_p", [0.02, 0.0])  # 0: RGPEKF stores the weights whitened
+def test_rgpekf_reproduces_recursive_gp_section_3_5(sigma_p):
     """Paper §3.5: with A = 0, f = z (the state is the GP output) and H = 1, RGPEKF is RGP."""
     rng = np.random.default_rng(4)
-    gp = RecursiveGP(-2.0, 2.0, 15, sigma_K=2.0, L=2.0, sigma_r=0.05, sigma_p=0.02)
+    gp = RecursiveGP(-2.0, 2.0, 15, sigma_K=2.0, L=2.0, sigma_r=0.05, sigma_p=sigma_p)
     var_y = 0.1**2
     ekf = RGPEKF(1, f=lambda x, u, z: np.array([z]), A=[[0.0]], e=[1.0], h=lambda x: x, H=[[1.0]],
                  Q_x=0.0, R_x=var_y, x0=[0.0], P0=1.0, gps=gp)

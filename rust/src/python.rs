@@ -1146,7 +1146,7 @@ impl RgpEkfCore {
 
     /// A fresh array of the current state x (the user's functions may keep it).
     fn x_array<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()])
+        PyArray1::from_slice(py, self.inner.x())
     }
 }
 
@@ -1373,12 +1373,12 @@ impl RgpEkfCore {
             )));
         }
         let (m, c) = self.inner.gp_weights(index);
-        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c.as_ref())?))
+        Ok((PyArray1::from_vec(py, m), mat_to_array2(py, c.as_ref())?))
     }
 
     #[getter]
     fn x<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()])
+        PyArray1::from_slice(py, self.inner.x())
     }
 
     #[getter(P)]
@@ -1389,7 +1389,7 @@ impl RgpEkfCore {
 
     #[getter]
     fn mu<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.mu())
+        PyArray1::from_vec(py, self.inner.mu())
     }
 
     #[getter(C)]

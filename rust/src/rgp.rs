@@ -277,6 +277,16 @@ impl RgpBasis {
     /// already validated) and returns J_k K J_kᵀ = ‖L⁻¹ k(X, X_k)‖².
     #[inline(always)]
     pub fn infer(&mut self, zeta: &[f64], j: &mut [f64]) -> f64 {
+        let jkj = self.infer_whitened(zeta, j);
+        back_substitution(&self.chol, &self.inv_diag, TINY_REL, j);
+        jkj
+    }
+
+    /// The whitened inference row v = L⁻¹ k(X, X_k) (J_k = vᵀ L⁻¹, so J_k w = v · L⁻¹w for weights
+    /// w, and J_k C Jᵀ = vᵀ L⁻¹ C L⁻ᵀ v) into `v` (length n_b); returns J_k K J_kᵀ = ‖v‖². One
+    /// triangular solve instead of two.
+    #[inline(always)]
+    pub fn infer_whitened(&mut self, zeta: &[f64], j: &mut [f64]) -> f64 {
         let nx = self.dim();
         for (((x, z), lo), sc) in self
             .xk
@@ -301,9 +311,32 @@ impl RgpBasis {
             };
         }
         forward_substitution(&self.chol, &self.inv_diag, TINY_REL * s2.sqrt(), j);
-        let jkj = dot(j, j);
-        back_substitution(&self.chol, &self.inv_diag, TINY_REL, j);
-        jkj
+        dot(j, j)
+    }
+
+    /// L⁻¹ m in place (weights to whitened coordinates).
+    fn whiten(&self, m: &mut [f64]) {
+        forward_substitution(&self.chol, &self.inv_diag, 0.0, m);
+    }
+
+    /// L u (whitened coordinates to weights).
+    fn unwhiten(&self, u: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; u.len()];
+        for (jj, uj) in u.iter().enumerate() {
+            axpy(&mut out[jj..], *uj, &self.chol.col_as_slice(jj)[jj..]);
+        }
+        out
+    }
+
+    /// L⁻¹ C L⁻ᵀ for a symmetric C (weights' covariance to whitened coordinates), symmetric.
+    fn whiten_cov(&self, c: MatRef<'_, f64>) -> Mat<f64> {
+        use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+        let mut m = c.to_owned();
+        solve_lower_triangular_in_place(self.chol.as_ref(), m.as_mut(), Par::Seq);
+        let mut m = m.transpose().to_owned();
+        solve_lower_triangular_in_place(self.chol.as_ref(), m.as_mut(), Par::Seq);
+        let n = m.nrows();
+        Mat::from_fn(n, n, |i, jj| 0.5 * (m[(i, jj)] + m[(jj, i)]))
     }
 
     /// Checks one input ζ.
@@ -313,11 +346,14 @@ impl RgpBasis {
     }
 
     /// Mean and variance (σ_r² floor included) of the GP with weights (`mean`, `cov`) at the
-    /// row-major inputs `zetas`; `j` is scratch of length n_b.
+    /// row-major inputs `zetas`; `j` is scratch of length n_b. With `whitened`, `mean` and `cov`
+    /// are in whitened coordinates (L⁻¹ w, L⁻¹ C L⁻ᵀ).
+    #[allow(clippy::too_many_arguments)]
     fn predict_with(
         &mut self,
         mean: &[f64],
         cov: MatRef<'_, f64>,
+        whitened: bool,
         zetas: &[f64],
         j: &mut [f64],
         mean_out: &mut [f64],
@@ -326,7 +362,11 @@ impl RgpBasis {
         let nx = self.dim();
         let s2 = self.sigma_k2();
         for (q, z) in zetas.chunks_exact(nx).enumerate() {
-            let jkj = self.infer(z, j);
+            let jkj = if whitened {
+                self.infer_whitened(z, j)
+            } else {
+                self.infer(z, j)
+            };
             mean_out[q] = dot(j, mean);
             let jcj = quad_form(cov, j);
             var_out[q] = (s2 - jkj).max(0.0) + jcj.max(0.0) + self.sigma_r2;
@@ -606,7 +646,7 @@ impl Rgp {
             j,
             ..
         } = self;
-        basis.predict_with(mean, cov.as_ref(), zetas, j, &mut mu, &mut var);
+        basis.predict_with(mean, cov.as_ref(), false, zetas, j, &mut mu, &mut var);
         Ok((mu, var))
     }
 
@@ -701,6 +741,15 @@ impl Rgp {
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
 /// pure-prediction mode, an EKF on x with the (fixed) GPs as noisy inputs.
 ///
+/// Whitened weights: in augmented mode the block of a GP without process noise (σ_p = 0, the
+/// paper's setting) holds u = L⁻¹ μ_z (L the Cholesky factor of that GP's K), with covariance
+/// blocks L⁻¹ C_zz L⁻ᵀ and C_xz L⁻ᵀ. The filter is linear in the weights, so this is an exact
+/// change of coordinates, and J_k μ_z = v · u with v = L⁻¹ k(X, X_k): the step needs one
+/// triangular solve instead of two, and (12)–(19) hold with J_k replaced by vᵀ. [`Self::mu`],
+/// [`Self::cov`], [`Self::gp_weights`] map back to the weights (L u, L C_u Lᵀ); a fresh GP starts
+/// from u = 0, C_u = L⁻¹ K L⁻ᵀ = I. With σ_p > 0 the block stays in the weights' coordinates:
+/// σ_p² I would become the dense σ_p² K⁻¹ there.
+///
 /// Storage of the symmetric covariance C: the per-step kernels keep only its lower triangle and
 /// the complete first n columns (the state block and C[z, x]) up to date, which halves the work of
 /// the rank-p update and of J C_z; the entries above the diagonal right of column n are stale.
@@ -711,6 +760,8 @@ pub struct RgpEkf {
     gps: Vec<Rgp>,
     /// Start of each GP's weight block in μ (augmented mode).
     offsets: Vec<usize>,
+    /// Whether each GP's block is stored whitened (augmented and σ_p = 0; see the struct's doc).
+    whitened: Vec<bool>,
     augmented: bool,
     nt: usize,
     mu: Vec<f64>,
@@ -774,18 +825,28 @@ impl RgpEkf {
                 cov[(i, jj)] = 0.5 * (p0[i * n + jj] + p0[jj * n + i]);
             }
         }
+        let whitened: Vec<bool> = gps
+            .iter()
+            .map(|g| augmented && g.basis.sigma_p2 == 0.0)
+            .collect();
         if augmented {
-            for (g, &o) in gps.iter().zip(&offsets) {
+            for ((g, &o), &w) in gps.iter().zip(&offsets).zip(&whitened) {
                 let nb = g.basis.n_basis();
-                mu[o..o + nb].copy_from_slice(&g.mean);
-                cov.as_mut()
-                    .submatrix_mut(o, o, nb, nb)
-                    .copy_from(g.cov.as_ref());
+                let mut u = g.mean.clone();
+                let mut block = cov.as_mut().submatrix_mut(o, o, nb, nb);
+                if w {
+                    g.basis.whiten(&mut u);
+                    block.copy_from(g.basis.whiten_cov(g.cov.as_ref()));
+                } else {
+                    block.copy_from(g.cov.as_ref());
+                }
+                mu[o..o + nb].copy_from_slice(&u);
             }
         }
         Ok(Self {
             n,
             offsets,
+            whitened,
             augmented,
             nt,
             mu,
@@ -871,13 +932,68 @@ impl RgpEkf {
         &self.mu_zp
     }
 
-    pub fn mu(&self) -> &[f64] {
-        &self.mu
+    /// The state estimate x (the first n entries of μ).
+    pub fn x(&self) -> &[f64] {
+        &self.mu[..self.n]
     }
 
-    /// The augmented covariance C (a symmetric copy of the stored part).
+    /// The augmented mean μ = [x; μ_z1; …] (the weights mapped back from whitened coordinates).
+    pub fn mu(&self) -> Vec<f64> {
+        let mut mu = self.mu.clone();
+        for ((g, &o), _) in self
+            .gps
+            .iter()
+            .zip(&self.offsets)
+            .zip(&self.whitened)
+            .filter(|x| *x.1)
+        {
+            {
+                let nb = g.basis.n_basis();
+                let w = g.basis.unwhiten(&self.mu[o..o + nb]);
+                mu[o..o + nb].copy_from_slice(&w);
+            }
+        }
+        mu
+    }
+
+    /// The augmented covariance C, in the weights' coordinates: T C_stored Tᵀ with
+    /// T = blockdiag(I, L_1, …), exactly symmetric.
     pub fn cov(&self) -> Mat<f64> {
-        symmetric_from_lower(self.cov.as_ref())
+        let mut c = symmetric_from_lower(self.cov.as_ref());
+        let nt = self.nt;
+        for ((g, &o), _) in self
+            .gps
+            .iter()
+            .zip(&self.offsets)
+            .zip(&self.whitened)
+            .filter(|x| *x.1)
+        {
+            {
+                let nb = g.basis.n_basis();
+                let l = g.basis.chol.as_ref();
+                let mut rows = Mat::<f64>::zeros(nb, nt);
+                matmul(
+                    rows.as_mut(),
+                    Accum::Replace,
+                    l,
+                    c.as_ref().submatrix(o, 0, nb, nt),
+                    1.0,
+                    Par::Seq,
+                );
+                c.as_mut().submatrix_mut(o, 0, nb, nt).copy_from(&rows);
+                let mut cols = Mat::<f64>::zeros(nt, nb);
+                matmul(
+                    cols.as_mut(),
+                    Accum::Replace,
+                    c.as_ref().submatrix(0, o, nt, nb),
+                    l.transpose(),
+                    1.0,
+                    Par::Seq,
+                );
+                c.as_mut().submatrix_mut(0, o, nt, nb).copy_from(&cols);
+            }
+        }
+        symmetric_from_lower(c.as_ref())
     }
 
     pub fn innovation(&self) -> &[f64] {
@@ -892,16 +1008,26 @@ impl RgpEkf {
         self.log_likelihood
     }
 
-    /// Weights' mean and covariance of GP `g` (the state block, or the fixed GP in pure mode).
-    pub fn gp_weights(&self, g: usize) -> (&[f64], Mat<f64>) {
-        if self.augmented {
-            let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+    /// Weights' mean and covariance of GP `g` (the state block mapped back from whitened
+    /// coordinates, L u and L C_u Lᵀ, or the fixed GP in pure mode).
+    pub fn gp_weights(&self, g: usize) -> (Vec<f64>, Mat<f64>) {
+        let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+        if self.augmented && !self.whitened[g] {
             (
-                &self.mu[o..o + nb],
+                self.mu[o..o + nb].to_vec(),
                 symmetric_from_lower(self.cov.as_ref().submatrix(o, o, nb, nb)),
             )
+        } else if self.augmented {
+            let basis = &self.gps[g].basis;
+            let cu = symmetric_from_lower(self.cov.as_ref().submatrix(o, o, nb, nb));
+            let l = basis.chol.as_ref();
+            let c = l * cu * l.transpose();
+            (
+                basis.unwhiten(&self.mu[o..o + nb]),
+                symmetric_from_lower(c.as_ref()),
+            )
         } else {
-            (&self.gps[g].mean, self.gps[g].cov.clone())
+            (self.gps[g].mean.clone(), self.gps[g].cov.clone())
         }
     }
 
@@ -919,6 +1045,7 @@ impl RgpEkf {
         let m = self.gps[g].basis.count_inputs(zetas)?;
         let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
         let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+        let whitened = self.whitened[g];
         let Self {
             gps,
             mu: state,
@@ -930,6 +1057,7 @@ impl RgpEkf {
         gp.basis.predict_with(
             &state[o..o + nb],
             cz.as_ref(),
+            whitened,
             zetas,
             &mut gp.j,
             &mut mu,
@@ -963,7 +1091,13 @@ impl RgpEkf {
             );
             let j = &mut self.j[jo..jo + nb];
             let gp = &mut self.gps[g];
-            let jkj = gp.basis.infer(&zetas[zo..zo + nx], j);
+            // augmented: the weights are stored whitened, so J_k μ_z = v · u and one triangular
+            // solve gives everything the step needs (see the struct's doc)
+            let jkj = if self.whitened[g] {
+                gp.basis.infer_whitened(&zetas[zo..zo + nx], j)
+            } else {
+                gp.basis.infer(&zetas[zo..zo + nx], j)
+            };
             zo += nx;
             let base = (gp.basis.sigma_k2() - jkj).max(0.0) + gp.basis.sigma_r2;
             if self.augmented {
@@ -1298,8 +1432,9 @@ mod tests {
         let a_rm: Vec<f64> = (0..n * n).map(|i| a[(i / n, i % n)]).collect();
         let q_rm: Vec<f64> = (0..n * n).map(|i| qx[(i / n, i % n)]).collect();
         ekf.predict(&[1.0, 2.0, 3.0], &a_rm, &e, &q_rm).unwrap();
+        // in the stored (whitened) coordinates, where J_k is the row v the step used
         let dense = dense_prediction(&c0, &a, &e, &j, d, &qx, 0.05 * 0.05);
-        let cov = ekf.cov();
+        let cov = symmetric_from_lower(ekf.cov.as_ref());
         for r in 0..nt {
             for c in 0..nt {
                 assert!(
@@ -1309,6 +1444,34 @@ mod tests {
                     cov[(r, c)]
                 );
             }
+        }
+    }
+
+    #[test]
+    fn whitened_storage_maps_back_to_the_weights() {
+        // a trained GP without process noise is stored whitened; mu, cov and gp_weights return
+        // its weights, and a GP with σ_p > 0 is stored as is
+        for sp in [0.0, 0.05] {
+            let mut gp = Rgp::new(RgpBasis::new(&[-1.0], &[1.0], &[9], 1.5, 2.0, 0.1, sp).unwrap());
+            for k in 0..30 {
+                let z = (k as f64 * 0.377) % 2.0 - 1.0;
+                gp.update(&[z], (2.0 * z).sin(), 0.01).unwrap();
+            }
+            let ekf =
+                RgpEkf::new(&[0.5, -0.5], &[1.0, 0.2, 0.2, 2.0], vec![gp.clone()], true).unwrap();
+            assert_eq!(ekf.whitened[0], sp == 0.0);
+            let (m, c) = ekf.gp_weights(0);
+            let (mu, cov) = (ekf.mu(), ekf.cov());
+            for i in 0..9 {
+                assert!((m[i] - gp.mean()[i]).abs() < 1e-12);
+                assert!((mu[2 + i] - gp.mean()[i]).abs() < 1e-12);
+                for jj in 0..9 {
+                    assert!((c[(i, jj)] - gp.cov()[(i, jj)]).abs() < 1e-12);
+                    assert!((cov[(2 + i, 2 + jj)] - gp.cov()[(i, jj)]).abs() < 1e-12);
+                }
+                assert_eq!(cov[(2 + i, 0)], 0.0);
+            }
+            assert_eq!(cov[(0, 1)], 0.2);
         }
     }
 
