@@ -1083,18 +1083,43 @@ struct StepBuffers {
     r: Vec<f64>,
 }
 
-/// Python's repr of a shape tuple: (), (3,), (2, 2).
-fn shape_repr(shape: &[usize]) -> String {
-    match shape {
-        [d] => format!("({d},)"),
-        _ => format!(
-            "({})",
-            shape
-                .iter()
-                .map(|d| d.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
+/// The shape of a value read by [`read_f64`] (up to four dimensions kept; more only appear in
+/// error messages, as "…").
+#[derive(PartialEq)]
+struct Shape {
+    ndim: usize,
+    dims: [usize; 4],
+}
+
+impl Shape {
+    fn of(dims: &[usize]) -> Self {
+        let mut d = [0; 4];
+        for (o, v) in d.iter_mut().zip(dims) {
+            *o = *v;
+        }
+        Self {
+            ndim: dims.len(),
+            dims: d,
+        }
+    }
+
+    fn is(&self, dims: &[usize]) -> bool {
+        self.ndim == dims.len() && self.dims[..self.ndim.min(4)] == *dims
+    }
+
+    /// Python's repr of the shape tuple: (), (3,), (2, 2).
+    fn repr(&self) -> String {
+        let mut parts: Vec<String> = self.dims[..self.ndim.min(4)]
+            .iter()
+            .map(|d| d.to_string())
+            .collect();
+        if self.ndim > 4 {
+            parts.push("…".into());
+        }
+        match parts.len() {
+            1 => format!("({},)", parts[0]),
+            _ => format!("({})", parts.join(", ")),
+        }
     }
 }
 
@@ -1102,25 +1127,24 @@ fn shape_repr(shape: &[usize]) -> String {
 /// C-contiguous float64 arrays are read directly; anything else goes through
 /// `numpy.ascontiguousarray(obj, dtype=float64)` (lists, ints, other dtypes, column vectors
 /// from views). A `ValueError` naming `arg` if that fails.
-fn read_f64(arg: &str, obj: &Bound<'_, PyAny>, out: &mut Vec<f64>) -> PyResult<Vec<usize>> {
+fn read_f64(arg: &str, obj: &Bound<'_, PyAny>, out: &mut Vec<f64>) -> PyResult<Shape> {
     if let Ok(v) = obj.cast::<PyFloat>() {
         out.clear();
         out.push(v.value());
-        return Ok(Vec::new());
+        return Ok(Shape::of(&[]));
     }
-    let read =
-        |a: &Bound<'_, PyArrayDyn<f64>>, out: &mut Vec<f64>| -> PyResult<Option<Vec<usize>>> {
-            if !a.is_c_contiguous() {
-                return Ok(None);
-            }
-            // to_vec copies the data while the GIL is held and no Python code runs
-            *out = a
-                .to_vec()
-                .map_err(|e| PyValueError::new_err(format!("{arg}: {e}")))?;
-            Ok(Some(a.shape().to_vec()))
-        };
+    let read = |a: &Bound<'_, PyArrayDyn<f64>>, out: &mut Vec<f64>| -> Option<Shape> {
+        // SAFETY: the data are copied at once, with the GIL held and no Python code running in
+        // between (as `PyArrayMethods::to_vec` does), into a buffer that is reused every step.
+        let data = unsafe { a.as_slice() }
+            .ok()
+            .filter(|_| a.is_c_contiguous())?;
+        out.clear();
+        out.extend_from_slice(data);
+        Some(Shape::of(a.shape()))
+    };
     if let Ok(a) = obj.cast::<PyArrayDyn<f64>>() {
-        if let Some(shape) = read(a, out)? {
+        if let Some(shape) = read(a, out) {
             return Ok(shape);
         }
     }
@@ -1132,10 +1156,10 @@ fn read_f64(arg: &str, obj: &Bound<'_, PyAny>, out: &mut Vec<f64>) -> PyResult<V
         .getattr("ascontiguousarray")?
         .call((obj,), Some(&kwargs))
         .map_err(|e| PyValueError::new_err(format!("{arg}: must be numeric ({e})")))?;
-    let a = conv
-        .cast::<PyArrayDyn<f64>>()
-        .map_err(|_| PyValueError::new_err(format!("{arg}: must be numeric")))?;
-    read(a, out)?.ok_or_else(|| PyValueError::new_err(format!("{arg}: must be numeric")))
+    conv.cast::<PyArrayDyn<f64>>()
+        .ok()
+        .and_then(|a| read(a, out))
+        .ok_or_else(|| PyValueError::new_err(format!("{arg}: must be numeric")))
 }
 
 impl RgpEkfCore {
@@ -1225,15 +1249,15 @@ impl RgpEkfCore {
             return Err(PyValueError::new_err(format!(
                 "f: returned {} values (shape {}), expected {n}",
                 self.buf.x_pred.len(),
-                shape_repr(&shape)
+                shape.repr()
             )));
         }
         if let Some(a_fn) = a_fn {
             let shape = read_f64("A", &a_fn.call1((&x, u, &z))?, &mut self.buf.a)?;
-            if shape != [n, n] {
+            if !shape.is(&[n, n]) {
                 return Err(PyValueError::new_err(format!(
                     "A: returned shape {}, expected ({n}, {n})",
-                    shape_repr(&shape)
+                    shape.repr()
                 )));
             }
         }
@@ -1242,7 +1266,7 @@ impl RgpEkfCore {
             if self.buf.e.len() != n * q {
                 return Err(PyValueError::new_err(format!(
                     "e: returned shape {}, expected ({n}, {q})",
-                    shape_repr(&shape)
+                    shape.repr()
                 )));
             }
         }
@@ -1303,7 +1327,7 @@ impl RgpEkfCore {
             if self.buf.h.len() != p * n {
                 return Err(PyValueError::new_err(format!(
                     "H: shape {} does not match ({p}, {n})",
-                    shape_repr(&shape)
+                    shape.repr()
                 )));
             }
         }
@@ -1320,7 +1344,7 @@ impl RgpEkfCore {
         for (v, yi) in self.buf.hx.iter_mut().zip(&self.buf.y) {
             *v = yi - *v;
         }
-        if read_f64("R_x", r, &mut self.buf.r)?.is_empty() {
+        if read_f64("R_x", r, &mut self.buf.r)?.ndim == 0 {
             // a scalar: R_x I
             let rv = self.buf.r[0];
             self.buf.r.clear();
