@@ -312,6 +312,12 @@ class RGPEKF:
     z_pred : (q,) μ_z^p of the last ``predict``
     y : (p,) last innovation y − h(x⁻);  S : (p, p) its covariance
     log_likelihood : log N(y; h(x⁻), S) of the last update
+    f, h, Q_x, R_x : read at every step, so they can be reassigned between steps (Q_x and R_x
+        are then only checked for shape and finiteness)
+
+    Internally the weights of a GP with σ_p = 0 are kept whitened (L⁻¹ μ_z, with K = L Lᵀ), an
+    exact change of coordinates that saves one triangular solve per step; ``mu``, ``C`` and
+    ``gp_weights`` return them in the weights' coordinates.
     """
 
     def __init__(

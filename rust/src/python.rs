@@ -1407,8 +1407,7 @@ impl RgpEkfCore {
 
     #[getter(P)]
     fn p<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let n = self.inner.dim_x();
-        mat_to_array2(py, self.inner.cov().submatrix(0, 0, n, n))
+        mat_to_array2(py, self.inner.p())
     }
 
     #[getter]

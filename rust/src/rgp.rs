@@ -937,6 +937,11 @@ impl RgpEkf {
         &self.mu[..self.n]
     }
 
+    /// The state covariance P (the state block of C, stored complete and exactly symmetric).
+    pub fn p(&self) -> MatRef<'_, f64> {
+        self.cov.as_ref().submatrix(0, 0, self.n, self.n)
+    }
+
     /// The augmented mean μ = [x; μ_z1; …] (the weights mapped back from whitened coordinates).
     pub fn mu(&self) -> Vec<f64> {
         let mut mu = self.mu.clone();
