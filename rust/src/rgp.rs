@@ -4,14 +4,15 @@
 //!
 //! * [`RgpBasis`]: the fixed part of one RGP: basis vectors on a unit grid (eq. 5, 6), the kernel
 //!   σ_K² exp(−‖x − x'‖²/(2L)) as [`SeArd`] with all length-scales √L, and the Cholesky factor of
-//!   K = k(X, X), computed once. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step; K⁻¹ is
-//!   never formed.
+//!   K = k(X, X), computed once. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step (one
+//!   for the whitened weights of [`RgpEkf`]); K⁻¹ is never formed.
 //! * [`Rgp`]: Huber's recursive GP (inference eq. 3, update eq. 4 with process noise σ_p and the
 //!   prediction-variance floor σ_r²).
 //! * [`RgpEkf`]: the augmented mean μ = [x; μ_z1; …] and covariance C, the structured covariance
 //!   prediction (12)–(13) in O(N·(n² + n_b)) (N = n + Σ n_b), and the EKF update 4a (states and
 //!   weights) or 4b (states only, as a Schmidt "consider" update). In pure-prediction mode (§3.2)
 //!   the weights are not part of the state: the trained GPs enter as noisy inputs.
+//! * `simd`: the reductions of those kernels, with AVX2 chosen at run time.
 
 use faer::linalg::matmul::matmul;
 use faer::linalg::solvers::Llt;
