@@ -399,6 +399,22 @@ fn sub4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
     }
 }
 
+/// y += a₀ x₀, then += a₁ x₁, += a₂ x₂, += a₃ x₃, in one pass over y (four columns of a
+/// matrix-vector product, with the same operations in the same order per entry).
+#[inline(always)]
+fn add4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
+    let n = y
+        .len()
+        .min(x[0].len())
+        .min(x[1].len())
+        .min(x[2].len())
+        .min(x[3].len());
+    let (x0, x1, x2, x3) = (&x[0][..n], &x[1][..n], &x[2][..n], &x[3][..n]);
+    for ((((yi, v0), v1), v2), v3) in y[..n].iter_mut().zip(x0).zip(x1).zip(x2).zip(x3) {
+        *yi = (((*yi + a[0] * v0) + a[1] * v1) + a[2] * v2) + a[3] * v3;
+    }
+}
+
 // The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
 // right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
 // multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so
@@ -1162,7 +1178,29 @@ impl RgpEkf {
                     *v = dot(&self.cov.col_as_slice(i)[o..o + nb], jg);
                 }
                 out[o..].fill(0.0);
-                for (b, &jb) in jg.iter().enumerate() {
+                // four columns k..k+4 at a time: below their 4 × 4 diagonal block, out[i] +=
+                // Σ_t J_t C[i, k+t] in one pass (lower part) and out[k+t] += C[i, k+t] J_i in
+                // another (upper part of rows k..k+4, = columns by symmetry; four dots sharing J)
+                let mut b = 0;
+                while b + 4 <= nb {
+                    let k = o + b;
+                    let c = |t: usize| &self.cov.col_as_slice(k + t)[k + 4..o + nb];
+                    let a = [jg[b], jg[b + 1], jg[b + 2], jg[b + 3]];
+                    add4(&mut out[k + 4..o + nb], a, [c(0), c(1), c(2), c(3)]);
+                    let d = dot4([c(0), c(1), c(2), c(3)], &jg[b + 4..]);
+                    for t in 0..4 {
+                        let col = self.cov.col_as_slice(k + t);
+                        out[k + t] += a[t] * col[k + t];
+                        for s2 in t + 1..4 {
+                            out[k + s2] += a[t] * col[k + s2];
+                            out[k + t] += col[k + s2] * a[s2];
+                        }
+                        out[k + t] += d[t];
+                        axpy(&mut out[o + nb..], a[t], &col[o + nb..]);
+                    }
+                    b += 4;
+                }
+                for (b, &jb) in jg.iter().enumerate().skip(b) {
                     let k = o + b;
                     let col = self.cov.col_as_slice(k);
                     // one pass over column k below the diagonal: out[i] += J_b C[i, k] (lower
