@@ -463,7 +463,11 @@ def test_step_rejects_bad_inputs_and_results_and_keeps_state(kwargs, bad_step, a
 
 def test_reassigned_noise_covariances_take_effect():
     """Q_x and R_x are read at every step, as in filterpy."""
-    ekf = _linear_filter()
+    ekf = _linear_filter(H=lambda x: np.eye(2))  # p unknown until the first y: R_x stays a scalar
+    ekf.predict(None, 0.3)
+    P = ekf.P
+    ekf.update([0.1, 0.2])
+    np.testing.assert_allclose(ekf.S, P + 0.1 * np.eye(2), rtol=1e-12)
     ekf.predict(None, 0.3)
     P = ekf.P
     ekf.R_x = 2.5 * np.eye(2)
