@@ -130,10 +130,11 @@ def test_exact_at_basis_vectors_equals_batch_gp():
     np.testing.assert_allclose(np.sqrt(np.diag(gp.cov)), std_b, rtol=1e-7, atol=1e-9)
 
 
-def test_rgpekf_reproduces_recursive_gp_section_3_5():
+@pytest.mark.parametrize("sigma_p", [0.02, 0.0])  # 0: RGPEKF stores the weights whitened
+def test_rgpekf_reproduces_recursive_gp_section_3_5(sigma_p):
     """Paper §3.5: with A = 0, f = z (the state is the GP output) and H = 1, RGPEKF is RGP."""
     rng = np.random.default_rng(4)
-    gp = RecursiveGP(-2.0, 2.0, 15, sigma_K=2.0, L=2.0, sigma_r=0.05, sigma_p=0.02)
+    gp = RecursiveGP(-2.0, 2.0, 15, sigma_K=2.0, L=2.0, sigma_r=0.05, sigma_p=sigma_p)
     var_y = 0.1**2
     ekf = RGPEKF(1, f=lambda x, u, z: np.array([z]), A=[[0.0]], e=[1.0], h=lambda x: x, H=[[1.0]],
                  Q_x=0.0, R_x=var_y, x0=[0.0], P0=1.0, gps=gp)
@@ -377,3 +378,104 @@ def test_batch_update_equals_sequential_and_is_atomic():
     with pytest.raises(ValueError, match="zeta"):
         b.update(zs[:10], ys, 0.01)
     np.testing.assert_array_equal(b.mean, a.mean)
+
+
+def _linear_filter(f=None, A=None, e=None, h=None, H=None):
+    A0 = np.array([[1.0, 0.1], [-0.2, 0.9]])
+    e0 = np.array([0.0, 0.1])
+    return RGPEKF(2, f=f or (lambda x, u, z: A0 @ x + e0 * z), A=A0 if A is None else A,
+                  e=e0 if e is None else e, h=h or (lambda x: x), H=np.eye(2) if H is None else H,
+                  Q_x=1e-3, R_x=0.1, x0=[0.2, -0.1], P0=0.5,
+                  gps=RecursiveGP(-1, 1, 7, sigma_K=1.0, L=1.0, sigma_r=0.1))
+
+
+def test_step_reads_any_numeric_results_like_float64_arrays():
+    """The one-call steps read float64 arrays directly and convert anything else (lists, column
+    vectors, ints, non-contiguous arrays) as np.ascontiguousarray would: same filter either way."""
+    A0 = np.array([[1.0, 0.1], [-0.2, 0.9]])
+    e0 = np.array([0.0, 0.1])
+    ref = _linear_filter(h=lambda x: np.array([x[0], x[0]]),
+                         H=lambda x: np.array([[1.0, 0.0], [1.0, 0.0]]))
+    other = _linear_filter(
+        f=lambda x, u, z: (A0 @ x + e0 * z).reshape(2, 1).tolist(),  # nested list, a column
+        A=lambda x, u, z: np.asfortranarray(A0),  # not C-contiguous
+        e=lambda x, u, z: [[0], [0.1]],  # (n, 1) list with an int
+        h=lambda x: np.stack([x, x])[:, 0],  # a strided view
+        H=lambda x: np.array([[1, 0], [1, 0]]),  # int dtype
+    )
+    rng = np.random.default_rng(9)
+    for _ in range(5):
+        z, y = rng.uniform(-1, 1), rng.standard_normal(2)
+        ref.predict(None, z)
+        other.predict(None, np.float64(z))
+        ref.update(y)
+        other.update(list(y))
+        np.testing.assert_array_equal(other.mu, ref.mu)
+        np.testing.assert_array_equal(other.C, ref.C)
+    # a scalar measurement as a float when p = 1
+    one = RGPEKF(1, f=lambda x, u, z: x + z, A=[[1.0]], e=[1.0], h=lambda x: x[0], H=[[1.0]],
+                 Q_x=0.0, R_x=0.1, x0=[0.0], P0=1.0, gps=RecursiveGP(0, 1, 3))
+    one.predict(None, 0.5)
+    one.update(0.25)
+    np.testing.assert_array_equal(one.y, [0.25 - float(one.z_pred[0])])
+
+
+@pytest.mark.parametrize(
+    "kwargs, bad_step, arg",
+    [({"f": lambda x, u, z: "abc"}, "predict", "f"),
+     ({"f": lambda x, u, z: np.zeros(3)}, "predict", "f"),
+     ({"f": lambda x, u, z: np.array([np.inf, 0.0])}, "predict", "f"),
+     ({"A": lambda x, u, z: np.eye(3)}, "predict", "A"),
+     ({"A": lambda x, u, z: np.ones(4)}, "predict", "A"),
+     ({"e": lambda x, u, z: np.zeros(3)}, "predict", "e"),
+     ({"e": lambda x, u, z: [np.nan, 0.0]}, "predict", "e"),
+     ({}, "zeta-str", "zeta"),
+     ({"h": lambda x: x[:1]}, "update", "h"),
+     ({"h": lambda x: None}, "update", "h"),
+     ({"H": lambda x: np.eye(3)}, "update", "H"),
+     ({"H": lambda x: [[1.0, "a"], [0, 1]]}, "update", "H"),
+     ({}, "y-str", "y"),
+     ({}, "y-size", "y"),
+     ({}, "R-nan", "R_x")],
+)
+def test_step_rejects_bad_inputs_and_results_and_keeps_state(kwargs, bad_step, arg):
+    ekf = _linear_filter(**kwargs)
+    if bad_step != "predict":
+        ekf.predict(None, 0.3)
+    mu, C = ekf.mu, ekf.C
+    with pytest.raises(ValueError, match=arg):
+        if bad_step == "predict":
+            ekf.predict(None, 0.3)
+        elif bad_step == "zeta-str":
+            ekf.predict(None, "abc")
+        elif bad_step == "y-str":
+            ekf.update("ab")
+        elif bad_step == "y-size":
+            ekf.update([1.0, 2.0, 3.0])
+        elif bad_step == "R-nan":
+            ekf.R_x = np.array([[np.nan, 0.0], [0.0, 1.0]])
+            ekf.update([0.1, 0.2])
+        else:
+            ekf.update([0.1, 0.2])
+    np.testing.assert_array_equal(ekf.mu, mu)
+    np.testing.assert_array_equal(ekf.C, C)
+
+
+def test_reassigned_noise_covariances_take_effect():
+    """Q_x and R_x are read at every step, as in filterpy."""
+    ekf = _linear_filter(H=lambda x: np.eye(2))  # p unknown until the first y: R_x stays a scalar
+    ekf.predict(None, 0.3)
+    P = ekf.P
+    ekf.update([0.1, 0.2])
+    np.testing.assert_allclose(ekf.S, P + 0.1 * np.eye(2), rtol=1e-12)
+    ekf.predict(None, 0.3)
+    P = ekf.P
+    ekf.R_x = 2.5 * np.eye(2)
+    ekf.update([0.1, 0.2])
+    np.testing.assert_allclose(ekf.S, P + 2.5 * np.eye(2), rtol=1e-12)
+    P = ekf.P
+    ekf.Q_x = np.diag([0.3, 0.4])
+    ekf.predict(None, 0.3)
+    # e = [0, 0.1]: the first state's variance is (A P Aᵀ)₀₀ + Q₀₀, without GP terms
+    A0 = np.array([[1.0, 0.1], [-0.2, 0.9]])
+    assert ekf.P[0, 0] == pytest.approx((A0 @ P @ A0.T)[0, 0] + 0.3, rel=1e-12)

@@ -1,5 +1,7 @@
 """Type stubs of the Rust extension module gpmhe._core."""
 
+from typing import Any, Callable
+
 import numpy as np
 import numpy.typing as npt
 
@@ -158,27 +160,26 @@ class RGPEKFCore:
         h: npt.NDArray[np.float64] | None = None,
     ) -> None:
         """Stores constant A, e, H; predict/update then take None for them."""
-    def infer(
-        self, zeta: npt.NDArray[np.float64]
-    ) -> tuple[npt.NDArray[np.float64], float | npt.NDArray[np.float64]]:
-        """J_k of every GP; returns (x, μ_z^p) (a float for one GP, else an array)."""
-    def infer_scalar(self, zeta: float) -> tuple[npt.NDArray[np.float64], float]:
-        """``infer`` for one GP with a scalar input."""
-    def predict(
+    def predict_step(
         self,
-        x_pred: npt.NDArray[np.float64],
-        a: npt.NDArray[np.float64] | None,
-        e: npt.NDArray[np.float64] | None,
+        f: Callable[..., Any],
+        u: Any,
+        zeta: float | npt.NDArray[np.float64],
+        a_fn: Callable[..., Any] | None,
+        e_fn: Callable[..., Any] | None,
         q_x: npt.NDArray[np.float64],
-    ) -> None: ...
-    def update(
+    ) -> None:
+        """J_k at zeta, then f(x, u, z), A, e (None: stored constants) and the covariance prediction."""
+    def update_step(
         self,
-        y: npt.NDArray[np.float64],
-        hx: npt.NDArray[np.float64],
-        h: npt.NDArray[np.float64] | None,
-        r: npt.NDArray[np.float64],
+        y: Any,
+        h: Callable[..., Any],
+        h_fn: Callable[..., Any] | None,
+        r: float | npt.NDArray[np.float64],
+        dim_y: int | None,
         learning: bool,
-    ) -> float: ...
+    ) -> float:
+        """h(x⁻), H (None: stored constant), ν = y − h(x⁻) and the EKF update; the log-likelihood."""
     def set_x(self, x: npt.NDArray[np.float64]) -> None: ...
     def set_p(self, p: npt.NDArray[np.float64]) -> None:
         """Replaces the state covariance; the states' cross-covariance with the weights is reset to 0."""

@@ -9,8 +9,9 @@ Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP. Two 
 
 The per-step numerics (J_k by triangular solves with K's Cholesky factor, the structured covariance
 prediction, the EKF update) run in Rust (``gpmhe._core``), with the GIL released when n + Σ n_b ≥ 200
-(smaller steps take a few µs, less than releasing the GIL costs under contention); this module
-validates inputs and calls the user's model functions.
+(smaller steps take a few µs, less than releasing the GIL costs under contention). This module
+validates the constructor's inputs; each filter step is one core call, which also calls the user's
+model functions (f, A, e in ``predict``; h, H in ``update``) and checks their results.
 """
 
 from __future__ import annotations
@@ -311,6 +312,12 @@ class RGPEKF:
     z_pred : (q,) μ_z^p of the last ``predict``
     y : (p,) last innovation y − h(x⁻);  S : (p, p) its covariance
     log_likelihood : log N(y; h(x⁻), S) of the last update
+    f, h, Q_x, R_x : read at every step, so they can be reassigned between steps (Q_x and R_x
+        are then only checked for shape and finiteness)
+
+    Internally the weights of a GP with σ_p = 0 are kept whitened (L⁻¹ μ_z, with K = L Lᵀ), an
+    exact change of coordinates that saves one triangular solve per step; ``mu``, ``C`` and
+    ``gp_weights`` return them in the weights' coordinates.
     """
 
     def __init__(
@@ -376,7 +383,10 @@ class RGPEKF:
         self._A_const = None if callable(self._A) else self._A
         self._e_const = None if callable(self._e) else self._e
         self._H_const = None if callable(self._H) else self._H
-        self._R_full = self.R_x if self.R_x.ndim == 2 else None
+        # the callables among A, e, H (None: the constant stored in the core)
+        self._A_fn = self._A if callable(self._A) else None
+        self._e_fn = self._e if callable(self._e) else None
+        self._H_fn = self._H if callable(self._H) else None
         self.learning = bool(learning)
         self.pure_prediction = bool(pure_prediction)
         self._core = RGPEKFCore(
@@ -459,15 +469,20 @@ class RGPEKF:
     # -- filter steps --------------------------------------------------------------------------
     def _zeta(self, zeta: Any) -> np.ndarray:
         # Finiteness is checked in Rust (the error names zeta); only shapes are checked here.
+        if zeta is None:
+            raise ValueError("zeta: the GP input is required")
         if self._scalar_zeta and isinstance(zeta, (float, int, np.floating, np.integer)):
             self._zbuf[0] = zeta
             return self._zbuf
-        if self.dim_z == 1:
-            z = np.asarray(zeta, dtype=np.float64).reshape(-1)
-        else:
-            if len(zeta) != self.dim_z:
-                raise ValueError(f"zeta: expected one input per GP ({self.dim_z}), got {len(zeta)}")
-            z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in zeta])
+        try:
+            if self.dim_z == 1:
+                z = np.asarray(zeta, dtype=np.float64).reshape(-1)
+            else:
+                if len(zeta) != self.dim_z:
+                    raise ValueError(f"expected one input per GP ({self.dim_z}), got {len(zeta)}")
+                z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in zeta])
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"zeta: {err}") from None
         if z.size != self._zeta_total:
             raise ValueError(f"zeta: expected {self._zeta_total} value(s) in total, got {z.size}")
         return np.ascontiguousarray(z)
@@ -476,58 +491,21 @@ class RGPEKF:
         """Predict x and C one step with input u and the GPs' inputs ζ (one per GP: a scalar or
         array for one GP, a sequence for several). ``u`` is passed to f, A, e untouched.
         Bad input raises ValueError naming it and leaves the filter unchanged."""
-        if zeta is None:
-            raise ValueError("zeta: the GP input is required")
-        # Finiteness of ζ is checked in Rust (the error names zeta); only shapes are checked here.
-        if self._scalar_zeta and (
-            isinstance(zeta, float) or isinstance(zeta, (int, np.floating, np.integer))
-        ):
-            x, z_arg = self._core.infer_scalar(zeta)
-        else:
-            x, z_arg = self._core.infer(self._zeta(zeta))
-        n = self.dim_x
-        xp = np.ascontiguousarray(self.f(x, u, z_arg), dtype=np.float64)
-        if xp.shape != (n,):
-            xp = xp.reshape(-1)
-            if xp.size != n:
-                raise ValueError(f"f: returned {xp.size} values, expected {n}")
-        A = e = None  # None: the constants stored in the core
-        if self._A_const is None:
-            A = np.ascontiguousarray(self._A(x, u, z_arg), dtype=np.float64)
-            if A.shape != (n, n):
-                raise ValueError(f"A: returned shape {A.shape}, expected ({n}, {n})")
-        if self._e_const is None:
-            e = np.ascontiguousarray(self._e(x, u, z_arg), dtype=np.float64)
-            if e.size != n * self.dim_z:
-                raise ValueError(f"e: returned shape {e.shape}, expected ({n}, {self.dim_z})")
-            e = e.reshape(n, self.dim_z)
-        self._core.predict(xp, A, e, self.Q_x)
+        # One core call per step: it computes J_k, calls f (and A, e if callables) with
+        # z = μ_z^p and predicts C. Finiteness of ζ and of the results is checked there.
+        if not (self._scalar_zeta and isinstance(zeta, float)):
+            zeta = self._zeta(zeta)
+        self._core.predict_step(self.f, u, zeta, self._A_fn, self._e_fn, self.Q_x)
 
     def update(self, y: ArrayLike) -> None:
         """EKF update with the measurement y (variant 4a, or 4b when ``learning`` is False).
         Raises ValueError for bad y (state unchanged) and gpmhe.NumericalError if the innovation
         covariance is not positive definite (state unchanged)."""
-        yv = np.ascontiguousarray(y, dtype=np.float64)
-        if yv.ndim != 1:
-            yv = yv.reshape(-1)
-        p = yv.size
-        if self.dim_y is not None and p != self.dim_y:
-            raise ValueError(f"y: expected {self.dim_y} value(s), got {p}")
-        x = self._core.x  # the predicted state x⁻ (or whatever was assigned to x since)
-        hx = np.ascontiguousarray(self.h(x), dtype=np.float64)
-        if hx.shape != (p,):
-            hx = hx.reshape(-1)
-            if hx.size != p:
-                raise ValueError(f"h: returned {hx.size} values but y has {p}")
-        H = None  # None: the constant stored in the core
-        if self._H_const is None:
-            H = np.ascontiguousarray(self._H(x), dtype=np.float64)
-            if H.size != p * self.dim_x:
-                raise ValueError(f"H: shape {H.shape} does not match ({p}, {self.dim_x})")
-            H = H.reshape(p, self.dim_x)
-        R = self._R_full if self._R_full is not None else float(self.R_x) * np.eye(p)
-        # Finiteness of y − h(x) is checked in Rust (the error names y).
-        self._core.update(yv, hx, H, R, self.learning and not self.pure_prediction)
+        # One core call: it evaluates h (and H if callable) at the predicted state x⁻ (or
+        # whatever was assigned to x since), forms ν = y − h(x⁻) and updates.
+        self._core.update_step(
+            y, self.h, self._H_fn, self.R_x, self.dim_y, self.learning and not self.pure_prediction
+        )
 
     def __repr__(self) -> str:
         return (

@@ -958,6 +958,7 @@ impl PyWindowSolver {
 
 use crate::rgp::{Rgp, RgpBasis, RgpEkf};
 use faer::MatRef;
+use pyo3::types::PyFloat;
 
 /// A (mean, variance) pair of 1-D arrays.
 type MeanVar<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
@@ -1115,37 +1116,111 @@ pub struct RgpEkfCore {
     a_const: Option<Vec<f64>>,
     e_const: Option<Vec<f64>>,
     h_const: Option<Vec<f64>>,
+    /// Per-step copies of the inputs and of the user functions' results (a few values each).
+    buf: StepBuffers,
 }
 
-/// The argument `given`, else the stored constant, else a `ValueError` naming `arg`.
-fn given_or_const<'a>(
-    arg: &str,
-    given: &'a Option<PyReadonlyArray2<'_, f64>>,
-    stored: &'a Option<Vec<f64>>,
-) -> PyResult<&'a [f64]> {
-    match (given, stored) {
-        (Some(a), _) => Ok(slice2(arg, a)?.0),
-        (None, Some(c)) => Ok(c),
-        (None, None) => Err(PyValueError::new_err(format!(
-            "{arg}: not given and no constant {arg} was stored"
-        ))),
+#[derive(Default)]
+struct StepBuffers {
+    zeta: Vec<f64>,
+    x_pred: Vec<f64>,
+    a: Vec<f64>,
+    e: Vec<f64>,
+    q: Vec<f64>,
+    y: Vec<f64>,
+    hx: Vec<f64>,
+    h: Vec<f64>,
+    r: Vec<f64>,
+}
+
+/// The shape of a value read by [`read_f64`] (up to four dimensions kept; more only appear in
+/// error messages, as "…").
+#[derive(PartialEq)]
+struct Shape {
+    ndim: usize,
+    dims: [usize; 4],
+}
+
+impl Shape {
+    fn of(dims: &[usize]) -> Self {
+        let mut d = [0; 4];
+        for (o, v) in d.iter_mut().zip(dims) {
+            *o = *v;
+        }
+        Self {
+            ndim: dims.len(),
+            dims: d,
+        }
+    }
+
+    fn is(&self, dims: &[usize]) -> bool {
+        self.ndim == dims.len() && self.dims[..self.ndim.min(4)] == *dims
+    }
+
+    /// Python's repr of the shape tuple: (), (3,), (2, 2).
+    fn repr(&self) -> String {
+        let mut parts: Vec<String> = self.dims[..self.ndim.min(4)]
+            .iter()
+            .map(|d| d.to_string())
+            .collect();
+        if self.ndim > 4 {
+            parts.push("…".into());
+        }
+        match parts.len() {
+            1 => format!("({},)", parts[0]),
+            _ => format!("({})", parts.join(", ")),
+        }
     }
 }
 
+/// Copies the values of `obj` as float64 into `out` and returns its shape. Python floats and
+/// C-contiguous float64 arrays are read directly; anything else goes through
+/// `numpy.ascontiguousarray(obj, dtype=float64)` (lists, ints, other dtypes, column vectors
+/// from views). A `ValueError` naming `arg` if that fails.
+fn read_f64(arg: &str, obj: &Bound<'_, PyAny>, out: &mut Vec<f64>) -> PyResult<Shape> {
+    if let Ok(v) = obj.cast::<PyFloat>() {
+        out.clear();
+        out.push(v.value());
+        return Ok(Shape::of(&[]));
+    }
+    let read = |a: &Bound<'_, PyArrayDyn<f64>>, out: &mut Vec<f64>| -> Option<Shape> {
+        // SAFETY: the data are copied at once, with the GIL held and no Python code running in
+        // between (as `PyArrayMethods::to_vec` does), into a buffer that is reused every step.
+        let data = unsafe { a.as_slice() }
+            .ok()
+            .filter(|_| a.is_c_contiguous())?;
+        out.clear();
+        out.extend_from_slice(data);
+        Some(Shape::of(a.shape()))
+    };
+    if let Ok(a) = obj.cast::<PyArrayDyn<f64>>() {
+        if let Some(shape) = read(a, out) {
+            return Ok(shape);
+        }
+    }
+    let py = obj.py();
+    let kwargs = pyo3::types::PyDict::new(py);
+    kwargs.set_item("dtype", "float64")?;
+    let conv = py
+        .import("numpy")?
+        .getattr("ascontiguousarray")?
+        .call((obj,), Some(&kwargs))
+        .map_err(|e| PyValueError::new_err(format!("{arg}: must be numeric ({e})")))?;
+    conv.cast::<PyArrayDyn<f64>>()
+        .ok()
+        .and_then(|a| read(a, out))
+        .ok_or_else(|| PyValueError::new_err(format!("{arg}: must be numeric")))
+}
+
 impl RgpEkfCore {
-    /// [x; μ_z^p] after `infer`: x as an array, μ_z^p as a float for one GP, else an array.
-    fn x_and_z<'py>(
-        &self,
-        py: Python<'py>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
-        let x = PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()]);
-        let z = self.inner.z_pred();
-        let z = if z.len() == 1 {
-            z[0].into_pyobject(py)?.into_any()
-        } else {
-            PyArray1::from_slice(py, z).into_any()
-        };
-        Ok((x, z))
+    /// Whether a step's kernels run with the GIL released (see RGP_STEP_GIL_RELEASE_MIN_DIM).
+    fn release_gil(&self) -> bool {
+        self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM
+    }
+
+    /// A fresh array of the current state x (the user's functions may keep it).
+    fn x_array<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.x())
     }
 }
 
@@ -1165,6 +1240,7 @@ impl RgpEkfCore {
             a_const: None,
             e_const: None,
             h_const: None,
+            buf: StepBuffers::default(),
         })
     }
 
@@ -1186,79 +1262,151 @@ impl RgpEkfCore {
         Ok(())
     }
 
-    /// J_k of every GP at the inputs ζ (concatenated); returns (x, μ_z^p).
-    fn infer<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
-        let z = slice1("zeta", &zeta)?;
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        detach_if(py, release, || inner.infer(z).map(|_| ()))?;
-        self.x_and_z(py)
-    }
-
-    /// `infer` for a single GP with a scalar input.
-    fn infer_scalar<'py>(
-        &mut self,
-        py: Python<'py>,
-        zeta: f64,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyAny>)> {
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        detach_if(py, release, || inner.infer(&[zeta]).map(|_| ()))?;
-        self.x_and_z(py)
-    }
-
-    #[pyo3(signature = (x_pred, a, e, q_x))]
-    fn predict(
+    /// One prediction step (paper §3.4, steps 1–3) in one call: J_k and μ_z^p at the GP inputs
+    /// `zeta` (a float for one 1-D GP, else the inputs of all GPs concatenated), then
+    /// x⁻ = f(x, u, z), A(x, u, z) and e(x, u, z) (None: the stored constants) called here with
+    /// z = μ_z^p (a float for one GP, else an array), then the structured covariance prediction
+    /// with Q_x. Bad input or results raise ValueError naming them; C and μ stay unchanged.
+    #[pyo3(signature = (f, u, zeta, a_fn, e_fn, q_x))]
+    #[allow(clippy::too_many_arguments)]
+    fn predict_step(
         &mut self,
         py: Python<'_>,
-        x_pred: PyReadonlyArray1<'_, f64>,
-        a: Option<PyReadonlyArray2<'_, f64>>,
-        e: Option<PyReadonlyArray2<'_, f64>>,
-        q_x: PyReadonlyArray2<'_, f64>,
+        f: &Bound<'_, PyAny>,
+        u: &Bound<'_, PyAny>,
+        zeta: &Bound<'_, PyAny>,
+        a_fn: Option<&Bound<'_, PyAny>>,
+        e_fn: Option<&Bound<'_, PyAny>>,
+        q_x: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let x = slice1("f(x, u, z)", &x_pred)?;
-        let a = given_or_const("A", &a, &self.a_const)?;
-        let e = given_or_const("e", &e, &self.e_const)?;
-        let (q, _, _) = slice2("Q_x", &q_x)?;
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
-        Ok(detach_if(py, release, || inner.predict(x, a, e, q))?)
-    }
-
-    /// EKF update with the measurement y and h(x⁻) (ν = y − h(x⁻) is formed here).
-    #[pyo3(signature = (y, hx, h, r, learning))]
-    fn update(
-        &mut self,
-        py: Python<'_>,
-        y: PyReadonlyArray1<'_, f64>,
-        hx: PyReadonlyArray1<'_, f64>,
-        h: Option<PyReadonlyArray2<'_, f64>>,
-        r: PyReadonlyArray2<'_, f64>,
-        learning: bool,
-    ) -> PyResult<f64> {
-        let (y, hx) = (slice1("y", &y)?, slice1("h(x)", &hx)?);
-        if hx.len() != y.len() {
+        let release = self.release_gil();
+        read_f64("zeta", zeta, &mut self.buf.zeta)?;
+        {
+            let (inner, z) = (&mut self.inner, &self.buf.zeta);
+            detach_if(py, release, || inner.infer(z).map(|_| ()))?;
+        }
+        let (n, q) = (self.inner.dim_x(), self.inner.n_gps());
+        let x = self.x_array(py);
+        let zp = self.inner.z_pred();
+        let z = if q == 1 {
+            PyFloat::new(py, zp[0]).into_any()
+        } else {
+            PyArray1::from_slice(py, zp).into_any()
+        };
+        let xp = f.call1((&x, u, &z))?;
+        let shape = read_f64("f", &xp, &mut self.buf.x_pred)?;
+        if self.buf.x_pred.len() != n {
             return Err(PyValueError::new_err(format!(
-                "h: returned {} values but y has {}",
-                hx.len(),
-                y.len()
+                "f: returned {} values (shape {}), expected {n}",
+                self.buf.x_pred.len(),
+                shape.repr()
             )));
         }
-        let nu: Vec<f64> = y.iter().zip(hx).map(|(a, b)| a - b).collect();
-        let h = given_or_const("H", &h, &self.h_const)?;
-        let (r, _, _) = slice2("R_x", &r)?;
-        let release =
-            self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM;
-        let inner = &mut self.inner;
+        if let Some(a_fn) = a_fn {
+            let shape = read_f64("A", &a_fn.call1((&x, u, &z))?, &mut self.buf.a)?;
+            if !shape.is(&[n, n]) {
+                return Err(PyValueError::new_err(format!(
+                    "A: returned shape {}, expected ({n}, {n})",
+                    shape.repr()
+                )));
+            }
+        }
+        if let Some(e_fn) = e_fn {
+            let shape = read_f64("e", &e_fn.call1((&x, u, &z))?, &mut self.buf.e)?;
+            if self.buf.e.len() != n * q {
+                return Err(PyValueError::new_err(format!(
+                    "e: returned shape {}, expected ({n}, {q})",
+                    shape.repr()
+                )));
+            }
+        }
+        read_f64("Q_x", q_x, &mut self.buf.q)?;
+        let missing = |arg: &str| {
+            PyValueError::new_err(format!("{arg}: not given and no constant {arg} was stored"))
+        };
+        let a = match (a_fn, &self.a_const) {
+            (Some(_), _) => &self.buf.a,
+            (None, Some(c)) => c,
+            (None, None) => return Err(missing("A")),
+        };
+        let e = match (e_fn, &self.e_const) {
+            (Some(_), _) => &self.buf.e,
+            (None, Some(c)) => c,
+            (None, None) => return Err(missing("e")),
+        };
+        let (inner, xp, qb) = (&mut self.inner, &self.buf.x_pred, &self.buf.q);
+        Ok(detach_if(py, release, || inner.predict(xp, a, e, qb))?)
+    }
+
+    /// One EKF update (paper §3.4, step 4) in one call: h(x⁻) and H(x⁻) (None: the stored
+    /// constant) called here, ν = y − h(x⁻), then the update with R_x (a (p, p) array, or a
+    /// scalar meaning R_x I). `dim_y`, if known, is the required number of outputs. Returns the
+    /// log-likelihood. Bad input raises ValueError naming it, an indefinite innovation
+    /// covariance gpmhe.NumericalError; C and μ stay unchanged.
+    #[pyo3(signature = (y, h, h_fn, r, dim_y, learning))]
+    #[allow(clippy::too_many_arguments)]
+    fn update_step(
+        &mut self,
+        py: Python<'_>,
+        y: &Bound<'_, PyAny>,
+        h: &Bound<'_, PyAny>,
+        h_fn: Option<&Bound<'_, PyAny>>,
+        r: &Bound<'_, PyAny>,
+        dim_y: Option<usize>,
+        learning: bool,
+    ) -> PyResult<f64> {
+        read_f64("y", y, &mut self.buf.y)?;
+        let (n, p) = (self.inner.dim_x(), self.buf.y.len());
+        if let Some(d) = dim_y {
+            if p != d {
+                return Err(PyValueError::new_err(format!(
+                    "y: expected {d} value(s), got {p}"
+                )));
+            }
+        }
+        let x = self.x_array(py);
+        read_f64("h", &h.call1((&x,))?, &mut self.buf.hx)?;
+        if self.buf.hx.len() != p {
+            return Err(PyValueError::new_err(format!(
+                "h: returned {} values but y has {p}",
+                self.buf.hx.len()
+            )));
+        }
+        if let Some(h_fn) = h_fn {
+            let shape = read_f64("H", &h_fn.call1((&x,))?, &mut self.buf.h)?;
+            if self.buf.h.len() != p * n {
+                return Err(PyValueError::new_err(format!(
+                    "H: shape {} does not match ({p}, {n})",
+                    shape.repr()
+                )));
+            }
+        }
+        let h = match (h_fn, &self.h_const) {
+            (Some(_), _) => &self.buf.h,
+            (None, Some(c)) => c,
+            (None, None) => {
+                return Err(PyValueError::new_err(
+                    "H: not given and no constant H was stored",
+                ))
+            }
+        };
+        // ν = y − h(x⁻), in place of h(x⁻)
+        for (v, yi) in self.buf.hx.iter_mut().zip(&self.buf.y) {
+            *v = yi - *v;
+        }
+        if read_f64("R_x", r, &mut self.buf.r)?.ndim == 0 {
+            // a scalar: R_x I
+            let rv = self.buf.r[0];
+            self.buf.r.clear();
+            self.buf.r.resize(p * p, 0.0);
+            for i in 0..p {
+                self.buf.r[i * p + i] = rv;
+            }
+        }
+        let release = self.release_gil();
+        let (inner, nu, rb) = (&mut self.inner, &self.buf.hx, &self.buf.r);
         Ok(detach_if(py, release, || {
-            inner.update(&nu, h, r, learning)
+            inner.update(nu, h, rb, learning)
         })?)
     }
 
@@ -1299,23 +1447,22 @@ impl RgpEkfCore {
             )));
         }
         let (m, c) = self.inner.gp_weights(index);
-        Ok((PyArray1::from_slice(py, m), mat_to_array2(py, c.as_ref())?))
+        Ok((PyArray1::from_vec(py, m), mat_to_array2(py, c.as_ref())?))
     }
 
     #[getter]
     fn x<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, &self.inner.mu()[..self.inner.dim_x()])
+        PyArray1::from_slice(py, self.inner.x())
     }
 
     #[getter(P)]
     fn p<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let n = self.inner.dim_x();
-        mat_to_array2(py, self.inner.cov().submatrix(0, 0, n, n))
+        mat_to_array2(py, self.inner.p())
     }
 
     #[getter]
     fn mu<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.inner.mu())
+        PyArray1::from_vec(py, self.inner.mu())
     }
 
     #[getter(C)]

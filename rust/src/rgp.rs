@@ -4,14 +4,15 @@
 //!
 //! * [`RgpBasis`]: the fixed part of one RGP: basis vectors on a unit grid (eq. 5, 6), the kernel
 //!   σ_K² exp(−‖x − x'‖²/(2L)) as [`SeArd`] with all length-scales √L, and the Cholesky factor of
-//!   K = k(X, X), computed once. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step; K⁻¹ is
-//!   never formed.
+//!   K = k(X, X), computed once. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step (one
+//!   for the whitened weights of [`RgpEkf`]); K⁻¹ is never formed.
 //! * [`Rgp`]: Huber's recursive GP (inference eq. 3, update eq. 4 with process noise σ_p and the
 //!   prediction-variance floor σ_r²).
 //! * [`RgpEkf`]: the augmented mean μ = [x; μ_z1; …] and covariance C, the structured covariance
 //!   prediction (12)–(13) in O(N·(n² + n_b)) (N = n + Σ n_b), and the EKF update 4a (states and
 //!   weights) or 4b (states only, as a Schmidt "consider" update). In pure-prediction mode (§3.2)
 //!   the weights are not part of the state: the trained GPs enter as noisy inputs.
+//! * `simd`: the reductions of those kernels, with AVX2 chosen at run time.
 
 use faer::linalg::matmul::matmul;
 use faer::linalg::solvers::Llt;
@@ -20,8 +21,20 @@ use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
 
+mod simd;
+use simd::{dot, dot4, symv_column};
+
 /// Largest relative jitter (times σ_K²) added to K's diagonal before giving up on its Cholesky.
 const MAX_REL_JITTER: f64 = 1e-6;
+
+/// Magnitudes below this, relative to their scale (σ_K² for K and k(x, X), σ_K for K's factor L
+/// and for L⁻¹ k(X, x), 1 for J), are set to 0. Far from the diagonal K and L decay like the
+/// kernel, and far from the input so do k(x, X) and the solves; products of such numbers fall
+/// below the normal range (2.2e-308), and every operation producing or reading a subnormal number
+/// costs a microcode assist (~100 times a normal one): it made some steps 1.5 times slower. Numbers
+/// this small are more than 120 orders of magnitude below rounding error, and products of two of
+/// them stay normal for σ_K above 1e-14.
+const TINY_REL: f64 = 1e-140;
 
 /// Runs `self.method(args)` compiled for AVX2 when the CPU has it (detected at run time, cached by
 /// std), else the baseline (SSE2) build a portable wheel is compiled for. The per-step loops are
@@ -79,8 +92,8 @@ pub struct RgpBasis {
     k: Mat<f64>,
     /// Lower Cholesky factor of K + jitter·I.
     chol: Mat<f64>,
-    /// Its transpose Lᵀ, stored so that the back substitution runs over contiguous columns too.
-    chol_t: Mat<f64>,
+    /// 1 / diag(L), for the substitutions.
+    inv_diag: Vec<f64>,
     jitter: f64,
     sigma_r2: f64,
     sigma_p2: f64,
@@ -149,8 +162,15 @@ impl RgpBasis {
                 rest /= n_points[i];
             }
         }
-        let k = kernel.gram(&basis);
+        let mut k = kernel.gram(&basis);
         let s2 = kernel.variance();
+        for c in 0..nb {
+            for v in k.col_as_slice_mut(c) {
+                if v.abs() < TINY_REL * s2 {
+                    *v = 0.0;
+                }
+            }
+        }
         let mut jitter = 0.0;
         let chol = loop {
             let mut kj = k.clone();
@@ -159,11 +179,8 @@ impl RgpBasis {
             }
             if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
                 let mut l = llt.L().to_owned();
-                // Far from the diagonal the factor of a squared-exponential K decays like the
-                // kernel, down to subnormal numbers, and every product with those (in each
-                // step's triangular solves) is ~100 times slower than normal arithmetic. Entries
-                // below 1e-250 σ_K contribute nothing above rounding error; they are set to 0.
-                let tiny = 1e-250 * s2.sqrt();
+                // see TINY_REL
+                let tiny = TINY_REL * s2.sqrt();
                 for c in 0..nb {
                     for v in l.col_as_slice_mut(c) {
                         if v.abs() < tiny {
@@ -195,7 +212,7 @@ impl RgpBasis {
             basis,
             kernel,
             k,
-            chol_t: chol.transpose().to_owned(),
+            inv_diag: (0..nb).map(|i| 1.0 / chol[(i, i)]).collect(),
             chol,
             jitter,
             sigma_r2: sigma_r * sigma_r,
@@ -261,6 +278,16 @@ impl RgpBasis {
     /// already validated) and returns J_k K J_kᵀ = ‖L⁻¹ k(X, X_k)‖².
     #[inline(always)]
     pub fn infer(&mut self, zeta: &[f64], j: &mut [f64]) -> f64 {
+        let jkj = self.infer_whitened(zeta, j);
+        back_substitution(&self.chol, &self.inv_diag, TINY_REL, j);
+        jkj
+    }
+
+    /// The whitened inference row v = L⁻¹ k(X, X_k) (J_k = vᵀ L⁻¹, so J_k w = v · L⁻¹w for weights
+    /// w, and J_k C Jᵀ = vᵀ L⁻¹ C L⁻ᵀ v) into `v` (length n_b); returns J_k K J_kᵀ = ‖v‖². One
+    /// triangular solve instead of two.
+    #[inline(always)]
+    pub fn infer_whitened(&mut self, zeta: &[f64], j: &mut [f64]) -> f64 {
         let nx = self.dim();
         for (((x, z), lo), sc) in self
             .xk
@@ -271,23 +298,46 @@ impl RgpBasis {
         {
             *x = (z - lo) * sc;
         }
-        // k(x, X); values below e^-575 σ_K² ≈ 1e-250 σ_K² are set to 0 without calling exp (as in
-        // K's factor: nothing above rounding error, and no slow subnormal arithmetic)
+        // k(x, X); values below e^-322 σ_K² ≈ 1e-140 σ_K² are set to 0 without calling exp (see
+        // TINY_REL)
         let s2 = self.kernel.variance();
         for (b, jb) in j.iter_mut().enumerate() {
             let r2 = self
                 .kernel
                 .scaled_sq_dist(&self.xk, &self.basis[b * nx..(b + 1) * nx]);
-            *jb = if r2 > 1150.0 {
+            *jb = if r2 > 644.0 {
                 0.0
             } else {
                 s2 * (-0.5 * r2).exp()
             };
         }
-        forward_substitution(&self.chol, j);
-        let jkj = dot(j, j);
-        back_substitution(&self.chol_t, j);
-        jkj
+        forward_substitution(&self.chol, &self.inv_diag, TINY_REL * s2.sqrt(), j);
+        dot(j, j)
+    }
+
+    /// L⁻¹ m in place (weights to whitened coordinates).
+    fn whiten(&self, m: &mut [f64]) {
+        forward_substitution(&self.chol, &self.inv_diag, 0.0, m);
+    }
+
+    /// L u (whitened coordinates to weights).
+    fn unwhiten(&self, u: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; u.len()];
+        for (jj, uj) in u.iter().enumerate() {
+            axpy(&mut out[jj..], *uj, &self.chol.col_as_slice(jj)[jj..]);
+        }
+        out
+    }
+
+    /// L⁻¹ C L⁻ᵀ for a symmetric C (weights' covariance to whitened coordinates), symmetric.
+    fn whiten_cov(&self, c: MatRef<'_, f64>) -> Mat<f64> {
+        use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+        let mut m = c.to_owned();
+        solve_lower_triangular_in_place(self.chol.as_ref(), m.as_mut(), Par::Seq);
+        let mut m = m.transpose().to_owned();
+        solve_lower_triangular_in_place(self.chol.as_ref(), m.as_mut(), Par::Seq);
+        let n = m.nrows();
+        Mat::from_fn(n, n, |i, jj| 0.5 * (m[(i, jj)] + m[(jj, i)]))
     }
 
     /// Checks one input ζ.
@@ -297,11 +347,14 @@ impl RgpBasis {
     }
 
     /// Mean and variance (σ_r² floor included) of the GP with weights (`mean`, `cov`) at the
-    /// row-major inputs `zetas`; `j` is scratch of length n_b.
+    /// row-major inputs `zetas`; `j` is scratch of length n_b. With `whitened`, `mean` and `cov`
+    /// are in whitened coordinates (L⁻¹ w, L⁻¹ C L⁻ᵀ).
+    #[allow(clippy::too_many_arguments)]
     fn predict_with(
         &mut self,
         mean: &[f64],
         cov: MatRef<'_, f64>,
+        whitened: bool,
         zetas: &[f64],
         j: &mut [f64],
         mean_out: &mut [f64],
@@ -310,32 +363,16 @@ impl RgpBasis {
         let nx = self.dim();
         let s2 = self.sigma_k2();
         for (q, z) in zetas.chunks_exact(nx).enumerate() {
-            let jkj = self.infer(z, j);
+            let jkj = if whitened {
+                self.infer_whitened(z, j)
+            } else {
+                self.infer(z, j)
+            };
             mean_out[q] = dot(j, mean);
             let jcj = quad_form(cov, j);
             var_out[q] = (s2 - jkj).max(0.0) + jcj.max(0.0) + self.sigma_r2;
         }
     }
-}
-
-/// a · b with four independent partial sums (so that it vectorises).
-#[inline(always)]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..4 {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
 }
 
 /// y += α x.
@@ -346,59 +383,107 @@ fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
     }
 }
 
-/// y += α x and returns x · v, in one pass (one column of a symmetric matrix-vector product).
+/// y −= a₀ x₀, then −= a₁ x₁, −= a₂ x₂, −= a₃ x₃, in one pass over y (the four axpys of a block of
+/// four columns in a substitution, with the same operations in the same order per entry).
 #[inline(always)]
-fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
-    let n = y.len().min(x.len()).min(v.len());
-    let (y, x, v) = (&mut y[..n], &x[..n], &v[..n]);
-    let mut acc = [0.0; 4];
-    let m = n / 4 * 4;
-    for ((yc, xc), vc) in y[..m]
-        .chunks_exact_mut(4)
-        .zip(x[..m].chunks_exact(4))
-        .zip(v[..m].chunks_exact(4))
-    {
-        for l in 0..4 {
-            yc[l] += alpha * xc[l];
-            acc[l] += xc[l] * vc[l];
-        }
+fn sub4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
+    let n = y
+        .len()
+        .min(x[0].len())
+        .min(x[1].len())
+        .min(x[2].len())
+        .min(x[3].len());
+    let (x0, x1, x2, x3) = (&x[0][..n], &x[1][..n], &x[2][..n], &x[3][..n]);
+    for ((((yi, v0), v1), v2), v3) in y[..n].iter_mut().zip(x0).zip(x1).zip(x2).zip(x3) {
+        *yi = (((*yi - a[0] * v0) - a[1] * v1) - a[2] * v2) - a[3] * v3;
     }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for i in m..n {
-        y[i] += alpha * x[i];
-        s += x[i] * v[i];
+}
+
+/// y += a₀ x₀, then += a₁ x₁, += a₂ x₂, += a₃ x₃, in one pass over y (four columns of a
+/// matrix-vector product, with the same operations in the same order per entry).
+#[inline(always)]
+fn add4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
+    let n = y
+        .len()
+        .min(x[0].len())
+        .min(x[1].len())
+        .min(x[2].len())
+        .min(x[3].len());
+    let (x0, x1, x2, x3) = (&x[0][..n], &x[1][..n], &x[2][..n], &x[3][..n]);
+    for ((((yi, v0), v1), v2), v3) in y[..n].iter_mut().zip(x0).zip(x1).zip(x2).zip(x3) {
+        *yi = (((*yi + a[0] * v0) + a[1] * v1) + a[2] * v2) + a[3] * v3;
     }
-    s
 }
 
 // The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
 // right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
-// multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so the
-// column-oriented textbook loops (contiguous axpy / dot over the factor's columns) are used.
+// multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so
+// both work on blocks of four columns of L (the forward one subtracts a solved block from the
+// rest of v in one pass, `sub4`; the backward one takes four dot products in one pass, `dot4`).
+// The diagonal is applied as a multiplication by its precomputed reciprocal: a division's
+// latency would otherwise dominate the sequential part.
 
-/// Solves L v = b in place (L lower triangular, column-major).
+/// Solves L v = b in place (L lower triangular, column-major; `inv_diag` = 1 / diag(L)); entries
+/// of v below `tiny` in magnitude are set to 0 (see TINY_REL).
 #[inline(always)]
-fn forward_substitution(l: &Mat<f64>, v: &mut [f64]) {
-    for jj in 0..v.len() {
-        let col = l.col_as_slice(jj);
-        let vj = v[jj] / col[jj];
-        v[jj] = vj;
-        if vj != 0.0 {
-            axpy(&mut v[jj + 1..], -vj, &col[jj + 1..]);
+fn forward_substitution(l: &Mat<f64>, inv_diag: &[f64], tiny: f64, v: &mut [f64]) {
+    let nb = v.len();
+    let mut j0 = 0;
+    while j0 < nb {
+        let j1 = (j0 + 4).min(nb);
+        for j in j0..j1 {
+            let mut vj = v[j] * inv_diag[j];
+            if vj.abs() < tiny {
+                vj = 0.0;
+            }
+            v[j] = vj;
+            let col = l.col_as_slice(j);
+            for s in j + 1..j1 {
+                v[s] -= vj * col[s];
+            }
         }
+        if j1 - j0 == 4 && j1 < nb {
+            let a = [v[j0], v[j0 + 1], v[j0 + 2], v[j0 + 3]];
+            if a != [0.0; 4] {
+                let c = |t: usize| &l.col_as_slice(j0 + t)[j1..];
+                sub4(&mut v[j1..], a, [c(0), c(1), c(2), c(3)]);
+            }
+        }
+        j0 = j1;
     }
 }
 
-/// Solves U v = b in place (U upper triangular, column-major), column by column (axpy form).
+/// Solves Lᵀ v = b in place with the same lower factor L (column-major; `inv_diag` = 1 / diag(L))
+/// in dot form, from the last row to the first: v_i = (b_i − L[i+1.., i] · v[i+1..]) / L_ii, four
+/// rows at a time (their dots with the already solved part in one pass, `dot4`). Reading L's
+/// columns again, still in cache from the forward substitution, instead of a stored Lᵀ halves the
+/// memory a step streams through. Entries of v below `tiny` in magnitude are set to 0.
 #[inline(always)]
-fn back_substitution(u: &Mat<f64>, v: &mut [f64]) {
-    for jj in (0..v.len()).rev() {
-        let col = u.col_as_slice(jj);
-        let vj = v[jj] / col[jj];
-        v[jj] = vj;
-        if vj != 0.0 {
-            axpy(&mut v[..jj], -vj, &col[..jj]);
+fn back_substitution(l: &Mat<f64>, inv_diag: &[f64], tiny: f64, v: &mut [f64]) {
+    let nb = v.len();
+    let mut i1 = nb;
+    while i1 > 0 {
+        let i0 = i1.saturating_sub(4);
+        let d = if i1 - i0 == 4 && i1 < nb {
+            let c = |t: usize| &l.col_as_slice(i0 + t)[i1..];
+            dot4([c(0), c(1), c(2), c(3)], &v[i1..])
+        } else {
+            let mut d = [0.0; 4];
+            for (t, dt) in d.iter_mut().enumerate().take(i1 - i0) {
+                *dt = dot(&l.col_as_slice(i0 + t)[i1..], &v[i1..]);
+            }
+            d
+        };
+        for i in (i0..i1).rev() {
+            let col = l.col_as_slice(i);
+            let mut s = v[i] - d[i - i0];
+            for jj in i + 1..i1 {
+                s -= col[jj] * v[jj];
+            }
+            let vi = s * inv_diag[i];
+            v[i] = if vi.abs() < tiny { 0.0 } else { vi };
         }
+        i1 = i0;
     }
 }
 
@@ -408,13 +493,52 @@ fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     let mut s = 0.0;
     for (jj, vj) in v.iter().enumerate() {
         let col = c.col(jj);
-        let mut t = 0.0;
-        for (i, vi) in v.iter().enumerate() {
-            t += col[i] * vi;
-        }
+        let t = match col.try_as_col_major() {
+            Some(col) => dot(col.as_slice(), v),
+            None => (0..v.len()).map(|i| col[i] * v[i]).sum(),
+        };
         s += t * vj;
     }
     s
+}
+
+/// The lower Cholesky factor L (row-major, zero above the diagonal) of the symmetric p × p
+/// matrix `s` (row-major); false if `s` is not positive definite. The innovation covariance has a
+/// handful of rows: up to 8 a textbook loop (faer's setup would cost more than the arithmetic),
+/// beyond that faer's Cholesky.
+fn cholesky(s: &[f64], p: usize, l: &mut [f64]) -> bool {
+    if p > 8 {
+        let Ok(llt) = Llt::new(MatRef::from_row_major_slice(s, p, p), Side::Lower) else {
+            return false;
+        };
+        let lf = llt.L();
+        for i in 0..p {
+            for jj in 0..p {
+                l[i * p + jj] = if jj <= i { lf[(i, jj)] } else { 0.0 };
+            }
+        }
+        return true;
+    }
+    l[..p * p].fill(0.0);
+    for jj in 0..p {
+        let mut d = s[jj * p + jj];
+        for k in 0..jj {
+            d -= l[jj * p + k] * l[jj * p + k];
+        }
+        if !(d > 0.0 && d.is_finite()) {
+            return false;
+        }
+        let djj = d.sqrt();
+        l[jj * p + jj] = djj;
+        for i in jj + 1..p {
+            let mut v = s[i * p + jj];
+            for k in 0..jj {
+                v -= l[i * p + k] * l[jj * p + k];
+            }
+            l[i * p + jj] = v / djj;
+        }
+    }
+    true
 }
 
 /// C −= W Wᵀ (W: N × p, column-major) on the stored part of the augmented covariance (see
@@ -539,7 +663,7 @@ impl Rgp {
             j,
             ..
         } = self;
-        basis.predict_with(mean, cov.as_ref(), zetas, j, &mut mu, &mut var);
+        basis.predict_with(mean, cov.as_ref(), false, zetas, j, &mut mu, &mut var);
         Ok((mu, var))
     }
 
@@ -634,6 +758,15 @@ impl Rgp {
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
 /// pure-prediction mode, an EKF on x with the (fixed) GPs as noisy inputs.
 ///
+/// Whitened weights: in augmented mode the block of a GP without process noise (σ_p = 0, the
+/// paper's setting) holds u = L⁻¹ μ_z (L the Cholesky factor of that GP's K), with covariance
+/// blocks L⁻¹ C_zz L⁻ᵀ and C_xz L⁻ᵀ. The filter is linear in the weights, so this is an exact
+/// change of coordinates, and J_k μ_z = v · u with v = L⁻¹ k(X, X_k): the step needs one
+/// triangular solve instead of two, and (12)–(19) hold with J_k replaced by vᵀ. [`Self::mu`],
+/// [`Self::cov`], [`Self::gp_weights`] map back to the weights (L u, L C_u Lᵀ); a fresh GP starts
+/// from u = 0, C_u = L⁻¹ K L⁻ᵀ = I. With σ_p > 0 the block stays in the weights' coordinates:
+/// σ_p² I would become the dense σ_p² K⁻¹ there.
+///
 /// Storage of the symmetric covariance C: the per-step kernels keep only its lower triangle and
 /// the complete first n columns (the state block and C[z, x]) up to date, which halves the work of
 /// the rank-p update and of J C_z; the entries above the diagonal right of column n are stale.
@@ -644,6 +777,8 @@ pub struct RgpEkf {
     gps: Vec<Rgp>,
     /// Start of each GP's weight block in μ (augmented mode).
     offsets: Vec<usize>,
+    /// Whether each GP's block is stored whitened (augmented and σ_p = 0; see the struct's doc).
+    whitened: Vec<bool>,
     augmented: bool,
     nt: usize,
     mu: Vec<f64>,
@@ -656,12 +791,16 @@ pub struct RgpEkf {
     /// μ_z^p per disturbance.
     mu_zp: Vec<f64>,
     inferred: bool,
-    /// Scratch: Ã's top rows times C (n × N, column-major); J C_z (q × N, row-major); T J
+    /// Scratch: Ã's top rows times C (n × N, row-major); J C_z (q × N, row-major); T J
     /// (n × q, row-major); C H̃ᵀ, then W (N × p, column-major).
     t: Vec<f64>,
     jc: Vec<f64>,
     tj: Vec<f64>,
     pht: Vec<f64>,
+    /// Scratch of the update: S (p × p), its Cholesky factor L_S (both row-major), L_S⁻¹ ν.
+    s_buf: Vec<f64>,
+    ls: Vec<f64>,
+    w: Vec<f64>,
     /// Last innovation, its covariance and log-likelihood.
     innovation: Vec<f64>,
     s: Mat<f64>,
@@ -703,18 +842,28 @@ impl RgpEkf {
                 cov[(i, jj)] = 0.5 * (p0[i * n + jj] + p0[jj * n + i]);
             }
         }
+        let whitened: Vec<bool> = gps
+            .iter()
+            .map(|g| augmented && g.basis.sigma_p2 == 0.0)
+            .collect();
         if augmented {
-            for (g, &o) in gps.iter().zip(&offsets) {
+            for ((g, &o), &w) in gps.iter().zip(&offsets).zip(&whitened) {
                 let nb = g.basis.n_basis();
-                mu[o..o + nb].copy_from_slice(&g.mean);
-                cov.as_mut()
-                    .submatrix_mut(o, o, nb, nb)
-                    .copy_from(g.cov.as_ref());
+                let mut u = g.mean.clone();
+                let mut block = cov.as_mut().submatrix_mut(o, o, nb, nb);
+                if w {
+                    g.basis.whiten(&mut u);
+                    block.copy_from(g.basis.whiten_cov(g.cov.as_ref()));
+                } else {
+                    block.copy_from(g.cov.as_ref());
+                }
+                mu[o..o + nb].copy_from_slice(&u);
             }
         }
         Ok(Self {
             n,
             offsets,
+            whitened,
             augmented,
             nt,
             mu,
@@ -728,6 +877,9 @@ impl RgpEkf {
             jc: vec![0.0; q * nt],
             tj: vec![0.0; n * q],
             pht: Vec::new(),
+            s_buf: Vec::new(),
+            ls: Vec::new(),
+            w: Vec::new(),
             innovation: Vec::new(),
             s: Mat::zeros(0, 0),
             log_likelihood: 0.0,
@@ -797,13 +949,73 @@ impl RgpEkf {
         &self.mu_zp
     }
 
-    pub fn mu(&self) -> &[f64] {
-        &self.mu
+    /// The state estimate x (the first n entries of μ).
+    pub fn x(&self) -> &[f64] {
+        &self.mu[..self.n]
     }
 
-    /// The augmented covariance C (a symmetric copy of the stored part).
+    /// The state covariance P (the state block of C, stored complete and exactly symmetric).
+    pub fn p(&self) -> MatRef<'_, f64> {
+        self.cov.as_ref().submatrix(0, 0, self.n, self.n)
+    }
+
+    /// The augmented mean μ = [x; μ_z1; …] (the weights mapped back from whitened coordinates).
+    pub fn mu(&self) -> Vec<f64> {
+        let mut mu = self.mu.clone();
+        for ((g, &o), _) in self
+            .gps
+            .iter()
+            .zip(&self.offsets)
+            .zip(&self.whitened)
+            .filter(|x| *x.1)
+        {
+            {
+                let nb = g.basis.n_basis();
+                let w = g.basis.unwhiten(&self.mu[o..o + nb]);
+                mu[o..o + nb].copy_from_slice(&w);
+            }
+        }
+        mu
+    }
+
+    /// The augmented covariance C, in the weights' coordinates: T C_stored Tᵀ with
+    /// T = blockdiag(I, L_1, …), exactly symmetric.
     pub fn cov(&self) -> Mat<f64> {
-        symmetric_from_lower(self.cov.as_ref())
+        let mut c = symmetric_from_lower(self.cov.as_ref());
+        let nt = self.nt;
+        for ((g, &o), _) in self
+            .gps
+            .iter()
+            .zip(&self.offsets)
+            .zip(&self.whitened)
+            .filter(|x| *x.1)
+        {
+            {
+                let nb = g.basis.n_basis();
+                let l = g.basis.chol.as_ref();
+                let mut rows = Mat::<f64>::zeros(nb, nt);
+                matmul(
+                    rows.as_mut(),
+                    Accum::Replace,
+                    l,
+                    c.as_ref().submatrix(o, 0, nb, nt),
+                    1.0,
+                    Par::Seq,
+                );
+                c.as_mut().submatrix_mut(o, 0, nb, nt).copy_from(&rows);
+                let mut cols = Mat::<f64>::zeros(nt, nb);
+                matmul(
+                    cols.as_mut(),
+                    Accum::Replace,
+                    c.as_ref().submatrix(0, o, nt, nb),
+                    l.transpose(),
+                    1.0,
+                    Par::Seq,
+                );
+                c.as_mut().submatrix_mut(0, o, nt, nb).copy_from(&cols);
+            }
+        }
+        symmetric_from_lower(c.as_ref())
     }
 
     pub fn innovation(&self) -> &[f64] {
@@ -818,16 +1030,26 @@ impl RgpEkf {
         self.log_likelihood
     }
 
-    /// Weights' mean and covariance of GP `g` (the state block, or the fixed GP in pure mode).
-    pub fn gp_weights(&self, g: usize) -> (&[f64], Mat<f64>) {
-        if self.augmented {
-            let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+    /// Weights' mean and covariance of GP `g` (the state block mapped back from whitened
+    /// coordinates, L u and L C_u Lᵀ, or the fixed GP in pure mode).
+    pub fn gp_weights(&self, g: usize) -> (Vec<f64>, Mat<f64>) {
+        let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+        if self.augmented && !self.whitened[g] {
             (
-                &self.mu[o..o + nb],
+                self.mu[o..o + nb].to_vec(),
                 symmetric_from_lower(self.cov.as_ref().submatrix(o, o, nb, nb)),
             )
+        } else if self.augmented {
+            let basis = &self.gps[g].basis;
+            let cu = symmetric_from_lower(self.cov.as_ref().submatrix(o, o, nb, nb));
+            let l = basis.chol.as_ref();
+            let c = l * cu * l.transpose();
+            (
+                basis.unwhiten(&self.mu[o..o + nb]),
+                symmetric_from_lower(c.as_ref()),
+            )
         } else {
-            (&self.gps[g].mean, self.gps[g].cov.clone())
+            (self.gps[g].mean.clone(), self.gps[g].cov.clone())
         }
     }
 
@@ -845,6 +1067,7 @@ impl RgpEkf {
         let m = self.gps[g].basis.count_inputs(zetas)?;
         let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
         let (o, nb) = (self.offsets[g], self.gps[g].basis.n_basis());
+        let whitened = self.whitened[g];
         let Self {
             gps,
             mu: state,
@@ -856,6 +1079,7 @@ impl RgpEkf {
         gp.basis.predict_with(
             &state[o..o + nb],
             cz.as_ref(),
+            whitened,
             zetas,
             &mut gp.j,
             &mut mu,
@@ -889,7 +1113,13 @@ impl RgpEkf {
             );
             let j = &mut self.j[jo..jo + nb];
             let gp = &mut self.gps[g];
-            let jkj = gp.basis.infer(&zetas[zo..zo + nx], j);
+            // augmented: the weights are stored whitened, so J_k μ_z = v · u and one triangular
+            // solve gives everything the step needs (see the struct's doc)
+            let jkj = if self.whitened[g] {
+                gp.basis.infer_whitened(&zetas[zo..zo + nx], j)
+            } else {
+                gp.basis.infer(&zetas[zo..zo + nx], j)
+            };
             zo += nx;
             let base = (gp.basis.sigma_k2() - jkj).max(0.0) + gp.basis.sigma_r2;
             if self.augmented {
@@ -948,7 +1178,29 @@ impl RgpEkf {
                     *v = dot(&self.cov.col_as_slice(i)[o..o + nb], jg);
                 }
                 out[o..].fill(0.0);
-                for (b, &jb) in jg.iter().enumerate() {
+                // four columns k..k+4 at a time: below their 4 × 4 diagonal block, out[i] +=
+                // Σ_t J_t C[i, k+t] in one pass (lower part) and out[k+t] += C[i, k+t] J_i in
+                // another (upper part of rows k..k+4, = columns by symmetry; four dots sharing J)
+                let mut b = 0;
+                while b + 4 <= nb {
+                    let k = o + b;
+                    let c = |t: usize| &self.cov.col_as_slice(k + t)[k + 4..o + nb];
+                    let a = [jg[b], jg[b + 1], jg[b + 2], jg[b + 3]];
+                    add4(&mut out[k + 4..o + nb], a, [c(0), c(1), c(2), c(3)]);
+                    let d = dot4([c(0), c(1), c(2), c(3)], &jg[b + 4..]);
+                    for t in 0..4 {
+                        let col = self.cov.col_as_slice(k + t);
+                        out[k + t] += a[t] * col[k + t];
+                        for s2 in t + 1..4 {
+                            out[k + s2] += a[t] * col[k + s2];
+                            out[k + t] += col[k + s2] * a[s2];
+                        }
+                        out[k + t] += d[t];
+                        axpy(&mut out[o + nb..], a[t], &col[o + nb..]);
+                    }
+                    b += 4;
+                }
+                for (b, &jb) in jg.iter().enumerate().skip(b) {
                     let k = o + b;
                     let col = self.cov.col_as_slice(k);
                     // one pass over column k below the diagonal: out[i] += J_b C[i, k] (lower
@@ -964,29 +1216,22 @@ impl RgpEkf {
                 }
             }
         }
-        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, column-major: t[c n + r])
-        // C[x, c] for c < n is stored in column c, for c ≥ n as C[c, x] in columns 0..n
-        for c in 0..n {
-            let cc = &self.cov.col_as_slice(c)[..n];
-            for r in 0..n {
-                self.t[c * n + r] = dot(&a[r * n..(r + 1) * n], cc);
-            }
-        }
-        self.t[n * n..].fill(0.0);
-        for k in 0..n {
-            let colk = self.cov.col_as_slice(k);
-            for (c, tc) in self.t.chunks_exact_mut(n).enumerate().skip(n) {
-                let v = colk[c];
-                for (r, t) in tc.iter_mut().enumerate() {
-                    *t += a[r * n + k] * v;
+        // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, row-major: t[r N + c]). Row r
+        // is Σ_k A[r, k] C[:, k] + Σ_g e[r, g] jc[g, :]: axpys over the complete columns 0..n of C
+        // (C[x, c] = C[c, x] for every c, the state block being exactly symmetric).
+        for (r, row) in self.t.chunks_exact_mut(nt).enumerate() {
+            row.fill(0.0);
+            for k in 0..n {
+                let ark = a[r * n + k];
+                if ark != 0.0 {
+                    axpy(row, ark, self.cov.col_as_slice(k));
                 }
             }
-        }
-        if self.augmented {
-            for (c, tc) in self.t.chunks_exact_mut(n).enumerate() {
-                for (r, t) in tc.iter_mut().enumerate() {
-                    for g in 0..q {
-                        *t += e[r * q + g] * self.jc[g * nt + c];
+            if self.augmented {
+                for g in 0..q {
+                    let erg = e[r * q + g];
+                    if erg != 0.0 {
+                        axpy(row, erg, &self.jc[g * nt..(g + 1) * nt]);
                     }
                 }
             }
@@ -1000,11 +1245,8 @@ impl RgpEkf {
                     self.gps[g].basis.n_basis(),
                 );
                 for r in 0..n {
-                    let mut s = 0.0;
-                    for (b, jb) in self.j[jo..jo + nb].iter().enumerate() {
-                        s += self.t[(o + b) * n + r] * jb;
-                    }
-                    self.tj[r * q + g] = s;
+                    self.tj[r * q + g] =
+                        dot(&self.t[r * nt + o..r * nt + o + nb], &self.j[jo..jo + nb]);
                 }
             }
         }
@@ -1014,7 +1256,7 @@ impl RgpEkf {
             for r in c..n {
                 let mut s = 0.5 * (q_x[r * n + c] + q_x[c * n + r]);
                 for k in 0..n {
-                    s += self.t[k * n + r] * a[c * n + k];
+                    s += self.t[r * nt + k] * a[c * n + k];
                 }
                 for g in 0..q {
                     if self.augmented {
@@ -1029,10 +1271,8 @@ impl RgpEkf {
         if self.augmented {
             // C[z, x] = T[:, z]ᵀ (C[x, z] above the diagonal is not stored); C[z, z] += σ_p² I
             for r in 0..n {
-                let col = self.cov.col_as_slice_mut(r);
-                for (c, v) in col.iter_mut().enumerate().skip(n) {
-                    *v = self.t[c * n + r];
-                }
+                self.cov.col_as_slice_mut(r)[n..]
+                    .copy_from_slice(&self.t[r * nt + n..(r + 1) * nt]);
             }
             for g in 0..q {
                 let (o, nb, sp2) = (
@@ -1040,8 +1280,10 @@ impl RgpEkf {
                     self.gps[g].basis.n_basis(),
                     self.gps[g].basis.sigma_p2,
                 );
-                for i in o..o + nb {
-                    self.cov[(i, i)] += sp2;
+                if sp2 != 0.0 {
+                    for i in o..o + nb {
+                        self.cov.col_as_slice_mut(i)[i] += sp2;
+                    }
                 }
             }
         }
@@ -1085,41 +1327,53 @@ impl RgpEkf {
                 }
             }
         }
-        // S = H C[x, :] H̃ᵀ + R_x, exactly symmetric
-        let mut s = Mat::<f64>::zeros(p, p);
+        // S = H C[x, :] H̃ᵀ + R_x, exactly symmetric (row-major)
+        let s = &mut self.s_buf;
+        s.resize(p * p, 0.0);
         for i in 0..p {
             for jj in 0..=i {
                 let v = 0.5
                     * (dot(&h[i * n..(i + 1) * n], &self.pht[jj * nt..jj * nt + n])
                         + dot(&h[jj * n..(jj + 1) * n], &self.pht[i * nt..i * nt + n]))
                     + 0.5 * (r[i * p + jj] + r[jj * p + i]);
-                s[(i, jj)] = v;
-                s[(jj, i)] = v;
+                s[i * p + jj] = v;
+                s[jj * p + i] = v;
             }
         }
-        let llt = Llt::new(s.as_ref(), Side::Lower).map_err(|_| {
-            Error::numerical("the innovation covariance H P Hᵀ + R_x is not positive definite")
-        })?;
-        let ls = llt.L();
-        // W = C H̃ᵀ L_S⁻ᵀ, row by row in place (each row solves L_S wᵀ = row), w = L_S⁻¹ ν
-        for i in 0..nt {
-            for k in 0..p {
-                let mut v = self.pht[k * nt + i];
-                for m in 0..k {
-                    v -= ls[(k, m)] * self.pht[m * nt + i];
+        let ls = &mut self.ls;
+        ls.resize(p * p, 0.0);
+        if !cholesky(s, p, ls) {
+            return Err(Error::numerical(
+                "the innovation covariance H P Hᵀ + R_x is not positive definite",
+            ));
+        }
+        // W = C H̃ᵀ L_S⁻ᵀ, column by column in place (column k: (column k − Σ_{m<k} L_S[k, m]
+        // W[:, m]) / L_S[k, k]); w = L_S⁻¹ ν
+        for k in 0..p {
+            let (done, rest) = self.pht.split_at_mut(k * nt);
+            let col = &mut rest[..nt];
+            for m in 0..k {
+                let lkm = ls[k * p + m];
+                for (v, wm) in col.iter_mut().zip(&done[m * nt..(m + 1) * nt]) {
+                    *v -= lkm * wm;
                 }
-                self.pht[k * nt + i] = v / ls[(k, k)];
+            }
+            let d = ls[k * p + k];
+            for v in col.iter_mut() {
+                *v /= d;
             }
         }
-        let mut w = nu.to_vec();
+        let w = &mut self.w;
+        w.clear();
+        w.extend_from_slice(nu);
         for k in 0..p {
             let mut v = w[k];
             for m in 0..k {
-                v -= ls[(k, m)] * w[m];
+                v -= ls[k * p + m] * w[m];
             }
-            w[k] = v / ls[(k, k)];
+            w[k] = v / ls[k * p + k];
         }
-        let logdet: f64 = (0..p).map(|i| ls[(i, i)].ln()).sum::<f64>() * 2.0;
+        let logdet: f64 = (0..p).map(|i| ls[i * p + i].ln()).sum::<f64>() * 2.0;
         let mahal: f64 = w.iter().map(|v| v * v).sum();
         let rows = if learning || !self.augmented { nt } else { n };
         for (k, wk) in w.iter().enumerate() {
@@ -1129,7 +1383,14 @@ impl RgpEkf {
         rank_p_downdate(&mut self.cov, &self.pht, p, n, rows == nt);
         self.innovation.clear();
         self.innovation.extend_from_slice(nu);
-        self.s = s;
+        if self.s.nrows() != p {
+            self.s = Mat::zeros(p, p);
+        }
+        for i in 0..p {
+            for jj in 0..p {
+                self.s[(i, jj)] = self.s_buf[i * p + jj];
+            }
+        }
         self.log_likelihood =
             -0.5 * (mahal + logdet + p as f64 * (2.0 * std::f64::consts::PI).ln());
         Ok(self.log_likelihood)
@@ -1215,8 +1476,9 @@ mod tests {
         let a_rm: Vec<f64> = (0..n * n).map(|i| a[(i / n, i % n)]).collect();
         let q_rm: Vec<f64> = (0..n * n).map(|i| qx[(i / n, i % n)]).collect();
         ekf.predict(&[1.0, 2.0, 3.0], &a_rm, &e, &q_rm).unwrap();
+        // in the stored (whitened) coordinates, where J_k is the row v the step used
         let dense = dense_prediction(&c0, &a, &e, &j, d, &qx, 0.05 * 0.05);
-        let cov = ekf.cov();
+        let cov = symmetric_from_lower(ekf.cov.as_ref());
         for r in 0..nt {
             for c in 0..nt {
                 assert!(
@@ -1230,25 +1492,77 @@ mod tests {
     }
 
     #[test]
+    fn whitened_storage_maps_back_to_the_weights() {
+        // a trained GP without process noise is stored whitened; mu, cov and gp_weights return
+        // its weights, and a GP with σ_p > 0 is stored as is
+        for sp in [0.0, 0.05] {
+            let mut gp = Rgp::new(RgpBasis::new(&[-1.0], &[1.0], &[9], 1.5, 2.0, 0.1, sp).unwrap());
+            for k in 0..30 {
+                let z = (k as f64 * 0.377) % 2.0 - 1.0;
+                gp.update(&[z], (2.0 * z).sin(), 0.01).unwrap();
+            }
+            let ekf =
+                RgpEkf::new(&[0.5, -0.5], &[1.0, 0.2, 0.2, 2.0], vec![gp.clone()], true).unwrap();
+            assert_eq!(ekf.whitened[0], sp == 0.0);
+            let (m, c) = ekf.gp_weights(0);
+            let (mu, cov) = (ekf.mu(), ekf.cov());
+            for i in 0..9 {
+                assert!((m[i] - gp.mean()[i]).abs() < 1e-12);
+                assert!((mu[2 + i] - gp.mean()[i]).abs() < 1e-12);
+                for jj in 0..9 {
+                    assert!((c[(i, jj)] - gp.cov()[(i, jj)]).abs() < 1e-12);
+                    assert!((cov[(2 + i, 2 + jj)] - gp.cov()[(i, jj)]).abs() < 1e-12);
+                }
+                assert_eq!(cov[(2 + i, 0)], 0.0);
+            }
+            assert_eq!(cov[(0, 1)], 0.2);
+        }
+    }
+
+    #[test]
     fn substitutions_match_faer_triangular_solves() {
         use faer::linalg::triangular_solve::{
             solve_lower_triangular_in_place, solve_upper_triangular_in_place,
         };
-        let b = RgpBasis::new(&[0.0], &[1.0], &[40], 2.0, 3.0, 0.0, 0.0).unwrap();
-        let rhs: Vec<f64> = (0..40).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
-        let (mut ours, mut theirs) = (rhs.clone(), rhs.clone());
-        forward_substitution(&b.chol, &mut ours);
-        let mut col = MatMut::from_column_major_slice_mut(&mut theirs, 40, 1);
-        solve_lower_triangular_in_place(b.chol.as_ref(), col.as_mut(), Par::Seq);
-        for (o, t) in ours.iter().zip(&theirs) {
-            assert!((o - t).abs() <= 1e-10 * (1.0 + t.abs()), "{o} vs {t}");
+        // sizes around and between the blocks of four columns
+        for nb in [2, 3, 4, 5, 7, 8, 9, 37, 40, 43] {
+            let b = RgpBasis::new(&[0.0], &[1.0], &[nb], 2.0, 0.5, 0.0, 0.0).unwrap();
+            let rhs: Vec<f64> = (0..nb).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+            let (mut ours, mut theirs) = (rhs.clone(), rhs.clone());
+            forward_substitution(&b.chol, &b.inv_diag, 0.0, &mut ours);
+            let mut col = MatMut::from_column_major_slice_mut(&mut theirs, nb, 1);
+            solve_lower_triangular_in_place(b.chol.as_ref(), col.as_mut(), Par::Seq);
+            for (o, t) in ours.iter().zip(&theirs) {
+                assert!((o - t).abs() <= 1e-10 * (1.0 + t.abs()), "{nb}: {o} vs {t}");
+            }
+            let (mut ours, mut theirs) = (rhs.clone(), rhs);
+            back_substitution(&b.chol, &b.inv_diag, 0.0, &mut ours);
+            let mut col = MatMut::from_column_major_slice_mut(&mut theirs, nb, 1);
+            solve_upper_triangular_in_place(b.chol.transpose(), col.as_mut(), Par::Seq);
+            for (o, t) in ours.iter().zip(&theirs) {
+                assert!((o - t).abs() <= 1e-8 * (1.0 + t.abs()), "{nb}: {o} vs {t}");
+            }
         }
-        let (mut ours, mut theirs) = (rhs.clone(), rhs);
-        back_substitution(&b.chol_t, &mut ours);
-        let mut col = MatMut::from_column_major_slice_mut(&mut theirs, 40, 1);
-        solve_upper_triangular_in_place(b.chol.transpose(), col.as_mut(), Par::Seq);
-        for (o, t) in ours.iter().zip(&theirs) {
-            assert!((o - t).abs() <= 1e-8 * (1.0 + t.abs()), "{o} vs {t}");
+    }
+
+    #[test]
+    fn small_cholesky_matches_faer_and_rejects_indefinite() {
+        for p in [1, 2, 3, 5, 8, 9, 12] {
+            let g = Mat::<f64>::from_fn(p, p, |i, j| ((i * 7 + j * 3) % 5) as f64 - 2.0);
+            let a = &g * g.transpose() + Mat::<f64>::identity(p, p);
+            let s: Vec<f64> = (0..p * p).map(|k| a[(k / p, k % p)]).collect();
+            let mut l = vec![f64::NAN; p * p];
+            assert!(cholesky(&s, p, &mut l));
+            let want = Llt::new(a.as_ref(), Side::Lower).unwrap();
+            for i in 0..p {
+                for jj in 0..p {
+                    let w = if jj <= i { want.L()[(i, jj)] } else { 0.0 };
+                    assert!((l[i * p + jj] - w).abs() < 1e-12, "p = {p}");
+                }
+            }
+            let mut bad = s.clone();
+            bad[p * p - 1] = -1.0;
+            assert!(!cholesky(&bad, p, &mut l), "p = {p}");
         }
     }
 
