@@ -738,7 +738,10 @@ impl BoxLsqSolver {
             .max(1);
         let mut lambda = 0.0f64;
         let mut failures = 0;
-        while pr.nit < opts.max_iter {
+        // At most half of the iteration budget: the active-set phase polishes from wherever the
+        // barrier phase got to (a window it cannot finish would otherwise end at the cap).
+        let budget = pr.nit + opts.max_iter.div_ceil(2);
+        while pr.nit < budget.min(opts.max_iter) {
             // Optimality error of the barrier problem (IPOPT's E_mu with its dual scaling).
             let mut e_dual = 0.0f64;
             let mut e_comp = 0.0f64;
