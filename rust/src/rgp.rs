@@ -384,19 +384,11 @@ fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
 }
 
 /// y −= a₀ x₀, then −= a₁ x₁, −= a₂ x₂, −= a₃ x₃, in one pass over y (the four axpys of a block of
-/// four columns in a substitution, with the same operations in the same order per entry).
+/// four columns in a substitution). `y + (−a)x` rounds exactly as `y − ax` (negation is exact), so
+/// this is [`add4`] with the coefficients negated.
 #[inline(always)]
 fn sub4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
-    let n = y
-        .len()
-        .min(x[0].len())
-        .min(x[1].len())
-        .min(x[2].len())
-        .min(x[3].len());
-    let (x0, x1, x2, x3) = (&x[0][..n], &x[1][..n], &x[2][..n], &x[3][..n]);
-    for ((((yi, v0), v1), v2), v3) in y[..n].iter_mut().zip(x0).zip(x1).zip(x2).zip(x3) {
-        *yi = (((*yi - a[0] * v0) - a[1] * v1) - a[2] * v2) - a[3] * v3;
-    }
+    add4(y, [-a[0], -a[1], -a[2], -a[3]], x)
 }
 
 /// y += a₀ x₀, then += a₁ x₁, += a₂ x₂, += a₃ x₃, in one pass over y (four columns of a

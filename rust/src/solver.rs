@@ -466,6 +466,23 @@ fn finite_upper(u: f64) -> bool {
     u < f64::INFINITY
 }
 
+/// −(gᵀs + ½ sᵀHs): the decrease of J the Gauss-Newton model predicts for the step s, with H
+/// given by its block-tridiagonal blocks (`hp` is scratch for Hs).
+fn model_decrease(
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+    g: &[f64],
+    s: &[f64],
+    hp: &mut [f64],
+) -> f64 {
+    block_tridiag_matvec(nodes, n, diag, off, s, hp);
+    -(0..s.len())
+        .map(|k| g[k] * s[k] + 0.5 * s[k] * hp[k])
+        .sum::<f64>()
+}
+
 /// The log-barrier term −μ Σ ln s over the finite bounds of the free variables.
 fn barrier(z: &[f64], lower: &[f64], upper: &[f64], fixed_bound: &[bool], mu: f64) -> f64 {
     let mut b = 0.0;
@@ -1055,11 +1072,15 @@ impl BoxLsqSolver {
                 return Status::StepTolerance;
             }
             let known_noise = noise_est.max(self.noise_at_z);
-            block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.step, &mut self.hp);
-            let mut pred = 0.0;
-            for k in 0..len {
-                pred -= self.g[k] * self.step[k] + 0.5 * self.step[k] * self.hp[k];
-            }
+            let mut pred = model_decrease(
+                nodes,
+                n,
+                &self.diag,
+                &self.off,
+                &self.g,
+                &self.step,
+                &mut self.hp,
+            );
             if clipped {
                 // A projected step can be poor when coupled variables hit a bound; the
                 // unprojected step truncated at the first bound may predict more: keep
@@ -1078,11 +1099,15 @@ impl BoxLsqSolver {
                 for k in 0..len {
                     self.shift[k] *= a;
                 }
-                block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.shift, &mut self.hp);
-                let mut pred_t = 0.0;
-                for k in 0..len {
-                    pred_t -= self.g[k] * self.shift[k] + 0.5 * self.shift[k] * self.hp[k];
-                }
+                let pred_t = model_decrease(
+                    nodes,
+                    n,
+                    &self.diag,
+                    &self.off,
+                    &self.g,
+                    &self.shift,
+                    &mut self.hp,
+                );
                 if pred_t > pred {
                     pred = pred_t;
                     for k in 0..len {
@@ -1100,11 +1125,15 @@ impl BoxLsqSolver {
                     for k in 0..len {
                         self.dyu[k] = (z[k] + alpha * self.dyl[k]).clamp(lower[k], upper[k]) - z[k];
                     }
-                    block_tridiag_matvec(nodes, n, &self.diag, &self.off, &self.dyu, &mut self.hp);
-                    let mut pred_a = 0.0;
-                    for k in 0..len {
-                        pred_a -= self.g[k] * self.dyu[k] + 0.5 * self.dyu[k] * self.hp[k];
-                    }
+                    let pred_a = model_decrease(
+                        nodes,
+                        n,
+                        &self.diag,
+                        &self.off,
+                        &self.g,
+                        &self.dyu,
+                        &mut self.hp,
+                    );
                     if pred_a > pred {
                         pred = pred_a;
                         for k in 0..len {
