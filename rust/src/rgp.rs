@@ -951,21 +951,23 @@ impl RgpEkf {
         self.cov.as_ref().submatrix(0, 0, self.n, self.n)
     }
 
-    /// The augmented mean μ = [x; μ_z1; …] (the weights mapped back from whitened coordinates).
-    pub fn mu(&self) -> Vec<f64> {
-        let mut mu = self.mu.clone();
-        for ((g, &o), _) in self
-            .gps
+    /// The GPs whose weights are stored whitened, with their offsets in the state.
+    fn whitened_gps(&self) -> impl Iterator<Item = (&Rgp, usize)> {
+        self.gps
             .iter()
             .zip(&self.offsets)
             .zip(&self.whitened)
-            .filter(|x| *x.1)
-        {
-            {
-                let nb = g.basis.n_basis();
-                let w = g.basis.unwhiten(&self.mu[o..o + nb]);
-                mu[o..o + nb].copy_from_slice(&w);
-            }
+            .filter(|(_, &w)| w)
+            .map(|((g, &o), _)| (g, o))
+    }
+
+    /// The augmented mean μ = [x; μ_z1; …] (the weights mapped back from whitened coordinates).
+    pub fn mu(&self) -> Vec<f64> {
+        let mut mu = self.mu.clone();
+        for (g, o) in self.whitened_gps() {
+            let nb = g.basis.n_basis();
+            let w = g.basis.unwhiten(&self.mu[o..o + nb]);
+            mu[o..o + nb].copy_from_slice(&w);
         }
         mu
     }
@@ -975,37 +977,29 @@ impl RgpEkf {
     pub fn cov(&self) -> Mat<f64> {
         let mut c = symmetric_from_lower(self.cov.as_ref());
         let nt = self.nt;
-        for ((g, &o), _) in self
-            .gps
-            .iter()
-            .zip(&self.offsets)
-            .zip(&self.whitened)
-            .filter(|x| *x.1)
-        {
-            {
-                let nb = g.basis.n_basis();
-                let l = g.basis.chol.as_ref();
-                let mut rows = Mat::<f64>::zeros(nb, nt);
-                matmul(
-                    rows.as_mut(),
-                    Accum::Replace,
-                    l,
-                    c.as_ref().submatrix(o, 0, nb, nt),
-                    1.0,
-                    Par::Seq,
-                );
-                c.as_mut().submatrix_mut(o, 0, nb, nt).copy_from(&rows);
-                let mut cols = Mat::<f64>::zeros(nt, nb);
-                matmul(
-                    cols.as_mut(),
-                    Accum::Replace,
-                    c.as_ref().submatrix(0, o, nt, nb),
-                    l.transpose(),
-                    1.0,
-                    Par::Seq,
-                );
-                c.as_mut().submatrix_mut(0, o, nt, nb).copy_from(&cols);
-            }
+        for (g, o) in self.whitened_gps() {
+            let nb = g.basis.n_basis();
+            let l = g.basis.chol.as_ref();
+            let mut rows = Mat::<f64>::zeros(nb, nt);
+            matmul(
+                rows.as_mut(),
+                Accum::Replace,
+                l,
+                c.as_ref().submatrix(o, 0, nb, nt),
+                1.0,
+                Par::Seq,
+            );
+            c.as_mut().submatrix_mut(o, 0, nb, nt).copy_from(&rows);
+            let mut cols = Mat::<f64>::zeros(nt, nb);
+            matmul(
+                cols.as_mut(),
+                Accum::Replace,
+                c.as_ref().submatrix(0, o, nt, nb),
+                l.transpose(),
+                1.0,
+                Par::Seq,
+            );
+            c.as_mut().submatrix_mut(0, o, nt, nb).copy_from(&cols);
         }
         symmetric_from_lower(c.as_ref())
     }
