@@ -93,6 +93,8 @@ pub struct Gp {
     chol: Mat<f64>,
     /// (K + (σ_ε² + jitter) I)⁻¹ y.
     alpha: Vec<f64>,
+    /// [`Gp::mean_rounding`], fixed once α is.
+    mean_rounding: f64,
     /// Xᵀ, n_d × N row-major (each input coordinate contiguous, for the weighted sums of
     /// `predict_block`).
     xt: Vec<f64>,
@@ -229,6 +231,8 @@ impl Gp {
                 "the log marginal likelihood is not finite (ill-conditioned K + sigma_eps^2 I)",
             ));
         }
+        let mean_rounding =
+            f64::EPSILON * kernel.variance() * alpha.iter().map(|a| a * a).sum::<f64>().sqrt();
         Ok(Gp {
             x: x.to_vec(),
             y: y.to_vec(),
@@ -239,6 +243,7 @@ impl Gp {
             chol,
             alpha,
             xt: (0..nd * n).map(|t| x[(t % n) * nd + t / n]).collect(),
+            mean_rounding,
             lml,
         })
     }
@@ -354,8 +359,7 @@ impl Gp {
     /// kernel values carry relative errors of order ε, so m jitters by ~ε·‖k ∘ α‖₂ ≤
     /// ε·σ_f²·‖α‖₂ (large when the fit is ill-conditioned and α is large).
     pub fn mean_rounding(&self) -> f64 {
-        let a2: f64 = self.alpha.iter().map(|a| a * a).sum::<f64>().sqrt();
-        f64::EPSILON * self.kernel.variance() * a2
+        self.mean_rounding
     }
 
     /// Posterior means and latent variances at k test points `d` (k × n_d row-major) into
