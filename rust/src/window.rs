@@ -543,49 +543,58 @@ impl WindowProblem {
             let a = self.stage_weight(i);
             if self.has_output(i) {
                 for kk in 0..p {
-                    let s = st.var_y[i * p + kk].max(0.0) + self.r0[kk];
-                    let inv_sqrt = 1.0 / s.sqrt();
-                    let res = a * (self.y[i * p + kk] - st.mean_y[i * p + kk]) * inv_sqrt;
-                    out_r[row] = res;
+                    let (t, g) = (i * p + kk, (i * p + kk) * nd);
+                    let w = WeightedRow {
+                        a,
+                        target: self.y[t],
+                        mean: st.mean_y[t],
+                        var: st.var_y[t],
+                        floor: self.r0[kk],
+                        mean_rounding: st.mean_y_rounding[kk],
+                        var_rounding: st.var_y_rounding[kk],
+                    };
+                    let derivs = want_jacobian.then(|| {
+                        (
+                            &st.dmean_y[g..g + n],
+                            &st.dvar_y[g..g + n],
+                            &mut out_ja[row * n..(row + 1) * n],
+                        )
+                    });
+                    (out_r[row], out_dr[row], _) = w.write(derivs);
                     out_node[row] = i;
                     out_process[row] = false;
-                    out_dr[row] = residual_rounding(
-                        res,
-                        a * inv_sqrt * st.mean_y_rounding[kk],
-                        st.var_y_rounding[kk] / s,
-                    );
-                    if want_jacobian {
-                        let g = (i * p + kk) * nd;
-                        for l in 0..n {
-                            out_ja[row * n + l] = -a * inv_sqrt * st.dmean_y[g + l]
-                                - res / (2.0 * s) * st.dvar_y[g + l];
-                        }
-                    }
                     row += 1;
                 }
             }
             if i < self.m_t {
                 for kk in 0..n {
-                    let s = st.var_x[i * n + kk].max(0.0) + self.q0[kk];
-                    let inv_sqrt = 1.0 / s.sqrt();
-                    let res = a * (z[(i + 1) * n + kk] - st.mean_x[i * n + kk]) * inv_sqrt;
-                    out_r[row] = res;
+                    let (t, g) = (i * n + kk, (i * n + kk) * nd);
+                    let w = WeightedRow {
+                        a,
+                        target: z[(i + 1) * n + kk],
+                        mean: st.mean_x[t],
+                        var: st.var_x[t],
+                        floor: self.q0[kk],
+                        mean_rounding: st.mean_x_rounding[kk],
+                        var_rounding: st.var_x_rounding[kk],
+                    };
+                    let derivs = want_jacobian.then(|| {
+                        (
+                            &st.dmean_x[g..g + n],
+                            &st.dvar_x[g..g + n],
+                            &mut out_ja[row * n..(row + 1) * n],
+                        )
+                    });
+                    let scale;
+                    (out_r[row], out_dr[row], scale) = w.write(derivs);
+                    if want_jacobian {
+                        // ∂r/∂x̄_{i+1}: the target is the next state itself.
+                        let jb = &mut out_jb[row * n..(row + 1) * n];
+                        jb.iter_mut().for_each(|v| *v = 0.0);
+                        jb[kk] = scale;
+                    }
                     out_node[row] = i;
                     out_process[row] = true;
-                    out_dr[row] = residual_rounding(
-                        res,
-                        a * inv_sqrt * st.mean_x_rounding[kk],
-                        st.var_x_rounding[kk] / s,
-                    );
-                    if want_jacobian {
-                        let g = (i * n + kk) * nd;
-                        for l in 0..n {
-                            out_ja[row * n + l] = -a * inv_sqrt * st.dmean_x[g + l]
-                                - res / (2.0 * s) * st.dvar_x[g + l];
-                            out_jb[row * n + l] = 0.0;
-                        }
-                        out_jb[row * n + kk] = a * inv_sqrt;
-                    }
                     row += 1;
                 }
             }
@@ -604,6 +613,36 @@ impl WindowProblem {
             ));
         }
         Ok(())
+    }
+}
+
+/// One variance-weighted residual row r = a (target − m(d̄)) / √s, s = σ²(d̄) + floor (floor:
+/// the diagonal of Q0 or R0), DESIGN.md §3.
+struct WeightedRow {
+    a: f64,
+    target: f64,
+    mean: f64,
+    var: f64,
+    floor: f64,
+    mean_rounding: f64,
+    var_rounding: f64,
+}
+
+impl WeightedRow {
+    /// Returns (r, its typical rounding error, a/√s) and, given (∂m/∂x̄, ∂σ²/∂x̄, out), writes
+    /// ∂r/∂x̄ of the stage's own node: −(a/√s) ∂m/∂x̄ − r/(2s) ∂σ²/∂x̄.
+    fn write(&self, derivs: Option<(&[f64], &[f64], &mut [f64])>) -> (f64, f64, f64) {
+        let s = self.var.max(0.0) + self.floor;
+        let inv_sqrt = 1.0 / s.sqrt();
+        let r = self.a * (self.target - self.mean) * inv_sqrt;
+        if let Some((dm, dv, ja)) = derivs {
+            for ((j, m), v) in ja.iter_mut().zip(dm).zip(dv) {
+                *j = -self.a * inv_sqrt * m - r / (2.0 * s) * v;
+            }
+        }
+        let scale = self.a * inv_sqrt;
+        let dr = residual_rounding(r, scale * self.mean_rounding, self.var_rounding / s);
+        (r, dr, scale)
     }
 }
 
