@@ -951,6 +951,15 @@ impl RgpEkf {
         self.cov.as_ref().submatrix(0, 0, self.n, self.n)
     }
 
+    /// GP g's offset in the state, its offset in J, and its number of basis vectors.
+    fn block(&self, g: usize) -> (usize, usize, usize) {
+        (
+            self.offsets[g],
+            self.j_offsets[g],
+            self.gps[g].basis.n_basis(),
+        )
+    }
+
     /// The GPs whose weights are stored whitened, with their offsets in the state.
     fn whitened_gps(&self) -> impl Iterator<Item = (&Rgp, usize)> {
         self.gps
@@ -1152,11 +1161,7 @@ impl RgpEkf {
         // symmetric matrix-vector product from the stored lower triangle (see the struct's doc)
         if self.augmented {
             for g in 0..q {
-                let (o, jo, nb) = (
-                    self.offsets[g],
-                    self.j_offsets[g],
-                    self.gps[g].basis.n_basis(),
-                );
+                let (o, jo, nb) = self.block(g);
                 let jg = &self.j[jo..jo + nb];
                 let out = &mut self.jc[g * nt..(g + 1) * nt];
                 // columns before the block: C[i, z_g] = C[z_g, i], stored in column i
@@ -1225,11 +1230,7 @@ impl RgpEkf {
         // tj[r, g] = T[r, z_g] J_gᵀ   (n × q, row-major)
         if self.augmented {
             for g in 0..q {
-                let (o, jo, nb) = (
-                    self.offsets[g],
-                    self.j_offsets[g],
-                    self.gps[g].basis.n_basis(),
-                );
+                let (o, jo, nb) = self.block(g);
                 for r in 0..n {
                     self.tj[r * q + g] =
                         dot(&self.t[r * nt + o..r * nt + o + nb], &self.j[jo..jo + nb]);
