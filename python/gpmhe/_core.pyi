@@ -266,6 +266,7 @@ class WindowSolver:
         gtol: float = 1e-6,
         xtol: float = 1e-12,
         ftol: float = 1e-15,
+        dtol: float = 1e-5,
         interior: str = "auto",
         interior_zone: float = 1e-5,
         mu_init: float = 0.1,
@@ -277,11 +278,10 @@ class WindowSolver:
         z0: npt.NDArray[np.float64],
         lower: npt.NDArray[np.float64],
         upper: npt.NDArray[np.float64],
-    ) -> tuple[npt.NDArray[np.float64], float, str, bool, int, int, float, int]:
-        """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations); status
-        is one of gradient-tolerance, step-tolerance, cost-tolerance, noise-floor (successes),
-        max-iterations, no-progress."""
-        ...
-    def last_block_inverse(self, window: MheWindow) -> npt.NDArray[np.float64] | None:
-        """Last n×n block of (2JᵀJ)⁻¹ at the window's cached evaluation (None if singular)."""
+    ) -> tuple[npt.NDArray[np.float64], float, str, bool, int, int, float, int,
+               npt.NDArray[np.float64] | None]:
+        """(z, cost, status, success, nit, nfev, projected_gradient, interior_iterations, P);
+        status is one of gradient-tolerance, decrement-tolerance, step-tolerance,
+        cost-tolerance, noise-floor (successes), max-iterations, no-progress. P: the last n×n
+        block of 4(2JᵀJ)⁻¹ at z, symmetrised (None if singular)."""
         ...

@@ -817,13 +817,14 @@ impl PyWindowSolver {
     /// See `gpmhe.GPMHE`'s `solver_options` for the meaning of each setting.
     #[new]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (max_iter=100, gtol=1e-6, xtol=1e-12, ftol=1e-15, interior="auto",
+    #[pyo3(signature = (max_iter=100, gtol=1e-6, xtol=1e-12, ftol=1e-15, dtol=1e-5, interior="auto",
                         interior_zone=1e-5, mu_init=0.1, mu_final=1e-5))]
     fn new(
         max_iter: usize,
         gtol: f64,
         xtol: f64,
         ftol: f64,
+        dtol: f64,
         interior: &str,
         interior_zone: f64,
         mu_init: f64,
@@ -844,6 +845,7 @@ impl PyWindowSolver {
             gtol,
             xtol,
             ftol,
+            dtol,
             interior,
             interior_zone,
             mu_init,
@@ -857,9 +859,11 @@ impl PyWindowSolver {
     }
 
     /// Minimises the window's cost over lower ≤ z ≤ upper from the warm start `z0`. Returns
-    /// (z, cost, status, success, nit, nfev, projected_gradient, interior_iterations); afterwards
-    /// the window's cached evaluation (with derivatives) is at the returned z. Learned models run
-    /// without the GIL; a known model's Python callback runs with it.
+    /// (z, cost, status, success, nit, nfev, projected_gradient, interior_iterations, P) with P
+    /// the last n×n block of 4(2JᵀJ)⁻¹ at z, symmetrised (None if 2JᵀJ is singular: see
+    /// `GPMHE.P`); afterwards the window's cached evaluation (with derivatives) is at the
+    /// returned z. Learned models run without the GIL; a known model's Python callback runs
+    /// with it.
     #[allow(clippy::type_complexity)]
     fn solve<'py>(
         &mut self,
@@ -877,6 +881,7 @@ impl PyWindowSolver {
         usize,
         f64,
         usize,
+        Option<Bound<'py, PyArray2<f64>>>,
     )> {
         let mut z = slice1("z0", &z0)?.to_vec();
         let lower = slice1("lower", &lower)?;
@@ -916,6 +921,9 @@ impl PyWindowSolver {
             }
         };
         w.last_z.extend_from_slice(&z);
+        let cov = last_state_covariance(&w.eval)
+            .map(|c| array2(py, c, dims.0, dims.0))
+            .transpose()?;
         Ok((
             numpy::PyArray1::from_vec(py, z),
             report.cost,
@@ -925,31 +933,28 @@ impl PyWindowSolver {
             report.nfev,
             report.projected_gradient,
             report.interior_iterations,
+            cov,
         ))
     }
+}
 
-    /// The last n×n block of (2JᵀJ)⁻¹ at the window's cached evaluation (the returned z after
-    /// `solve`), from the block-tridiagonal factorisation; None if 2JᵀJ is singular.
-    fn last_block_inverse<'py>(
-        &self,
-        py: Python<'py>,
-        window: PyRef<'py, PyMheWindow>,
-    ) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
-        let ev = &window.eval;
-        if !ev.has_jacobian() || ev.n_nodes() == 0 {
-            return Err(PyValueError::new_err(
-                "window: no evaluation with derivatives (call solve first)",
-            ));
-        }
-        let (nodes, n) = (ev.n_nodes(), ev.dim_x());
-        let mut diag = vec![0.0; nodes * n * n];
-        let mut off = vec![0.0; nodes.saturating_sub(1) * n * n];
-        ev.gauss_newton_blocks_into(&mut diag, &mut off);
-        match crate::solver::gauss_newton_last_block_inverse(nodes, n, &diag, &off) {
-            Some(v) => Ok(Some(array2(py, v, n, n)?)),
-            None => Ok(None),
-        }
+/// 4·sym(last n×n block of (2JᵀJ)⁻¹) at the window's evaluation (J = 4× a negative
+/// log-likelihood, so 4H⁻¹ is the Laplace covariance), from the block-tridiagonal
+/// factorisation; None without derivatives, or if 2JᵀJ is singular or the block not finite.
+fn last_state_covariance(ev: &WindowEval) -> Option<Vec<f64>> {
+    if !ev.has_jacobian() || ev.n_nodes() == 0 {
+        return None;
     }
+    let (nodes, n) = (ev.n_nodes(), ev.dim_x());
+    let mut diag = vec![0.0; nodes * n * n];
+    let mut off = vec![0.0; nodes.saturating_sub(1) * n * n];
+    ev.gauss_newton_blocks_into(&mut diag, &mut off);
+    let b = crate::solver::gauss_newton_last_block_inverse(nodes, n, &diag, &off)?;
+    Some(
+        (0..n * n)
+            .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
+            .collect(),
+    )
 }
 
 // ===== RGP =====
