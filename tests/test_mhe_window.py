@@ -123,6 +123,94 @@ def test_callback_errors_propagate():
         win.cost(np.zeros(4))
 
 
+@pytest.mark.parametrize("kind", ["known", "known-stage-eval", "learned", "learned-residual"])
+def test_prepare_warm_start_shifts_predicts_and_clips(kind):
+    """The Rust warm start (MheWindow.prepare, used by every solver path): the previous window's
+    rows from `first` on, then each new node predicted from the one before with the model's
+    one-step prediction, all clipped into the inner box; rows already inside stay bit-identical
+    (the learned model's reuse of GP values depends on it)."""
+    model = known3() if kind.startswith("known") else synthetic_learned(kind == "learned-residual")
+    if kind == "known-stage-eval":  # no predict callable: the window uses stage_eval's means
+        from gpmhe import _core
+        win = _core.MheWindow.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2),
+                                            np.ones(2), np.eye(2), False)
+    else:
+        win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False)
+    rng = np.random.default_rng(5)
+    prev = rng.uniform(-1, 1, (4, 2))
+    prev[1, 0] = 0.37123456789
+    u = rng.uniform(-1, 1, (5, 1))
+    lo, hi = np.array([-0.9, -2.0]), np.array([0.9, 2.0])
+    args = (u, np.zeros((5, 2)), [True] * 5, np.zeros(2))
+    for first in (1, 3, -1):
+        z0 = win.prepare(*args, prev, first, lo, hi).reshape(5, 2)
+        expect = np.empty((5, 2))
+        kept = 0 if first < 0 else min(5, 4 - first)
+        expect[:kept] = prev[first:first + kept]
+        for i in range(kept, 5):
+            expect[i] = prev[-1] if i == 0 else model.predict(expect[i - 1], u[i - 1])
+        np.testing.assert_allclose(z0, np.clip(expect, lo, hi), rtol=1e-13, atol=1e-14)
+        np.testing.assert_allclose(win.predict_next(expect[0], u[0]),
+                                   model.predict(expect[0], u[0]), rtol=1e-13, atol=1e-15)
+    z0 = win.prepare(*args, prev, 1, lo, hi).reshape(5, 2)
+    assert z0[0, 0] == prev[1, 0]  # bit-identical inside the box
+    assert win.n_nodes == 5
+
+
+def test_prepare_rejects_bad_arguments_naming_them():
+    model = known3()
+    win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False)
+    win.set_data(np.zeros((3, 1)), np.zeros((3, 2)), [True] * 3, np.zeros(2))
+    args = (np.zeros((4, 1)), np.zeros((4, 2)), [True] * 4, np.zeros(2))
+    box = (np.full(2, -1.0), np.full(2, 1.0))
+    with pytest.raises(ValueError, match="prev_window"):
+        win.prepare(*args, np.zeros((3, 3)), 1, *box)
+    with pytest.raises(ValueError, match="prev_window"):
+        win.prepare(*args, np.full((3, 2), np.nan), 1, *box)
+    with pytest.raises(ValueError, match="lower_inner"):
+        win.prepare(*args, np.zeros((3, 2)), 1, np.full(2, 1.0), np.full(2, -1.0))
+    assert win.n_nodes == 3  # the window's data were left as they were
+    with pytest.raises(ValueError, match="x"):
+        win.predict_next(np.zeros(3), np.zeros(1))
+
+    def bad_predict(x, u):
+        return np.zeros(3)
+
+    from gpmhe import _core
+    win2 = _core.MheWindow.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2), np.ones(2),
+                                         np.eye(2), False, predict=bad_predict)
+    with pytest.raises(ValueError, match="predict"):
+        win2.prepare(*args, np.zeros((3, 2)), 1, *box)
+    with pytest.raises(ValueError, match="predict"):
+        _core.MheWindow.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2), np.ones(2),
+                                      np.eye(2), False, predict=3.0)
+
+
+def test_solver_step_is_prepare_then_solve():
+    """WindowSolver.step (GPMHE's one Rust call per update) gives exactly prepare + solve, and in
+    the filtering form the model's prediction from the last node."""
+    from gpmhe import _core
+    model = synthetic_learned(False)
+    rng = np.random.default_rng(9)
+    prev = rng.uniform(-1, 1, (4, 2))
+    u, y = rng.uniform(-1, 1, (5, 1)), rng.uniform(-1, 1, (5, 2))
+    lo, hi = np.full(2, -1.4), np.full(2, 1.4)
+    LB, UB = np.full(10, -1.5), np.full(10, 1.5)
+    for filtering in (False, True):
+        args = (u, y, [True] * 5, np.zeros(2), prev, 1, lo, hi)
+        w1 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering)
+        w2 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering)
+        out, x_next = _core.WindowSolver().step(w1, *args, LB, UB)
+        ref = _core.WindowSolver().solve(w2, w2.prepare(*args), LB, UB)
+        np.testing.assert_array_equal(out[0], ref[0])
+        assert out[1:8] == ref[1:8]
+        np.testing.assert_array_equal(out[8], ref[8])
+        if filtering:
+            np.testing.assert_array_equal(x_next, w2.predict_next(out[0][-2:], u[-1]))
+        else:
+            assert x_next is None
+
+
 @pytest.fixture(scope="module")
 def reactor_model():
     states, outputs = br.training_data(5, rng=11)

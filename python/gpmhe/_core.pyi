@@ -227,7 +227,11 @@ class MheWindow:
         r0: _F,
         p2_sqrt: _F,
         filtering: bool,
-    ) -> MheWindow: ...
+        predict: Callable[[_F, _F], _F] | None = None,
+    ) -> MheWindow:
+        """`predict(x, u)`: the one-step prediction used for warm starts (None: the means of
+        `stage_eval` at one point)."""
+        ...
     @staticmethod
     def with_gp(
         f_gp: MultiGP,
@@ -241,6 +245,23 @@ class MheWindow:
         filtering: bool,
     ) -> MheWindow: ...
     def set_data(self, u: _F, y: _F, y_present: list[bool], x_prior: _F) -> None: ...
+    def prepare(
+        self,
+        u: _F,
+        y: _F,
+        y_present: list[bool],
+        x_prior: _F,
+        prev_window: _F,
+        first: int,
+        lower_inner: _F,
+        upper_inner: _F,
+    ) -> _F:
+        """`set_data`, then the warm start z0: `prev_window`'s rows from `first` on (first < 0:
+        none), further nodes predicted with the model, clipped into [lower_inner, upper_inner]."""
+        ...
+    def predict_next(self, x: _F, u: _F) -> _F:
+        """The model's one-step prediction m_x(x, u)."""
+        ...
     @property
     def n_nodes(self) -> int: ...
     @property
@@ -284,4 +305,23 @@ class WindowSolver:
         status is one of gradient-tolerance, decrement-tolerance, step-tolerance,
         cost-tolerance, noise-floor (successes), max-iterations, no-progress. P: the last n×n
         block of 4(2JᵀJ)⁻¹ at z, symmetrised (None if singular)."""
+        ...
+    def step(
+        self,
+        window: MheWindow,
+        u: _F,
+        y: _F,
+        y_present: list[bool],
+        x_prior: _F,
+        prev_window: _F,
+        first: int,
+        lower_inner: _F,
+        upper_inner: _F,
+        lower: _F,
+        upper: _F,
+    ) -> tuple[
+        tuple[_F, float, str, bool, int, int, float, int, _F | None], _F | None
+    ]:
+        """One GPMHE update in one call: `window.prepare(...)`, then `solve` on [lower, upper].
+        Returns (solve's tuple, the filtering form's next prior m_x(x̄_t, u_t) or None)."""
         ...

@@ -1,9 +1,10 @@
 """GPMHE: the GP-based moving horizon estimator of Wolff, Lopez & Müller, in filterpy's style.
 
 The window problem (DESIGN.md §3) is assembled in Rust (`gpmhe._core.MheWindow`: residuals, banded
-Jacobian, cost, gradient, Gauss-Newton Hessian); this module keeps the history, builds each window,
-warm-starts it and calls a solver. The solver dispatch is the `_SOLVERS` table at the bottom of the
-class: one method per solver.
+Jacobian, cost, gradient, Gauss-Newton Hessian, the warm start); this module keeps the history,
+builds each window's data and calls a solver: the default Rust solver does data, warm start, solve
+and covariance in one call per update (`WindowSolver.step`). The solver dispatch is the `_SOLVERS`
+table at the bottom of the class: one method per solver.
 """
 
 from __future__ import annotations
@@ -292,22 +293,33 @@ class GPMHE:
         priors = list(hist.priors)
         x_prior = priors[len(priors) - 1 - (t - s0)]
         nodes = end - s0 + 1
-        z0 = self._warm_start(s0, nodes, u_win)
-
         window = self._core.window
-        window.set_data(np.ascontiguousarray(u_win), np.ascontiguousarray(y_win),
-                        present_win, np.ascontiguousarray(x_prior))
         lb, ub = self._window_bounds(nodes)
-        z, cost, success, nit, message = self._solve(window, z0, lb, ub)
+        # Window data and warm start (MheWindow.prepare): the previous solution shifted to the
+        # new window, new nodes predicted with the model, clipped strictly inside the bounds.
+        data = (np.ascontiguousarray(u_win), np.ascontiguousarray(y_win), present_win,
+                np.ascontiguousarray(x_prior), self.x_window, s0 - hist.window_t0,
+                *self._inner_box())
+        if self.solver == "gauss-newton":
+            # One Rust call: data, warm start, solve, covariance (and the filtering form's
+            # next prior).
+            z, cost, success, nit, message, P, x_next = self._solve_rust(window, data, lb, ub)
+        else:
+            z0 = window.prepare(*data)
+            z, cost, success, nit, message = self._solve(window, z0, lb, ub)
+            P, x_next = self._covariance(window, z), None
 
         # Commit (everything above may raise without changing the estimator).
         x_window = z.reshape(nodes, n)
         x_new = x_window[-1].copy()
-        P = self._covariance(window, z)
+        if P is None:
+            P = self.P.copy()
         if self.form == "prediction":
             new_prior = x_new.copy()         # x̂(t+1)
+        elif x_next is not None:
+            new_prior = x_next               # m_x(x̂(t), u(t)) for time t+1
         else:
-            new_prior = self.model.predict(x_new, u)  # m_x(x̂(t), u(t)) for time t+1
+            new_prior = window.predict_next(x_new, u)
         hist.us.append(u)
         hist.ys.append(y)
         hist.present.append(present)
@@ -328,26 +340,6 @@ class GPMHE:
             self._core.bounds = cached
         return cached[1], cached[2]
 
-    def _warm_start(self, s0, nodes, u_win):
-        """Shifted previous solution with the model's one-step prediction appended, clipped
-        strictly inside the bounds (rows that already are inside stay bit-identical, so the
-        Rust window reuses its GP values there)."""
-        z = np.empty((nodes, self.dim_x))
-        prev, prev_t0 = self.x_window, self._core.window_t0
-        # Window times s0 .. s0+nodes-1; the previous window covers prev_t0 .. prev_t0+len-1.
-        first = s0 - prev_t0
-        kept = max(0, min(nodes, len(prev) - first)) if first >= 0 else 0
-        if kept:
-            z[:kept] = prev[first:first + kept]
-        for i in range(kept, nodes):
-            if i == 0:  # no overlap at all (cannot happen for consecutive updates)
-                z[0] = prev[-1]
-            else:
-                z[i] = self.model.predict(z[i - 1], u_win[i - 1])
-        lo, hi = self._inner_box()
-        np.clip(z, lo, hi, out=z)
-        return z.reshape(-1)
-
     def _inner_box(self):
         """x_bounds shrunk by 1e-6 of their width (1e-6 for infinite widths), cached."""
         cached = getattr(self._core, "inner_box", None)
@@ -359,24 +351,20 @@ class GPMHE:
         return cached[1]
 
     def _covariance(self, window, z):
+        """The last block of 4 H⁻¹ at z for the SciPy paths (the Rust solve returns the same
+        block from its block-tridiagonal factorisation); None if H is singular."""
         n = self.dim_x
-        if self.solver == "gauss-newton":
-            # The same quantity, computed by the Rust solve in O(M n³) from the block-tridiagonal
-            # factorisation at the returned z (None: singular).
-            P = self._last_solve_P
-            return self.P.copy() if P is None else P
         H = window.gn_hessian(z)
         try:
             Hinv_last = np.linalg.solve(H, np.eye(len(z))[:, -n:])[-n:]
             P = 4.0 * 0.5 * (Hinv_last + Hinv_last.T)
         except np.linalg.LinAlgError:
-            return self.P.copy()
-        return P if np.all(np.isfinite(P)) else self.P.copy()
+            return None
+        return P if np.all(np.isfinite(P)) else None
 
     # ---- solvers: one method per solver, dispatched through _SOLVERS ------------------------
     def _solve(self, window, z0, lb, ub):
-        if self.solver == "gauss-newton":
-            return self._solve_rust(window, z0, lb, ub)
+        """The SciPy paths: solve from z0, keep the better of the result and z0."""
         cost0 = window.cost(z0)
         try:
             z, nit, ok, message = getattr(self, self._SOLVERS[self.solver])(window, z0, lb, ub)
@@ -421,33 +409,32 @@ class GPMHE:
         except (TypeError, ValueError) as e:
             raise ValueError(f"solver_options: {e}") from None
 
-    def _solve_gauss_newton(self, window, z0, lb, ub):
-        # One Rust call: bounded Gauss-Newton on the window (gpmhe._core.WindowSolver).
+    def _solve_rust(self, window, data, lb, ub):
+        """The Rust path: one `WindowSolver.step` call (window data, warm start, solve,
+        covariance, the filtering form's next prior). The solver returns a finite z inside the
+        bounds whose cost is never above the warm start's, with the window's evaluation left at
+        z; a solver error after the data were accepted keeps the warm start.
+        Returns (z, cost, success, nit, message, P, x_next)."""
         core = self._core
         if getattr(core, "solver", None) is None:
             core.solver = self._rust_solver()
-        z, cost, status, ok, nit, nfev, pg, n_interior, P = core.solver.solve(window, z0, lb, ub)
-        self.projected_gradient, self.nfev, self._last_solve_P = float(pg), int(nfev), P
-        return z, cost, nit, ok, f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
-
-    def _solve_rust(self, window, z0, lb, ub):
-        """The Rust path of `_solve`: the solver returns a finite z inside the bounds whose cost
-        is never above the warm start's, with the window's evaluation left at z (no Python-side
-        re-evaluation needed); a solver error keeps the warm start."""
         try:
-            z, cost, nit, ok, message = self._solve_gauss_newton(window, z0, lb, ub)
-        except (ValueError, ArithmeticError, RuntimeError) as e:
-            z, cost, nit, ok = z0, window.cost(z0), 0, False
-            self._last_solve_P = None  # (P then keeps its previous value)
+            (z, cost, status, ok, nit, nfev, pg, n_interior, P), x_next = core.solver.step(
+                window, *data, lb, ub)
+            message = f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
+        except (ArithmeticError, RuntimeError) as e:
+            z = window.prepare(*data)
+            cost, ok, nit, nfev, pg, P, x_next = window.cost(z), False, 0, 1, np.nan, None, None
             message = f"solver raised: {e}"
+        self.projected_gradient, self.nfev = float(pg), int(nfev)
         if not ok:
             warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={self.t}: "
                           f"{message}; keeping the better of its last iterate and the warm start",
                           RuntimeWarning, stacklevel=4)
-        return z, float(cost), bool(ok), int(nit), str(message)
+        return z, float(cost), bool(ok), int(nit), str(message), P, x_next
 
     _SOLVERS = {
-        "gauss-newton": "_solve_rust",  # (short-circuited in _solve: it needs no re-check)
+        "gauss-newton": "_solve_rust",  # (called directly by _step: one Rust call per update)
         "trust-constr": "_solve_trust_constr",
         "least-squares": "_solve_least_squares",
     }

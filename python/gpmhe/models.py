@@ -206,7 +206,8 @@ class KnownModel(_SharedOnCopy):
 
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering):
         return _core.MheWindow.with_callback(
-            self.stage_eval, self.dim_x, self.dim_u, self.dim_y, eta, q0, r0, p2_sqrt, filtering
+            self.stage_eval, self.dim_x, self.dim_u, self.dim_y, eta, q0, r0, p2_sqrt, filtering,
+            predict=lambda x, u: np.ascontiguousarray(self.predict(x, u), dtype=np.float64),
         )
 
 

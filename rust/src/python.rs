@@ -8,7 +8,7 @@ use pyo3::create_exception;
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
-use crate::error::Error;
+use crate::error::{check_finite, check_len, Error};
 use crate::kernel::SeArd;
 
 create_exception!(
@@ -538,6 +538,9 @@ pub(crate) struct PyMheWindow {
     pub(crate) eval: WindowEval,
     /// z of the cached evaluation (empty when none).
     last_z: Vec<f64>,
+    /// For a callback model: the Python one-step prediction `predict(x, u)` used for warm
+    /// starts (None: the means of `stage_eval` at one point).
+    predict: Option<Py<PyAny>>,
 }
 
 impl PyMheWindow {
@@ -583,6 +586,123 @@ impl PyMheWindow {
         Ok(())
     }
 
+    /// The model's one-step prediction m_x(x, u) into `out` (n).
+    fn predict_state(
+        &mut self,
+        py: Python<'_>,
+        x: &[f64],
+        u: &[f64],
+        out: &mut [f64],
+    ) -> PyResult<()> {
+        let dims = (
+            self.problem.dim_x(),
+            self.problem.dim_u(),
+            self.problem.dim_y(),
+        );
+        match (&mut self.model, &self.predict) {
+            (WindowModel::Gp(model), _) => Ok(model.predict_state(x, u, out)?),
+            (WindowModel::Callback(_), Some(predict)) => {
+                let xa = numpy::PyArray1::from_slice(py, x);
+                let ua = numpy::PyArray1::from_slice(py, u);
+                let res = predict.bind(py).call1((xa, ua))?;
+                let arr: PyReadonlyArray1<'_, f64> = res.extract().map_err(|_| {
+                    PyValueError::new_err("model: predict must return a float64 array")
+                })?;
+                let v = arr.as_slice().map_err(|_| {
+                    PyValueError::new_err("model: predict must return a contiguous array")
+                })?;
+                if v.len() != out.len() || !v.iter().all(|a| a.is_finite()) {
+                    return Err(PyValueError::new_err(format!(
+                        "model: predict must return {} finite values",
+                        out.len()
+                    )));
+                }
+                out.copy_from_slice(v);
+                Ok(())
+            }
+            (WindowModel::Callback(func), None) => {
+                let model = CallbackModel {
+                    func: func.bind(py),
+                    dims,
+                    err: None,
+                };
+                let mut d = x.to_vec();
+                d.extend_from_slice(u);
+                let mut ev = StageEval::default();
+                model.call(&d, &mut ev)?;
+                out.copy_from_slice(&ev.mean_x);
+                Ok(())
+            }
+        }
+    }
+
+    /// `set_data`, then the warm start: the previous window's rows from `first` on (`first` < 0:
+    /// none), each further node predicted from the one before with the model (node 0 without
+    /// any overlap: the previous last row), all clipped into [lo, hi] (rows already inside stay
+    /// bit-identical, so the learned model reuses their GP values). On error nothing changed
+    /// but possibly the window data.
+    #[allow(clippy::too_many_arguments)]
+    fn prepare_impl(
+        &mut self,
+        py: Python<'_>,
+        u: &PyReadonlyArray2<'_, f64>,
+        y: &PyReadonlyArray2<'_, f64>,
+        y_present: &[bool],
+        x_prior: &PyReadonlyArray1<'_, f64>,
+        prev: &PyReadonlyArray2<'_, f64>,
+        first: isize,
+        lo: &PyReadonlyArray1<'_, f64>,
+        hi: &PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<Vec<f64>> {
+        let n = self.problem.dim_x();
+        let m = self.problem.dim_u();
+        let (prev, rows, cols) = slice2("prev_window", prev)?;
+        let (lo, hi) = (slice1("lower_inner", lo)?, slice1("upper_inner", hi)?);
+        if cols != n || rows == 0 {
+            return Err(PyValueError::new_err(format!(
+                "prev_window: expected shape (rows >= 1, {n}), got ({rows}, {cols})"
+            )));
+        }
+        check_finite("prev_window", prev)?;
+        check_len("lower_inner", lo, n)?;
+        check_len("upper_inner", hi, n)?;
+        if (0..n).any(|a| lo[a].is_nan() || hi[a].is_nan() || lo[a] > hi[a]) {
+            return Err(PyValueError::new_err(
+                "lower_inner, upper_inner: need lower <= upper",
+            ));
+        }
+        let (u, _, _) = slice2("u", u)?;
+        let (y, _, _) = slice2("y", y)?;
+        self.problem
+            .set_data(u, y, y_present, slice1("x_prior", x_prior)?)?;
+        self.last_z.clear();
+        let nodes = self.problem.n_nodes();
+        let kept = if first < 0 {
+            0
+        } else {
+            (rows.saturating_sub(first as usize)).min(nodes)
+        };
+        let mut z = vec![0.0; nodes * n];
+        if kept > 0 {
+            let f = first as usize;
+            z[..kept * n].copy_from_slice(&prev[f * n..(f + kept) * n]);
+        }
+        let mut next = vec![0.0; n];
+        for i in kept..nodes {
+            if i == 0 {
+                z[..n].copy_from_slice(&prev[(rows - 1) * n..rows * n]);
+            } else {
+                let (done, rest) = z.split_at_mut(i * n);
+                self.predict_state(py, &done[(i - 1) * n..], &u[(i - 1) * m..i * m], &mut next)?;
+                rest[..n].copy_from_slice(&next);
+            }
+        }
+        for (k, v) in z.iter_mut().enumerate() {
+            *v = v.clamp(lo[k % n], hi[k % n]);
+        }
+        Ok(z)
+    }
+
     /// The block-tridiagonal 2JᵀJ as a dense (n_nodes·n)² matrix.
     fn dense_gn(&self) -> Vec<f64> {
         let n = self.eval.dim_x();
@@ -615,7 +735,8 @@ impl PyMheWindow {
     /// `q0`, `r0`: diagonals of Q0, R0; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form.
     #[staticmethod]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (stage_eval, dim_x, dim_u, dim_y, eta, q0, r0, p2_sqrt, filtering))]
+    #[pyo3(signature = (stage_eval, dim_x, dim_u, dim_y, eta, q0, r0, p2_sqrt, filtering,
+                        predict=None))]
     fn with_callback(
         stage_eval: Bound<'_, PyAny>,
         dim_x: usize,
@@ -626,9 +747,13 @@ impl PyMheWindow {
         r0: PyReadonlyArray1<'_, f64>,
         p2_sqrt: PyReadonlyArray2<'_, f64>,
         filtering: bool,
+        predict: Option<Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         if !stage_eval.is_callable() {
             return Err(PyValueError::new_err("stage_eval: must be callable"));
+        }
+        if predict.as_ref().is_some_and(|f| !f.is_callable()) {
+            return Err(PyValueError::new_err("predict: must be callable or None"));
         }
         let problem = window_problem(dim_x, dim_u, dim_y, eta, &q0, &r0, &p2_sqrt, filtering)?;
         Ok(Self {
@@ -636,6 +761,7 @@ impl PyMheWindow {
             model: WindowModel::Callback(stage_eval.unbind()),
             eval: WindowEval::default(),
             last_z: Vec::new(),
+            predict: predict.map(Bound::unbind),
         })
     }
 
@@ -676,6 +802,7 @@ impl PyMheWindow {
             model: WindowModel::Gp(Box::new(model)),
             eval: WindowEval::default(),
             last_z: Vec::new(),
+            predict: None,
         })
     }
 
@@ -694,6 +821,54 @@ impl PyMheWindow {
             .set_data(u, y, &y_present, slice1("x_prior", &x_prior)?)?;
         self.last_z.clear();
         Ok(())
+    }
+
+    /// `set_data` and the warm start for one update: returns z0 (see GPMHE's update).
+    /// `prev_window` (rows, n): the previous window's states; `first`: the index of the new
+    /// window's first node in it (< 0: no overlap); `lower_inner`, `upper_inner` (n,): the box
+    /// the warm start is clipped into.
+    #[allow(clippy::too_many_arguments)]
+    fn prepare<'py>(
+        &mut self,
+        py: Python<'py>,
+        u: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray2<'py, f64>,
+        y_present: Vec<bool>,
+        x_prior: PyReadonlyArray1<'py, f64>,
+        prev_window: PyReadonlyArray2<'py, f64>,
+        first: isize,
+        lower_inner: PyReadonlyArray1<'py, f64>,
+        upper_inner: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, numpy::PyArray1<f64>>> {
+        let z = self.prepare_impl(
+            py,
+            &u,
+            &y,
+            &y_present,
+            &x_prior,
+            &prev_window,
+            first,
+            &lower_inner,
+            &upper_inner,
+        )?;
+        Ok(numpy::PyArray1::from_vec(py, z))
+    }
+
+    /// The model's one-step prediction m_x(x, u) (n,).
+    fn predict_next<'py>(
+        &mut self,
+        py: Python<'py>,
+        x: PyReadonlyArray1<'py, f64>,
+        u: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, numpy::PyArray1<f64>>> {
+        let (x, u) = (slice1("x", &x)?, slice1("u", &u)?);
+        check_len("x", x, self.problem.dim_x())?;
+        check_len("u", u, self.problem.dim_u())?;
+        check_finite("x", x)?;
+        check_finite("u", u)?;
+        let mut out = vec![0.0; self.problem.dim_x()];
+        self.predict_state(py, x, u, &mut out)?;
+        Ok(numpy::PyArray1::from_vec(py, out))
     }
 
     #[getter]
@@ -864,7 +1039,6 @@ impl PyWindowSolver {
     /// `GPMHE.P`); afterwards the window's cached evaluation (with derivatives) is at the
     /// returned z. Learned models run without the GIL; a known model's Python callback runs
     /// with it.
-    #[allow(clippy::type_complexity)]
     fn solve<'py>(
         &mut self,
         py: Python<'py>,
@@ -872,21 +1046,84 @@ impl PyWindowSolver {
         z0: PyReadonlyArray1<'py, f64>,
         lower: PyReadonlyArray1<'py, f64>,
         upper: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<(
-        Bound<'py, numpy::PyArray1<f64>>,
-        f64,
-        &'static str,
-        bool,
-        usize,
-        usize,
-        f64,
-        usize,
-        Option<Bound<'py, PyArray2<f64>>>,
-    )> {
-        let mut z = slice1("z0", &z0)?.to_vec();
-        let lower = slice1("lower", &lower)?;
-        let upper = slice1("upper", &upper)?;
-        let w = &mut *window;
+    ) -> PyResult<SolveTuple<'py>> {
+        let z = slice1("z0", &z0)?.to_vec();
+        let (lower, upper) = (slice1("lower", &lower)?, slice1("upper", &upper)?);
+        self.solve_impl(py, &mut window, z, lower, upper)
+    }
+
+    /// One whole GPMHE update in one call: `MheWindow.prepare` (data and warm start) with the
+    /// same arguments, then `solve` on [lower, upper]. Returns `solve`'s tuple plus, for the
+    /// filtering form, the one-step prediction m_x(x̄_t, u_t) from the window's last node (the
+    /// next arrival prior; None in the prediction form).
+    #[allow(clippy::too_many_arguments)]
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        mut window: PyRefMut<'py, PyMheWindow>,
+        u: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray2<'py, f64>,
+        y_present: Vec<bool>,
+        x_prior: PyReadonlyArray1<'py, f64>,
+        prev_window: PyReadonlyArray2<'py, f64>,
+        first: isize,
+        lower_inner: PyReadonlyArray1<'py, f64>,
+        upper_inner: PyReadonlyArray1<'py, f64>,
+        lower: PyReadonlyArray1<'py, f64>,
+        upper: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<(SolveTuple<'py>, Option<Bound<'py, numpy::PyArray1<f64>>>)> {
+        let (lower, upper) = (slice1("lower", &lower)?, slice1("upper", &upper)?);
+        let z0 = window.prepare_impl(
+            py,
+            &u,
+            &y,
+            &y_present,
+            &x_prior,
+            &prev_window,
+            first,
+            &lower_inner,
+            &upper_inner,
+        )?;
+        let out = self.solve_impl(py, &mut window, z0, lower, upper)?;
+        let next = if window.problem.form() == Form::Filtering {
+            let n = window.problem.dim_x();
+            let m = window.problem.dim_u();
+            let (u, _, _) = slice2("u", &u)?;
+            let rows = window.problem.n_nodes(); // (u holds rows·m values: checked by set_data)
+            let z = out.0.readonly();
+            let z = z.as_slice()?;
+            let x_last = z[z.len() - n..].to_vec();
+            let mut pred = vec![0.0; n];
+            window.predict_state(py, &x_last, &u[(rows - 1) * m..rows * m], &mut pred)?;
+            Some(numpy::PyArray1::from_vec(py, pred))
+        } else {
+            None
+        };
+        Ok((out, next))
+    }
+}
+
+type SolveTuple<'py> = (
+    Bound<'py, numpy::PyArray1<f64>>,
+    f64,
+    &'static str,
+    bool,
+    usize,
+    usize,
+    f64,
+    usize,
+    Option<Bound<'py, PyArray2<f64>>>,
+);
+
+impl PyWindowSolver {
+    fn solve_impl<'py>(
+        &mut self,
+        py: Python<'py>,
+        w: &mut PyMheWindow,
+        mut z: Vec<f64>,
+        lower: &[f64],
+        upper: &[f64],
+    ) -> PyResult<SolveTuple<'py>> {
         w.last_z.clear();
         let dims = (w.problem.dim_x(), w.problem.dim_u(), w.problem.dim_y());
         let (solver, opts) = (&mut self.solver, &self.opts);

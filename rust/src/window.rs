@@ -185,6 +185,24 @@ impl GpStageModel {
         })
     }
 
+    /// The one-step prediction m_x(x, u) (the f-GPs' means, plus x with `f_residual`) into
+    /// `out` (n). Does not touch the cache of the last evaluation.
+    pub fn predict_state(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> Result<()> {
+        check_len("x", x, self.n)?;
+        check_len("u", u, self.m)?;
+        check_len("out", out, self.n)?;
+        self.miss_d.clear();
+        self.miss_d.extend_from_slice(x);
+        self.miss_d.extend_from_slice(u);
+        self.f.predict_mean_into(&self.miss_d, out, &mut self.ws)?;
+        if self.f_residual {
+            for (o, xi) in out.iter_mut().zip(x) {
+                *o += xi;
+            }
+        }
+        Ok(())
+    }
+
     /// Index of a point of the last evaluation equal to `dj` (trying `hint` first: a shifted
     /// window finds point j of the new window at j + 1 of the old).
     fn find_last(&self, dj: &[f64], hint: usize) -> Option<usize> {
