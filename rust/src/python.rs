@@ -1158,7 +1158,9 @@ impl PyWindowSolver {
             }
         };
         w.last_z.extend_from_slice(&z);
-        let cov = last_state_covariance(&w.eval)
+        let cov = self
+            .solver
+            .last_node_covariance()
             .map(|c| array2(py, c, dims.0, dims.0))
             .transpose()?;
         Ok((
@@ -1173,25 +1175,6 @@ impl PyWindowSolver {
             cov,
         ))
     }
-}
-
-/// 4·sym(last n×n block of (2JᵀJ)⁻¹) at the window's evaluation (J = 4× a negative
-/// log-likelihood, so 4H⁻¹ is the Laplace covariance), from the block-tridiagonal
-/// factorisation; None without derivatives, or if 2JᵀJ is singular or the block not finite.
-fn last_state_covariance(ev: &WindowEval) -> Option<Vec<f64>> {
-    if !ev.has_jacobian() || ev.n_nodes() == 0 {
-        return None;
-    }
-    let (nodes, n) = (ev.n_nodes(), ev.dim_x());
-    let mut diag = vec![0.0; nodes * n * n];
-    let mut off = vec![0.0; nodes.saturating_sub(1) * n * n];
-    ev.gauss_newton_blocks_into(&mut diag, &mut off);
-    let b = crate::solver::gauss_newton_last_block_inverse(nodes, n, &diag, &off)?;
-    Some(
-        (0..n * n)
-            .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
-            .collect(),
-    )
 }
 
 // ===== RGP =====

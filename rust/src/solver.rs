@@ -447,6 +447,9 @@ pub struct BoxLsqSolver {
     /// `off`.
     noise_at_z: f64,
     gnoise_at_z: f64,
+    /// Window size of the last `solve` (0 before any).
+    nodes: usize,
+    n: usize,
 }
 
 /// Mutable state shared by the two phases.
@@ -522,6 +525,7 @@ impl BoxLsqSolver {
     }
 
     fn resize(&mut self, nodes: usize, n: usize) {
+        (self.nodes, self.n) = (nodes, n);
         let len = nodes * n;
         let nn = n * n;
         for v in [
@@ -561,6 +565,23 @@ impl BoxLsqSolver {
                 .step_by(n + 1)
                 .fold(1.0f64, |a, &b| a.max(b.abs()));
         d.max(floor)
+    }
+
+    /// 4·sym(last n×n block of H⁻¹), H the Gauss-Newton Hessian at the point the last successful
+    /// `solve` returned (its blocks are still in the solver's buffers): the Laplace covariance
+    /// of the last node when J is 4× a negative log-likelihood, as in GP-MHE. None before any
+    /// solve, or if H is singular or the block is not finite.
+    pub fn last_node_covariance(&self) -> Option<Vec<f64>> {
+        let (nodes, n) = (self.nodes, self.n);
+        if nodes == 0 {
+            return None;
+        }
+        let b = gauss_newton_last_block_inverse(nodes, n, &self.diag, &self.off)?;
+        Some(
+            (0..n * n)
+                .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
+                .collect(),
+        )
     }
 
     /// Minimises J(z) over lower ≤ z ≤ upper starting from `z` (a warm start; projected onto the
