@@ -377,10 +377,31 @@ pub fn gauss_newton_last_block_inverse(
     diag: &[f64],
     off: &[f64],
 ) -> Option<Vec<f64>> {
-    let mut chol = BlockTridiagCholesky::default();
     let zero = vec![0.0; nodes * n];
     let free = vec![false; nodes * n];
-    if !chol.factor(nodes, n, diag, off, &zero, &free) {
+    undamped_last_block_inverse(
+        &mut BlockTridiagCholesky::default(),
+        nodes,
+        n,
+        diag,
+        off,
+        &zero,
+        &free,
+    )
+}
+
+/// The last n×n block of the inverse of the undamped block-tridiagonal matrix (`zero` shifts,
+/// nothing held), factored in `chol`; None if not positive definite or not finite.
+fn undamped_last_block_inverse(
+    chol: &mut BlockTridiagCholesky,
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+    zero: &[f64],
+    free: &[bool],
+) -> Option<Vec<f64>> {
+    if !chol.factor(nodes, n, diag, off, zero, free) {
         return None;
     }
     let mut out = vec![0.0; n * n];
@@ -571,12 +592,24 @@ impl BoxLsqSolver {
     /// `solve` returned (its blocks are still in the solver's buffers): the Laplace covariance
     /// of the last node when J is 4× a negative log-likelihood, as in GP-MHE. None before any
     /// solve, or if H is singular or the block is not finite.
-    pub fn last_node_covariance(&self) -> Option<Vec<f64>> {
+    pub fn last_node_covariance(&mut self) -> Option<Vec<f64>> {
         let (nodes, n) = (self.nodes, self.n);
         if nodes == 0 {
             return None;
         }
-        let b = gauss_newton_last_block_inverse(nodes, n, &self.diag, &self.off)?;
+        // The solver's own factor and scratch (`shift`, `fixed`), so no per-update allocation
+        // of blocks.
+        self.shift.fill(0.0);
+        self.fixed.fill(false);
+        let b = undamped_last_block_inverse(
+            &mut self.chol,
+            nodes,
+            n,
+            &self.diag,
+            &self.off,
+            &self.shift,
+            &self.fixed,
+        )?;
         Some(
             (0..n * n)
                 .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
