@@ -287,7 +287,7 @@ class WindowSolver:
         gtol: float = 1e-6,
         xtol: float = 1e-12,
         ftol: float = 1e-15,
-        dtol: float = 1e-5,
+        dtol: float = 1e-2,
         interior: str = "auto",
         interior_zone: float = 1e-5,
         mu_init: float = 0.1,

@@ -992,7 +992,7 @@ impl PyWindowSolver {
     /// See `gpmhe.GPMHE`'s `solver_options` for the meaning of each setting.
     #[new]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (max_iter=100, gtol=1e-6, xtol=1e-12, ftol=1e-15, dtol=1e-5, interior="auto",
+    #[pyo3(signature = (max_iter=100, gtol=1e-6, xtol=1e-12, ftol=1e-15, dtol=1e-2, interior="auto",
                         interior_zone=1e-5, mu_init=0.1, mu_final=1e-5))]
     fn new(
         max_iter: usize,
