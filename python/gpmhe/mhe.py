@@ -19,6 +19,9 @@ from gpmhe import _core
 
 __all__ = ["GPMHE"]
 
+_NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
+_NO_INPUT.flags.writeable = False
+
 
 def _square(name, a, dim, allow_full):
     """A positive diagonal (dim,) from a scalar, a (dim,) vector or a (dim, dim) matrix."""
@@ -222,15 +225,15 @@ class GPMHE:
         if u is None:
             if m:
                 raise ValueError(f"u: required (dim_u = {m})")
-            u = np.zeros(0)
+            u = _NO_INPUT
         else:
             u = np.asarray(u, dtype=np.float64).reshape(-1)
-            if u.shape != (m,) or not np.all(np.isfinite(u)):
+            if u.shape != (m,) or not np.isfinite(u).all():
                 raise ValueError(f"u: must be a finite array of shape ({m},)")
         if y is None:
             return u, np.zeros(p), False
         y = np.asarray(y, dtype=np.float64).reshape(-1)
-        if y.shape != (p,) or not np.all(np.isfinite(y)):
+        if y.shape != (p,) or not np.isfinite(y).all():
             raise ValueError(f"y: must be a finite array of shape ({p},) or None")
         return u, y, True
 
