@@ -1,6 +1,6 @@
 """Benchmark: what the Rust solver's decrement stop (`dtol`) costs in accuracy and saves in work.
 
-    python benches/stopping.py [--seeds 20] [--dtols 0,1e-5,1e-4] [--steps 100] [--jobs 2]
+    python benches/stopping.py [--seeds 20] [--dtols 0,1e-5,1e-3,1e-2] [--steps 100] [--jobs 2]
 
 Per seed: the batch reactor's training data (5 trajectories, GPs fitted with 3 restarts, as in
 `gpmhe.demos.batch_reactor`), one run of GP-MHE (the paper's prediction form, DESIGN.md §4) from
@@ -51,7 +51,7 @@ def one_seed(args):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
-    ap.add_argument("--dtols", default="0,1e-5,1e-4")
+    ap.add_argument("--dtols", default="0,1e-5,1e-3,1e-2")
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args(argv)

@@ -51,7 +51,7 @@ class _Unsaved:
 
     def __init__(self, window):
         self.window = window
-        self.us = self.ys = self.present = self.priors = None
+        self.U = self.Y = self.present = self.priors = None
         self.window_t0 = 0
 
     def __deepcopy__(self, memo):
@@ -214,9 +214,9 @@ class GPMHE:
         # Histories (time stamps implicit): inputs/outputs of the last M+1 steps and the arrival
         # priors for the last M+2 times (priors[-1] belongs to the newest time).
         h = self._core
-        h.us = deque(maxlen=M + 1)
-        h.ys = deque(maxlen=M + 1)
-        h.present = deque(maxlen=M + 1)
+        h.U = np.zeros((0, self.dim_u))  # rows: u of the last ≤ M+1 steps, oldest first
+        h.Y = np.zeros((0, self.dim_y))  # rows: y of the same steps (zeros where missing)
+        h.present = []                   # whether each of those y was measured
         h.priors = deque([x0.copy()], maxlen=M + 2)
         h.window_t0 = 0  # time of x_window[0]
 
@@ -271,32 +271,29 @@ class GPMHE:
         n, m, p = self.dim_x, self.dim_u, self.dim_y
         t = self.t
         hist = self._core
-        us = list(hist.us) + [u]
-        ys = list(hist.ys) + [y]
-        pr = list(hist.present) + [present]
         keep = self.horizon + 1
-        us, ys, pr = us[-keep:], ys[-keep:], pr[-keep:]
+        U = np.concatenate((hist.U, u.reshape(1, m)))[-keep:]
+        Y = np.concatenate((hist.Y, y.reshape(1, p)))[-keep:]
+        pr = (hist.present + [present])[-keep:]
         if self.form == "prediction":
             end = t + 1                      # window ends at x̄(t+1)
             s0 = max(0, end - self.horizon)
             k = end - s0                     # stages (inputs/outputs used): times s0 .. t
             u_win = np.zeros((k + 1, m))
             y_win = np.zeros((k + 1, p))
-            present_win = [False] * (k + 1)
-            u_win[:k] = np.array(us[-k:]).reshape(k, m)
-            y_win[:k] = np.array(ys[-k:]).reshape(k, p)
-            present_win[:k] = pr[-k:]
+            u_win[:k] = U[-k:]
+            y_win[:k] = Y[-k:]
+            present_win = pr[-k:] + [False]
         else:
             end = t
             s0 = max(0, end - self.horizon)
             k = end - s0 + 1                 # nodes s0 .. t all carry data
-            u_win = np.array(us[-k:]).reshape(k, m)
-            y_win = np.array(ys[-k:]).reshape(k, p)
-            present_win = list(pr[-k:])
+            u_win = U[-k:]
+            y_win = Y[-k:]
+            present_win = pr[-k:]
         # priors deque holds the arrival priors for times (t+1-len+1) .. t (+ the new one later);
         # its last entry is for time t (prediction: x̂(t); filtering: m_x(x̂(t-1))).
-        priors = list(hist.priors)
-        x_prior = priors[len(priors) - 1 - (t - s0)]
+        x_prior = hist.priors[len(hist.priors) - 1 - (t - s0)]
         nodes = end - s0 + 1
         window = self._core.window
         lb, ub = self._window_bounds(nodes)
@@ -325,9 +322,7 @@ class GPMHE:
             new_prior = x_next               # m_x(x̂(t), u(t)) for time t+1
         else:
             new_prior = window.predict_next(x_new, u)
-        hist.us.append(u)
-        hist.ys.append(y)
-        hist.present.append(present)
+        hist.U, hist.Y, hist.present = U, Y, pr
         hist.priors.append(np.asarray(new_prior, dtype=np.float64))
         hist.window_t0 = s0
         self.x_window = x_window
