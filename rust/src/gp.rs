@@ -568,9 +568,10 @@ impl Gp {
 }
 
 /// Right-hand sides up to this many columns are solved by [`substitution`]: faer's recursive
-/// triangular solve spends most of a one-column solve at N ~ 150 on dispatch (measured: two
-/// solves 7.6 µs with faer, ~4.5 µs by substitution; with two columns faer is already faster).
-/// One column is the warm start's single new window point and a GP-EKF's prediction.
+/// triangular solve spends most of a one-column solve at N ~ 150 on dispatch (measured, AVX2
+/// build: the two solves of one column 7.7 µs with faer, 4 µs by substitution; with two columns
+/// faer is already faster). One column is the warm start's single new window point and a
+/// GP-EKF's prediction.
 const SMALL_RHS: usize = 1;
 
 enum Triangle {
@@ -582,16 +583,43 @@ enum Triangle {
 
 /// Forward (L x = b) or backward (Lᵀ x = b) substitution for each N-long column of `v`, with
 /// `s` the Cholesky storage (N × N column-major, L in the lower and Lᵀ in the strict upper
-/// triangle), column-oriented: once x_j is known, column j of L below the diagonal (forward) or
-/// of Lᵀ above it (backward) is subtracted, x_j times, from the unknowns left, one contiguous
-/// update whose elements are independent (it vectorises; a dot-product form would be one long
-/// dependency chain).
+/// triangle), column-oriented and four unknowns at a time: once x_j … x_j+3 are known (a 4 × 4
+/// triangle), columns j … j+3 of L below them (forward) or of Lᵀ above them (backward) are
+/// subtracted from the unknowns left in one pass, whose elements are independent (it
+/// vectorises, and x is loaded and stored once per four columns).
 #[inline(always)]
 fn substitution(s: &[f64], n: usize, v: &mut [f64], tri: Triangle) {
+    const B: usize = 4;
+    let col = |j: usize| &s[j * n..(j + 1) * n];
     for x in v.chunks_exact_mut(n) {
         match tri {
             Triangle::Lower => {
-                for (j, c) in s.chunks_exact(n).enumerate() {
+                let mut j = 0;
+                while j + B <= n {
+                    let c = [col(j), col(j + 1), col(j + 2), col(j + 3)];
+                    // The 4 × 4 diagonal block, in order.
+                    for q in 0..B {
+                        let mut xq = x[j + q];
+                        for r in 0..q {
+                            xq -= c[r][j + q] * x[j + r];
+                        }
+                        x[j + q] = xq / c[q][j + q];
+                    }
+                    let (x0, x1, x2, x3) = (x[j], x[j + 1], x[j + 2], x[j + 3]);
+                    let rest = j + B;
+                    for ((((xi, a), b), cc), d) in x[rest..]
+                        .iter_mut()
+                        .zip(&c[0][rest..])
+                        .zip(&c[1][rest..])
+                        .zip(&c[2][rest..])
+                        .zip(&c[3][rest..])
+                    {
+                        *xi -= ((a * x0 + b * x1) + cc * x2) + d * x3;
+                    }
+                    j += B;
+                }
+                for j in j..n {
+                    let c = col(j);
                     let xj = x[j] / c[j];
                     x[j] = xj;
                     for (xi, l) in x[j + 1..].iter_mut().zip(&c[j + 1..]) {
@@ -600,7 +628,32 @@ fn substitution(s: &[f64], n: usize, v: &mut [f64], tri: Triangle) {
                 }
             }
             Triangle::Upper => {
-                for (j, c) in s.chunks_exact(n).enumerate().rev() {
+                let mut end = n;
+                while end >= B {
+                    let j = end - B;
+                    let c = [col(j), col(j + 1), col(j + 2), col(j + 3)];
+                    // The 4 × 4 diagonal block of Lᵀ, last unknown first.
+                    for q in (0..B).rev() {
+                        let mut xq = x[j + q];
+                        for r in q + 1..B {
+                            xq -= c[r][j + q] * x[j + r];
+                        }
+                        x[j + q] = xq / c[q][j + q];
+                    }
+                    let (x0, x1, x2, x3) = (x[j], x[j + 1], x[j + 2], x[j + 3]);
+                    for ((((xi, a), b), cc), d) in x[..j]
+                        .iter_mut()
+                        .zip(&c[0][..j])
+                        .zip(&c[1][..j])
+                        .zip(&c[2][..j])
+                        .zip(&c[3][..j])
+                    {
+                        *xi -= ((a * x0 + b * x1) + cc * x2) + d * x3;
+                    }
+                    end = j;
+                }
+                for j in (0..end).rev() {
+                    let c = col(j);
                     let xj = x[j] / c[j];
                     x[j] = xj;
                     for (xi, u) in x[..j].iter_mut().zip(&c[..j]) {
