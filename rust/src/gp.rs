@@ -504,7 +504,7 @@ impl Gp {
         }
         let Some(var) = var else { return };
         v.copy_from_slice(kstar);
-        self.solve_lower(v, k);
+        self.solve(v, k, Triangle::Lower);
         for j in 0..k {
             // Clamp round-off negatives (test points on top of noise-free data) at 0.
             var[j * q + o] = (s2 - sum_of_squares(&v[j * n..(j + 1) * n])).max(0.0);
@@ -512,7 +512,7 @@ impl Gp {
         let Some((_, dvar)) = grads else { return };
         // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_jl = −2 ∂(Σ_i β_ij k_ij)/∂d_jl |_β fixed
         // = 2 w_l (d_jl s_j − g_lj) with b = β.
-        self.solve_upper(v, k);
+        self.solve(v, k, Triangle::Upper);
         for ((p, c), b) in prod.iter_mut().zip(kstar.iter()).zip(v.iter()) {
             *p = c * b;
         }
@@ -526,27 +526,22 @@ impl Gp {
         }
     }
 
-    /// v ← L⁻¹ v for the k columns of `v` (N × k column-major).
+    /// v ← L⁻¹ v (`Triangle::Lower`) or L⁻ᵀ v (`Triangle::Upper`) for the k columns of `v`
+    /// (N × k column-major).
     #[inline(always)]
-    fn solve_lower(&self, v: &mut [f64], k: usize) {
+    fn solve(&self, v: &mut [f64], k: usize, tri: Triangle) {
         let n = self.n_train();
         if k <= SMALL_RHS {
-            substitution(&self.chol, n, v, Triangle::Lower);
-        } else {
-            let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
-            solve_lower_triangular_in_place(self.chol_ref(), vm.as_mut(), Par::Seq);
+            return substitution(&self.chol, n, v, tri);
         }
-    }
-
-    /// v ← L⁻ᵀ v for the k columns of `v` (N × k column-major).
-    #[inline(always)]
-    fn solve_upper(&self, v: &mut [f64], k: usize) {
-        let n = self.n_train();
-        if k <= SMALL_RHS {
-            substitution(&self.chol, n, v, Triangle::Upper);
-        } else {
-            let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
-            solve_upper_triangular_in_place(self.chol_ref(), vm.as_mut(), Par::Seq);
+        let mut vm = MatMut::from_column_major_slice_mut(&mut v[..], n, k);
+        match tri {
+            Triangle::Lower => {
+                solve_lower_triangular_in_place(self.chol_ref(), vm.as_mut(), Par::Seq)
+            }
+            Triangle::Upper => {
+                solve_upper_triangular_in_place(self.chol_ref(), vm.as_mut(), Par::Seq)
+            }
         }
     }
 
