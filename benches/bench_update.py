@@ -138,8 +138,8 @@ def time_split(model, kw, y, steps):
           f"{np.median(total) * 1e3:.3f} ms, of which the one Rust call (WindowSolver.step) "
           f"{np.median(rust) * 1e3:.3f} ms and Python {np.median(total - rust) * 1e6:.0f} µs; "
           f"median {np.median(evals):.0f} window evaluations (the first, of the warm start, "
-          f"recomputes one point); one full window evaluation (M+1 = {len(z) // 2} points, 3 GPs, "
-          f"with derivatives) {np.median(ev) * 1e3:.3f} ms")
+          f"recomputes one point); one full window evaluation ({len(z) // 2} nodes, i.e. "
+          f"{len(z) // 2 - 1} stage points x 3 GPs, with derivatives) {np.median(ev) * 1e3:.3f} ms")
 
 
 def gps_with_n_points(model, n_points, rng):
