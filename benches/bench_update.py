@@ -38,20 +38,6 @@ from gpmhe.baselines import GPEKF, ExactEKF
 from gpmhe.systems import batch_reactor as br
 
 
-def timed_run(step, y, steps):
-    """Calls step(y_t) for t < steps; returns (estimates (steps, 2), times (steps,))."""
-    xs, ts = np.empty((steps, 2)), np.empty(steps)
-    for t in range(steps):
-        t0 = time.perf_counter()
-        xs[t] = step(y[t])
-        ts[t] = time.perf_counter() - t0
-    return xs, ts
-
-
-def mhe_step(est):
-    return lambda yt: est.update(None, yt)
-
-
 def interleaved_runs(steppers, y, block):
     """Runs every (name, step, n_steps) of `steppers` over y in rounds of `block` steps (each
     estimator's steps stay in order): a machine whose speed drifts during the run (a shared VM)
@@ -66,6 +52,11 @@ def interleaved_runs(steppers, y, block):
                 xs[t] = step(y[t])
                 ts[t] = time.perf_counter() - t0
     return runs
+
+
+def timed_run(step, y, steps):
+    """Calls step(y_t) for t < steps; returns (estimates (steps, 2), times (steps,))."""
+    return interleaved_runs([("run", step, steps)], y, steps)["run"]
 
 
 def ekf_step(ekf):
