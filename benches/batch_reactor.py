@@ -1,4 +1,4 @@
-"""Benchmark: the batch-reactor comparison of the GP-MHE paper (DESIGN.md §4, §6) over many seeds
+"""Benchmark: the batch-reactor comparison of the GP-MHE paper (docs/user_guide/systems.rst) over many seeds
 and for each window solver.
 
     python benches/batch_reactor.py [--seeds 20] [--solvers least-squares,trust-constr]

@@ -126,7 +126,7 @@ def test_predict_with_gradients_agrees_with_predict():
 
 
 def batch_reactor_training_data(seed=0, x0s=((3, 1), (1.2, 4.5), (0.5, 3.5), (1, 3), (2, 4))):
-    """Offline data of DESIGN.md §4: 5 trajectories of 31 states, Euler T = 0.1, process noise
+    """Offline data of the batch reactor (docs/user_guide/systems.rst): 5 trajectories of 31 states, Euler T = 0.1, process noise
     std 0.01, states measured with noise std 0.01 and y = x1 + x2 with noise std 0.1.
     Returns GP inputs x(t) (150, 2), targets x(t+1) (150, 2) and y(t) (150,)."""
     rng = np.random.default_rng(seed)

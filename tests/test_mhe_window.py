@@ -1,5 +1,5 @@
 """The MHE window problem assembled in Rust (gpmhe._core.MheWindow) against a plain numpy
-implementation of DESIGN.md §3 and finite differences, and the two SciPy solver paths against each
+implementation of the window cost (docs/user_guide/window.rst) and finite differences, and the two SciPy solver paths against each
 other on single windows (with and without active bounds)."""
 
 import numpy as np
@@ -31,7 +31,7 @@ def synthetic_learned(f_residual):
 
 
 def numpy_cost(model, z, u, y, present, x_prior, P2, q0, r0, eta, form):
-    """DESIGN.md §3 written out: prior term, then the stages j = 1..M_t (node M_t - j)."""
+    """The window cost (docs/user_guide/window.rst) written out: prior term, then the stages j = 1..M_t (node M_t - j)."""
     n = model.dim_x
     X = z.reshape(-1, n)
     Mt = X.shape[0] - 1

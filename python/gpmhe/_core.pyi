@@ -213,7 +213,7 @@ from typing import Callable
 _F = npt.NDArray[np.float64]
 
 class MheWindow:
-    """One GP-MHE window problem (DESIGN.md §3): residuals, banded Jacobian, cost, gradient and
+    """One GP-MHE window problem (docs/user_guide/window.rst): residuals, banded Jacobian, cost, gradient and
     Gauss-Newton Hessian in the stacked window states z; evaluations at the same z are cached."""
 
     @staticmethod

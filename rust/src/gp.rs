@@ -1,4 +1,4 @@
-//! Exact Gaussian-process regression with the SE-ARD kernel (DESIGN.md §2).
+//! Exact Gaussian-process regression with the SE-ARD kernel (docs/user_guide/gaussian_processes.rst).
 //!
 //! [`Gp`] is one zero-mean output: built once from training inputs D (N × n_d, row-major), targets
 //! y (N) and log-hyperparameters θ = log([σ_f, φ_1..φ_nd, σ_ε]); it caches the Cholesky factor L of

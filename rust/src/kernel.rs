@@ -1,4 +1,4 @@
-//! The squared-exponential ARD kernel of DESIGN.md §2,
+//! The squared-exponential ARD kernel of docs/user_guide/notation.rst,
 //! k(d, d') = σ_f² exp(−½ (d − d')ᵀ Λ⁻¹ (d − d')), Λ = diag(φ_1², …, φ_nd²),
 //! with its derivatives w.r.t. the first argument and w.r.t. the log-hyperparameters.
 //!

@@ -528,7 +528,7 @@ enum WindowModel {
     Gp(Box<GpStageModel>),
 }
 
-/// One MHE window problem with its model and evaluation buffers (DESIGN.md §3). The Python
+/// One MHE window problem with its model and evaluation buffers (docs/user_guide/window.rst). The Python
 /// estimator `gpmhe.GPMHE` sets the data each step and hands `cost_grad`, `gn_hessian`,
 /// `residuals`, `jacobian` to SciPy; evaluations at the same z are cached.
 #[pyclass(name = "MheWindow", module = "gpmhe._core")]

@@ -1,6 +1,6 @@
 //! Recursive GP regression (Huber 2013, with the changes of Husmann, Weishaupt & Aschemann) and the
 //! per-step kernels of the RGP-dKF, the EKF whose state is augmented by the RGP's basis-vector
-//! weights (DESIGN.md §5).
+//! weights (docs/user_guide/rgp_dkf.rst).
 //!
 //! * [`RgpBasis`]: the fixed part of one RGP: basis vectors on a unit grid (eq. 5, 6), the kernel
 //!   σ_K² exp(−‖x − x'‖²/(2L)) as [`SeArd`] with all length-scales √L, and the Cholesky factor of

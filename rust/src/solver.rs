@@ -1,4 +1,4 @@
-//! The real-time window solver (DESIGN.md §3, §6; issue 4): a bound-constrained Gauss-Newton /
+//! The real-time window solver (docs/user_guide/solver.rst): a bound-constrained Gauss-Newton /
 //! Levenberg-Marquardt method for least-squares problems min ‖r(z)‖² s.t. lower ≤ z ≤ upper whose
 //! Gauss-Newton Hessian 2JᵀJ is block-tridiagonal (the GP-MHE window: node i = window state x̄_i).
 //!
@@ -10,7 +10,7 @@
 //!    log-barrier Gauss-Newton method with a fraction-to-boundary rule and an Armijo line search on
 //!    the barrier merit, the barrier parameter decreasing from `mu_init` to `mu_final` (IPOPT's
 //!    monotone rule). It starts strictly inside the box, so early iterations cannot pin states to
-//!    their bounds — DESIGN.md §6: projected/reflective least-squares methods started from the
+//!    their bounds (docs/user_guide/solver.rst): projected/reflective least-squares methods started from the
 //!    batch reactor's poor prior stop at worse minima with x1 on its bound.
 //! 2. **Active-set Levenberg-Marquardt phase**: variables at a bound whose gradient pushes outward
 //!    are held fixed, the others take a damped Gauss-Newton step (Marquardt scaling, Nielsen's
@@ -1922,7 +1922,7 @@ mod window_tests {
     use super::*;
     use crate::window::{Form, StageEval};
 
-    /// The batch reactor of DESIGN.md §4 as an exact stage model (zero variances).
+    /// The batch reactor (docs/user_guide/systems.rst) as an exact stage model (zero variances).
     struct Reactor;
     const T: f64 = 0.1;
     const K1: f64 = 0.16;

@@ -1,4 +1,4 @@
-//! The GP-MHE window problem (DESIGN.md §3) as a nonlinear least-squares problem in the window
+//! The GP-MHE window problem (docs/user_guide/window.rst) as a nonlinear least-squares problem in the window
 //! states z = (x̄_0, …, x̄_{M_t}) (multiple shooting): stacked residuals r(z), their block-banded
 //! Jacobian, the cost J = ‖r‖², the gradient 2Jᵀr and the block-tridiagonal Gauss-Newton Hessian
 //! 2JᵀJ. The model enters only through [`StageModel`] (means, variances and their input gradients
@@ -13,9 +13,9 @@
 //!   - process (n rows, nodes i and i+1, for i < M_t): a_{M_t−1−i} (x̄_{i+1} − m_x(d̄_i)) ⊘
 //!     √(σ²_x(d̄_i) + q0).
 //!
-//! Q0 = diag(q0) and R0 = diag(r0) are covariances (DESIGN.md §3, "Units of Q0, R0").
+//! Q0 = diag(q0) and R0 = diag(r0) are covariances (docs/user_guide/weights.rst).
 
-// Index loops mirror the block formulas of DESIGN.md §3 and read better than iterator chains here.
+// Index loops mirror the block formulas of docs/user_guide/window.rst and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
 use crate::error::{check_finite, check_len, Error, Result};
@@ -120,7 +120,7 @@ pub trait StageModel {
 
 /// The learned model of GP-MHE: n independent GPs for f (regression targets x(t+1), or the
 /// increment x(t+1) − x(t) when `f_residual`, i.e. prior mean x) and p GPs for h, all on the
-/// inputs d = [x; u]. The variances are the GPs' latent variances (DESIGN.md §2).
+/// inputs d = [x; u]. The variances are the GPs' latent variances (docs/user_guide/gaussian_processes.rst).
 ///
 /// The values at the points of the last evaluation are kept: a point given again with exactly
 /// the same coordinates is copied instead of recomputed. A moving-horizon window starts from the
@@ -322,7 +322,7 @@ impl StageModel for GpStageModel {
     }
 }
 
-/// Which outputs the window uses (DESIGN.md §3): the paper's prediction form (y up to t−1, the
+/// Which outputs the window uses (docs/user_guide/window.rst): the paper's prediction form (y up to t−1, the
 /// estimate is x̂(t) = x̄_t before seeing y_t) or the filtering form (adds y_t).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Form {
@@ -635,7 +635,7 @@ impl WindowProblem {
 }
 
 /// One variance-weighted residual row r = a (target − m(d̄)) / √s, s = σ²(d̄) + floor (floor:
-/// the diagonal of Q0 or R0), DESIGN.md §3.
+/// the diagonal of Q0 or R0), docs/user_guide/weights.rst.
 struct WeightedRow {
     a: f64,
     target: f64,
@@ -906,7 +906,7 @@ mod tests {
             .collect()
     }
 
-    /// Direct evaluation of DESIGN.md §3's sum (no residual stacking) for the analytic model.
+    /// Direct evaluation of the window cost's sum (no residual stacking) for the analytic model.
     fn direct_cost(w: &WindowProblem, z: &[f64]) -> f64 {
         let mt = w.m_t;
         let dx: Vec<f64> = (0..2).map(|c| z[c] - w.x_prior[c]).collect();

@@ -1,4 +1,4 @@
-"""Batch-reactor demo (the GP-MHE paper's §V, DESIGN.md §4): `python -m gpmhe demo [options]`.
+"""Batch-reactor demo (the GP-MHE paper's §V; docs/user_guide/systems.rst): `python -m gpmhe demo [options]`.
 
 Trains the GPs on 5 and on 3 measured trajectories, then estimates the state of one simulated run
 from the poor prior x̂(0) = [0.1, 4.5] with GP-MHE (5 and 3 trajectories), the exact-model MHE,
