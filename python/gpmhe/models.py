@@ -436,8 +436,8 @@ class LearnedModel(_SharedOnCopy):
 
     References
     ----------
-    .. [1] E. T. Wolff, V. G. Lopez, M. A. Müller, "Gaussian process-based moving horizon
-       estimation", arXiv:2505.07525, 2025.
+    .. [1] T. M. Wolff, V. G. Lopez and M. A. Müller, "Robust Stability of Gaussian Process
+       Based Moving Horizon Estimation".
 
     Examples
     --------
