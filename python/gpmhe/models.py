@@ -391,7 +391,7 @@ class LearnedModel(_SharedOnCopy):
     d = [x; u]: m_x(d), σ²_x(d) are the f-GPs' posterior means and latent variances, m_y(d),
     σ²_y(d) those of the h-GPs. With ``f_residual=True`` the f-GPs are trained on the increments
     x(t+1) − x(t) and m_x(d) = x + GP mean (a prior mean equal to the identity), otherwise on
-    x(t+1) with zero prior mean, as in the paper. `GPMHE` adds the variances to its weights:
+    x(t+1) with zero prior mean, as in the paper [1]_. `GPMHE` adds the variances to its weights:
     Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0.
 
     Usually built with `from_trajectories`. The Rust models of ``f_gp`` and ``h_gp`` are handed to
