@@ -669,7 +669,8 @@ class LearnedModel(_SharedOnCopy):
         >>> buf = io.BytesIO()
         >>> model.save(buf)
         >>> _ = buf.seek(0)
-        >>> bool(np.array_equal(LearnedModel.load(buf).predict([1.0, 2.0]), model.predict([1.0, 2.0])))
+        >>> loaded = LearnedModel.load(buf)
+        >>> bool(np.array_equal(loaded.predict([1.0, 2.0]), model.predict([1.0, 2.0])))
         True
         """
         import io
