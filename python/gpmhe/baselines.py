@@ -79,13 +79,42 @@ def ExactEKF(f, f_jacobian, h, h_jacobian, x0, P0, Q, R):
 
     class _ExactEKF(ExtendedKalmanFilter):
         def predict_x(self, u=0):
+            """Propagate the estimate through f: x⁻ = f(x).
+
+            Parameters
+            ----------
+            u : object, default 0
+                Ignored (the model has no input).
+            """
             self.x = np.asarray(f(self.x.ravel()), dtype=float).reshape(-1, 1)
 
         def predict(self, u=0):
+            """Predict one step: x⁻ = f(x), P⁻ = F P Fᵀ + Q with F = ∂f/∂x at x.
+
+            Parameters
+            ----------
+            u : object, default 0
+                Ignored (the model has no input); kept for filterpy's signature.
+            """
             self.F = np.asarray(f_jacobian(self.x.ravel()), dtype=float)
             super().predict(u)
 
         def update(self, z, HJacobian=None, Hx=None, R=None, args=(), hx_args=(), residual=np.subtract):
+            """filterpy's EKF update with the measurement z, using the model's h and ∂h/∂x.
+
+            Parameters
+            ----------
+            z : float or array_like of shape (dim_y,)
+                The measurement y(t).
+            HJacobian, Hx : object, default None
+                Ignored (the model's ∂h/∂x and h are used).
+            R : array_like or None, default None
+                Output-noise covariance for this update only; None uses ``self.R``.
+            args, hx_args : tuple, default ()
+                Extra arguments, passed on to filterpy.
+            residual : callable, default numpy.subtract
+                Residual function, passed on to filterpy.
+            """
             return super().update(
                 np.atleast_1d(z), lambda x: np.asarray(h_jacobian(x.ravel()), dtype=float),
                 lambda x: np.asarray(h(x.ravel()), dtype=float).reshape(-1, 1), R=R,
@@ -160,11 +189,19 @@ def GPEKF(model, x0, P0, Q, R):
     n, m = model.dim_x, model.dim_u
 
     def point(x, u):
+        # The model's input d = [x; u] as one row.
         u = np.zeros(m) if u is None or m == 0 else np.asarray(u, dtype=float).reshape(-1)
         return np.concatenate([x.ravel(), u])[None, :]
 
     class _GPEKF(ExtendedKalmanFilter):
         def predict(self, u=None):
+            """Predict one step: x⁻ = m_x(d̂), P⁻ = F P Fᵀ + Q + diag σ²_x(d̂), d̂ = [x; u].
+
+            Parameters
+            ----------
+            u : array_like of shape (dim_u,) or None, default None
+                Input u(t); None when the model has no input.
+            """
             mx, vx, dmx, _, _, _, _, _ = model.stage_eval(point(self.x, u))
             self.F = dmx[0][:, :n]
             Q0 = self.Q
@@ -177,6 +214,15 @@ def GPEKF(model, x0, P0, Q, R):
             self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
 
         def update(self, z, u=None):
+            """EKF update with H = ∂m_y/∂x, m_y(d̂) and the noise R + diag σ²_y(d̂) at d̂ = [x; u].
+
+            Parameters
+            ----------
+            z : float or array_like of shape (dim_y,)
+                The measurement y(t).
+            u : array_like of shape (dim_u,) or None, default None
+                Input u(t); None when the model has no input.
+            """
             _, _, _, _, my, vy, dmy, _ = model.stage_eval(point(self.x, u))
             H = dmy[0][:, :n]
             R_eff = self.R + np.diag(vy[0])

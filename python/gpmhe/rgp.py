@@ -666,7 +666,7 @@ class RGPEKF:
 
     @x.setter
     def x(self, value: ArrayLike) -> None:
-        """Replace the state estimate (n values; ValueError and no change on bad input)."""
+        # Replace the state estimate (n values; ValueError and no change on bad input).
         a = _finite_array("x", value).reshape(-1)
         if a.size != self.dim_x:
             raise ValueError(f"x: expected {self.dim_x} values, got {a.size}")
@@ -683,8 +683,8 @@ class RGPEKF:
 
     @P.setter
     def P(self, value: Any) -> None:
-        """Replace the state covariance (symmetric PSD (n, n) or a scalar times I; ValueError and
-        no change on bad input). The states' cross-covariance with the GP weights is reset to 0."""
+        # Replace the state covariance (symmetric PSD (n, n) or a scalar times I; ValueError and
+        # no change on bad input). The states' cross-covariance with the GP weights is reset to 0.
         self._core.set_p(_square("P", value, self.dim_x))
 
     @property
