@@ -15,7 +15,7 @@ Model (per output)::
     k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d'))
 
 Posterior at a test point d*: mean m(d*) = k*^T (K + sigma_eps^2 I)^-1 y and latent (noise-free)
-variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*, computed as sigma_f^2 - |L^-1 k*|^2.
+variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*, computed as sigma_f^2 - ‖L^-1 k*‖^2.
 If K + sigma_eps^2 I is numerically singular, the core adds a small diagonal jitter (from
 1e-10 (sigma_f^2 + sigma_eps^2), growing tenfold up to 1e-6 (sigma_f^2 + sigma_eps^2)) and records
 it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.

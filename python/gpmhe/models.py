@@ -60,7 +60,7 @@ class KnownModel(_SharedOnCopy):
         Number of inputs m (>= 0).
     f_jacobian : callable or None, default None
         ``f_jacobian(x, u)`` returning ∂f/∂x of shape (n, n). None: central finite differences
-        with step ``fd_step`` · max(1, |x_i|).
+        with step ``fd_step`` · max(1, abs(x_i)).
     h_jacobian : callable or None, default None
         ``h_jacobian(x, u)`` returning ∂h/∂x of shape (p, n); None: finite differences.
     fd_step : float, default 1e-6
