@@ -126,7 +126,7 @@ class GPMHE:
         with ``KnownModel(..., vectorized=True)``.
     solver_options : dict or None, default None
         Overrides of gpmhe's defaults. For "gauss-newton": ``max_iter`` (100), ``gtol`` (1e-6,
-        on ‖z − P(z − ∇J)‖∞ with P the projection on the box), ``dtol`` (1e-2, see Notes),
+        on ‖z − Π(z − ∇J)‖∞ with Π the projection on the box), ``dtol`` (1e-2, see Notes),
         ``xtol`` (1e-12), ``ftol`` (1e-15), ``interior`` ("auto", "always" or "never": when the
         barrier phase runs), ``interior_zone`` (1e-5) and ``mu_init`` (0.1), ``mu_final``
         (1e-5), the first and last barrier parameter. For "trust-constr" the options of
@@ -160,7 +160,7 @@ class GPMHE:
     nfev : int
         Window evaluations of the last update ("gauss-newton" only; 0 otherwise).
     projected_gradient : float
-        Final ‖z − P(z − ∇J)‖∞ of the last update ("gauss-newton" only; 0 otherwise).
+        Final ‖z − Π(z − ∇J)‖∞ of the last update ("gauss-newton" only; 0 otherwise).
     t : int
         Number of updates since construction or ``reset``.
     model, horizon, eta, form, solver, solver_options, P2, x_bounds
