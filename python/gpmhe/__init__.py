@@ -2,7 +2,17 @@
 
 GP-based moving horizon estimation (``GPMHE``) after Wolff, Lopez & Müller, and a recursive GP
 inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numerical core
-(``gpmhe._core``).
+(``gpmhe._core``). The estimators follow filterpy's conventions (``update``, ``predict``,
+``batch_filter``, attributes ``x`` and ``P``).
+
+* Gaussian processes: `GaussianProcess`, `MultiOutputGP` (with `ConvergenceWarning`,
+  `NotFittedError`);
+* moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`;
+* the RGP-dKF: `RecursiveGP`, `RGPEKF`;
+* `NumericalError`: a numerical failure on valid input;
+* `gpmhe.baselines`: EKF baselines on filterpy; `gpmhe.systems`: the papers' example plants.
+
+See the user guide, starting with *Notation*.
 """
 
 from gpmhe._core import NumericalError

@@ -1,4 +1,7 @@
-"""Gaussian-process regression with the SE-ARD kernel on the Rust core (DESIGN.md §2).
+"""Gaussian-process regression with the SE-ARD kernel, for learning the models of the estimators.
+
+The numerics run on the Rust core; the user guide page *Gaussian processes* describes the model,
+the hyperparameter fit and the numerical safeguards in more detail.
 
 ``GaussianProcess`` is one zero-mean GP; ``MultiOutputGP`` is one independent GP per output column
 on shared inputs, each with its own hyperparameters, predicted in one Rust call. Hyperparameters
@@ -12,7 +15,7 @@ Model (per output)::
     k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d'))
 
 Posterior at a test point d*: mean m(d*) = k*^T (K + sigma_eps^2 I)^-1 y and latent (noise-free)
-variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*, computed as sigma_f^2 - |L^-1 k*|^2.
+variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*, computed as sigma_f^2 - ‖L^-1 k*‖^2.
 If K + sigma_eps^2 I is numerically singular, the core adds a small diagonal jitter (from
 1e-10 (sigma_f^2 + sigma_eps^2), growing tenfold up to 1e-6 (sigma_f^2 + sigma_eps^2)) and records
 it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.
@@ -39,11 +42,49 @@ _FORMAT_VERSION = 1
 
 
 class ConvergenceWarning(UserWarning):
-    """The hyperparameter optimiser stopped without reporting convergence."""
+    """The hyperparameter optimiser stopped without reporting convergence.
+
+    Issued by `GaussianProcess.fit` and `MultiOutputGP.fit` when the best L-BFGS-B run (over the
+    start and the random restarts) hit its iteration limit or failed its line search with a
+    projected gradient that is not small. The best hyperparameters found are still used.
+
+    See Also
+    --------
+    GaussianProcess.fit : Emits this warning.
+
+    Examples
+    --------
+    Turn it into an error, e.g. in a test suite:
+
+    >>> import warnings
+    >>> from gpmhe import ConvergenceWarning
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("error", ConvergenceWarning)
+    ...     issubclass(ConvergenceWarning, UserWarning)
+    True
+    """
 
 
 class NotFittedError(ValueError, AttributeError):
-    """A method that needs a fitted model was called before ``fit``."""
+    """A method that needs a fitted model was called before ``fit``.
+
+    It derives from both `ValueError` and `AttributeError` (as scikit-learn's error of the same
+    name does), so either can be caught.
+
+    See Also
+    --------
+    GaussianProcess.fit : Fit a single-output GP.
+    MultiOutputGP.fit : Fit independent GPs for several outputs.
+
+    Examples
+    --------
+    >>> from gpmhe import GaussianProcess, NotFittedError
+    >>> try:
+    ...     GaussianProcess().predict([[0.0]])
+    ... except NotFittedError as err:
+    ...     print(err)
+    this GaussianProcess is not fitted yet; call fit(D, y) first
+    """
 
 
 # ----------------------------------------------------------------------------- validation
@@ -215,37 +256,96 @@ def _converged(res: Any, log_bounds: np.ndarray) -> bool:
 class GaussianProcess:
     """Exact GP regression of one output with the SE-ARD kernel.
 
+    Model, for training inputs d_i (rows of D, n_d columns) and targets y_i::
+
+        y_i = f(d_i) + eps_i,   eps_i ~ N(0, sigma_eps^2),   f ~ GP(0, k),
+        k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d')).
+
+    The posterior at a test point d* has mean m(d*) = k*^T (K + sigma_eps^2 I)^-1 y and latent
+    (noise-free) variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*. With an
+    optimizer, ``fit`` chooses theta = log([sigma_f, lengthscales..., sigma_eps]) by maximising
+    the log marginal likelihood.
+
     Parameters
     ----------
-    sigma_f : float
-        Signal standard deviation sigma_f (initial value when optimised).
-    lengthscales : float or array of shape (n_d,)
-        Length-scales phi_1..phi_nd; a scalar is used for every input dimension.
-    sigma_eps : float
-        Measurement-noise standard deviation sigma_eps.
-    optimizer : "L-BFGS-B" or None
-        Maximise the log marginal likelihood over theta in ``fit``; None keeps the given values.
-    n_restarts : int
-        Extra optimiser runs from uniform random theta inside the log-bounds; the best is kept.
-    bounds : sequence of (low, high)
+    sigma_f : float, default 1.0
+        Signal standard deviation sigma_f (the initial value when optimised). Must be > 0.
+    lengthscales : float or array_like of shape (n_d,), default 1.0
+        Length-scales of the input dimensions; a scalar is used for every input dimension.
+    sigma_eps : float, default 0.1
+        Standard deviation sigma_eps of the noise on the targets y.
+    optimizer : {"L-BFGS-B", None}, default "L-BFGS-B"
+        "L-BFGS-B" maximises the log marginal likelihood over theta in ``fit`` (SciPy's L-BFGS-B
+        with the analytic gradient); None keeps the given hyperparameters.
+    n_restarts : int, default 0
+        Extra optimiser runs from theta drawn uniformly inside the log-bounds; the run with the
+        largest log marginal likelihood is kept.
+    bounds : sequence of (low, high) pairs, default ``DEFAULT_BOUNDS``
         Bounds in natural units, either 3 rows (sigma_f, every length-scale, sigma_eps) or
-        n_d + 2 rows (sigma_f, phi_1..phi_nd, sigma_eps). Default ``DEFAULT_BOUNDS``.
-    random_state : int, numpy Generator or None
-        Seed of the restart points.
-    maxiter : int
+        n_d + 2 rows (sigma_f, one row per length-scale, sigma_eps). The default is
+        ((1e-3, 1e3), (1e-3, 1e3), (1e-5, 1e2)).
+    random_state : int, numpy.random.Generator or None, default None
+        Seed of the random restart points (only used when ``n_restarts`` > 0).
+    maxiter : int, default 15000
         Iteration limit of each L-BFGS-B run.
 
     Attributes
     ----------
-    sigma_f, lengthscales, sigma_eps : current hyperparameters (fitted after ``fit``).
-    theta : ndarray (n_d + 2,)
+    sigma_f : float
+        Signal standard deviation (the fitted value after ``fit``).
+    lengthscales : float or ndarray of shape (n_d,)
+        Length-scales (an ndarray of shape (n_d,) after ``fit``).
+    sigma_eps : float
+        Noise standard deviation (the fitted value after ``fit``).
+    theta : ndarray of shape (n_d + 2,)
         log([sigma_f, lengthscales..., sigma_eps]); setting it on a fitted GP refactors the model
-        without optimising.
-    D_train, y_train : training data of the last successful ``fit``.
+        at the new values without optimising.
+    D_train : ndarray of shape (N, n_d)
+        Training inputs of the last successful ``fit``.
+    y_train : ndarray of shape (N,)
+        Training targets of the last successful ``fit``.
     jitter : float
-        Diagonal jitter the Cholesky factorisation needed (0 normally).
+        Diagonal jitter the Cholesky factorisation of K + sigma_eps^2 I needed (normally 0).
     log_marginal_likelihood_value : float
         log p(y | D, theta) at the current theta.
+    dim : int
+        Input dimension n_d of the fitted model.
+    optimizer, n_restarts, bounds, random_state, maxiter
+        The settings as given.
+
+    Raises
+    ------
+    ValueError
+        If a hyperparameter is not finite and positive, or a setting is invalid.
+
+    See Also
+    --------
+    MultiOutputGP : Independent GPs for several outputs on shared inputs.
+    LearnedModel : The GP model of the moving horizon estimator.
+
+    Notes
+    -----
+    The variance returned by ``predict`` and ``predict_with_gradients`` is that of the latent f,
+    without sigma_eps^2. If K + sigma_eps^2 I is numerically singular, a small diagonal jitter
+    (from 1e-10 (sigma_f^2 + sigma_eps^2), growing tenfold up to 1e-6 (sigma_f^2 + sigma_eps^2))
+    is added and recorded in ``jitter``; beyond that `gpmhe.NumericalError` is raised. See the
+    user guide, *Gaussian processes*.
+
+    Examples
+    --------
+    Learn sin(d) from 20 noisy samples and predict at two points:
+
+    >>> import numpy as np
+    >>> from gpmhe import GaussianProcess
+    >>> rng = np.random.default_rng(0)
+    >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+    >>> y = np.sin(D[:, 0]) + 0.05 * rng.standard_normal(20)
+    >>> gp = GaussianProcess(sigma_f=1.0, lengthscales=1.0, sigma_eps=0.1).fit(D, y)
+    >>> mean, std = gp.predict([[1.0], [2.5]], return_std=True)
+    >>> print(np.round(mean, 2), np.round(np.sin([1.0, 2.5]), 2))
+    [0.86 0.57] [0.84 0.6 ]
+    >>> bool(np.all(std < 0.05))
+    True
     """
 
     def __init__(
@@ -297,7 +397,11 @@ class GaussianProcess:
 
     @property
     def theta(self) -> np.ndarray:
-        """log([sigma_f, lengthscales..., sigma_eps])."""
+        """Log-hyperparameters log([sigma_f, lengthscales..., sigma_eps]), shape (n_d + 2,).
+
+        Setting it on a fitted GP refactors the model at the new values (no optimisation); on an
+        unfitted GP it sets the initial values ``sigma_f``, ``lengthscales`` and ``sigma_eps``.
+        """
         if self._core_model is not None:
             return self._core_model.theta
         return self._theta_for(np.size(self.lengthscales))
@@ -320,29 +424,87 @@ class GaussianProcess:
 
     @property
     def D_train(self) -> np.ndarray:
+        """Training inputs, shape (N, n_d).
+
+        Those of the last successful ``fit``; raises `NotFittedError` before it.
+        """
         return self._model().x_train
 
     @property
     def y_train(self) -> np.ndarray:
+        """Training targets, shape (N,).
+
+        Those of the last successful ``fit``; raises `NotFittedError` before it.
+        """
         return self._model().y_train
 
     @property
     def jitter(self) -> float:
+        """Diagonal jitter added to K + sigma_eps^2 I to factor it.
+
+        Normally 0; positive when the kernel matrix was numerically singular.
+        """
         return self._model().jitter
 
     @property
     def log_marginal_likelihood_value(self) -> float:
+        """Log marginal likelihood log p(y | D, theta) at the current theta.
+
+        Equal to ``log_marginal_likelihood()``; raises `NotFittedError` before ``fit``.
+        """
         return self._model().log_marginal_likelihood(False)[0]
 
     @property
     def dim(self) -> int:
-        """Input dimension n_d of the fitted model."""
+        """Input dimension n_d of the fitted model.
+
+        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
+        """
         return self._model().dim
 
     # -- fitting -----------------------------------------------------------------------------
 
     def fit(self, D: Any, y: Any) -> "GaussianProcess":
-        """Fit to D (N, n_d) and y (N,); returns self. A failed fit leaves the model unchanged."""
+        """Fit the GP to training data, optimising the hyperparameters if an optimizer is set.
+
+        Parameters
+        ----------
+        D : array_like of shape (N, n_d)
+            Training inputs, N >= 2 finite rows.
+        y : array_like of shape (N,)
+            Training targets.
+
+        Returns
+        -------
+        GaussianProcess
+            ``self``, fitted.
+
+        Raises
+        ------
+        ValueError
+            If D or y have the wrong shape or contain NaN or inf.
+        gpmhe.NumericalError
+            If no optimiser run reached a finite log marginal likelihood, or the kernel matrix
+            cannot be factored even with jitter.
+
+        Warns
+        -----
+        ConvergenceWarning
+            If the best optimiser run stopped without converging.
+
+        Notes
+        -----
+        A failed fit leaves the model unchanged.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
+        >>> gp.D_train.shape, gp.dim
+        ((20, 1), 1)
+        """
         D, y = _check_training(D, y, 1)
         nd = D.shape[1]
         theta0 = self._theta_for(nd)
@@ -358,8 +520,36 @@ class GaussianProcess:
     def log_marginal_likelihood(
         self, theta: Any = None, eval_gradient: bool = False
     ) -> Union[float, Tuple[float, np.ndarray]]:
-        """log p(y | D, theta) on the training data (at the current theta if None); with
-        ``eval_gradient`` also its gradient w.r.t. theta, as ``(lml, grad)``."""
+        """Log marginal likelihood log p(y | D, theta) of the training data.
+
+        Parameters
+        ----------
+        theta : array_like of shape (n_d + 2,) or None, default None
+            Log-hyperparameters at which to evaluate it; None uses the current ``theta``.
+        eval_gradient : bool, default False
+            Also return the gradient with respect to theta.
+
+        Returns
+        -------
+        lml : float
+            The log marginal likelihood.
+        grad : ndarray of shape (n_d + 2,)
+            Its gradient with respect to theta; only returned if ``eval_gradient`` is True.
+
+        Examples
+        --------
+        At the optimum found by ``fit`` the gradient vanishes:
+
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> rng = np.random.default_rng(0)
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> y = np.sin(D[:, 0]) + 0.05 * rng.standard_normal(20)
+        >>> gp = GaussianProcess(sigma_eps=0.1).fit(D, y)
+        >>> lml, grad = gp.log_marginal_likelihood(eval_gradient=True)
+        >>> bool(np.max(np.abs(grad)) < 1e-3), bool(lml > gp.log_marginal_likelihood([0, 0, -1]))
+        (True, True)
+        """
         m = self._model()
         if theta is None:
             lml, grad = m.log_marginal_likelihood(bool(eval_gradient))
@@ -373,7 +563,39 @@ class GaussianProcess:
     # -- prediction --------------------------------------------------------------------------
 
     def predict(self, D: Any, return_std: bool = False):
-        """Posterior mean (k,) at D (k, n_d); with ``return_std`` also the std of the latent f."""
+        """Posterior mean, and optionally standard deviation, of the latent f at test points.
+
+        Parameters
+        ----------
+        D : array_like of shape (k, n_d)
+            Test points.
+        return_std : bool, default False
+            Also return the posterior standard deviation of the latent (noise-free) f.
+
+        Returns
+        -------
+        mean : ndarray of shape (k,)
+            Posterior mean m(d) at each test point.
+        std : ndarray of shape (k,)
+            Posterior standard deviation of f (without sigma_eps); only returned if
+            ``return_std`` is True.
+
+        Raises
+        ------
+        NotFittedError
+            Before ``fit``.
+        ValueError
+            If D has the wrong shape or contains NaN or inf.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
+        >>> print(np.round(gp.predict([[1.0], [2.0]]), 2))
+        [0.84 0.91]
+        """
         m = self._model()
         if not return_std:
             return m.predict_mean(_check_points(D, m.dim))
@@ -381,15 +603,69 @@ class GaussianProcess:
         return mean, np.sqrt(var)
 
     def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d); var is the
-        latent (noise-free) posterior variance."""
+        """Posterior mean and latent variance with their gradients with respect to the input.
+
+        Parameters
+        ----------
+        D : array_like of shape (k, n_d)
+            Test points.
+
+        Returns
+        -------
+        mean : ndarray of shape (k,)
+            Posterior mean m(d).
+        var : ndarray of shape (k,)
+            Latent (noise-free) posterior variance var(d).
+        dmean_dd : ndarray of shape (k, n_d)
+            Gradient of the mean with respect to d, one row per point.
+        dvar_dd : ndarray of shape (k, n_d)
+            Gradient of the variance with respect to d.
+
+        Examples
+        --------
+        The gradient of a GP fitted to sin approximates cos:
+
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
+        >>> mean, var, dmean, dvar = gp.predict_with_gradients([[1.0]])
+        >>> print(np.round(dmean, 2), np.round(np.cos(1.0), 2))
+        [[0.54]] 0.54
+        """
         m = self._model()
         return m.predict_with_gradients(_check_points(D, m.dim))
 
     # -- persistence -------------------------------------------------------------------------
 
     def save(self, path: Union[str, os.PathLike]) -> None:
-        """Save the fitted model and its settings to an ``.npz`` file (no pickle)."""
+        """Save the fitted model and its settings to an ``.npz`` file (no pickle).
+
+        The training data, theta and the optimiser settings are stored; ``random_state`` is not.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
+            it).
+
+        See Also
+        --------
+        load : Read the file back.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
+        >>> buf = io.BytesIO()
+        >>> gp.save(buf)
+        >>> _ = buf.seek(0)
+        >>> bool(np.array_equal(GaussianProcess.load(buf).predict(D), gp.predict(D)))
+        True
+        """
         m = self._model()
         np.savez(
             path,
@@ -403,7 +679,35 @@ class GaussianProcess:
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike]) -> "GaussianProcess":
-        """Load a model written by ``save``."""
+        """Load a model written by ``save``.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            The ``.npz`` file.
+
+        Returns
+        -------
+        GaussianProcess
+            The fitted model, with the saved settings (``random_state`` None).
+
+        Raises
+        ------
+        ValueError
+            If the file is not a saved `GaussianProcess` or was written by a newer gpmhe.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> buf = io.BytesIO()
+        >>> GaussianProcess(sigma_f=2.0, optimizer=None).fit(D, np.sin(D[:, 0])).save(buf)
+        >>> _ = buf.seek(0)
+        >>> GaussianProcess.load(buf)
+        GaussianProcess(sigma_f=2, lengthscales=[1.], sigma_eps=0.1, fitted)
+        """
         with np.load(path, allow_pickle=False) as f:
             _check_kind(f, "GaussianProcess")
             gp = cls(**_settings_from(f))
@@ -450,25 +754,74 @@ def _check_kind(f: Any, kind: str) -> None:
 class MultiOutputGP:
     """Independent SE-ARD GPs, one per output column, on shared inputs.
 
-    Each output o has its own hyperparameters sigma_f[o], lengthscales[o, :], sigma_eps[o]; all
-    outputs are fitted separately (same optimiser settings as ``GaussianProcess``) and predicted in
-    one Rust call.
+    Each output o = 1..q is a `GaussianProcess` model of its own (Y[:, o] = f_o(D) + eps_o,
+    f_o ~ GP(0, k_o)) with its own hyperparameters sigma_f[o], lengthscales[o, :],
+    sigma_eps[o]. The outputs are fitted one after the other with the same optimiser settings
+    and predicted in one Rust call. This is the form `LearnedModel` uses for f and h.
 
     Parameters
     ----------
-    sigma_f, sigma_eps : float or array (q,)
-    lengthscales : float, array (n_d,) or array (q, n_d)
-        Initial values (broadcast over outputs and input dimensions).
-    optimizer, n_restarts, bounds, random_state, maxiter : as for ``GaussianProcess`` (the same
-        bounds for every output).
+    sigma_f : float or array_like of shape (q,), default 1.0
+        Initial signal standard deviations (a scalar is used for every output).
+    lengthscales : float or array_like of shape (n_d,) or (q, n_d), default 1.0
+        Initial length-scales, broadcast over outputs and input dimensions.
+    sigma_eps : float or array_like of shape (q,), default 0.1
+        Initial noise standard deviations.
+    optimizer : {"L-BFGS-B", None}, default "L-BFGS-B"
+        As for `GaussianProcess`; None keeps the given hyperparameters.
+    n_restarts : int, default 0
+        Extra random optimiser starts per output.
+    bounds : sequence of (low, high) pairs, default ``DEFAULT_BOUNDS``
+        As for `GaussianProcess`; the same bounds serve every output.
+    random_state : int, numpy.random.Generator or None, default None
+        Seed of the restart points (one generator shared by all outputs).
+    maxiter : int, default 15000
+        Iteration limit of each L-BFGS-B run.
 
     Attributes
     ----------
-    sigma_f (q,), lengthscales (q, n_d), sigma_eps (q,) : fitted hyperparameters.
-    theta : ndarray (q, n_d + 2), one row log([sigma_f, lengthscales..., sigma_eps]) per output;
-        settable on a fitted model.
-    _core_model : gpmhe._core.MultiGP
-        The fitted Rust model (used directly by the estimators).
+    sigma_f : ndarray of shape (q,)
+        Signal standard deviations (fitted after ``fit``).
+    lengthscales : ndarray of shape (q, n_d)
+        Length-scales (fitted after ``fit``).
+    sigma_eps : ndarray of shape (q,)
+        Noise standard deviations (fitted after ``fit``).
+    theta : ndarray of shape (q, n_d + 2)
+        One row log([sigma_f, lengthscales..., sigma_eps]) per output; settable on a fitted
+        model.
+    n_outputs : int
+        Number of outputs q.
+    dim : int
+        Input dimension n_d.
+    D_train : ndarray of shape (N, n_d)
+        Training inputs.
+    y_train : ndarray of shape (N, q)
+        Training targets.
+    jitter : ndarray of shape (q,)
+        Diagonal jitter each output's factorisation needed (normally 0).
+    optimizer, n_restarts, bounds, random_state, maxiter
+        The settings as given.
+
+    See Also
+    --------
+    GaussianProcess : One output, and the model's equations.
+    LearnedModel.from_trajectories : Fits the f- and h-GPs of an estimator.
+
+    Examples
+    --------
+    Two outputs, sin and cos of one input:
+
+    >>> import numpy as np
+    >>> from gpmhe import MultiOutputGP
+    >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+    >>> Y = np.column_stack([np.sin(D[:, 0]), np.cos(D[:, 0])])
+    >>> gp = MultiOutputGP(sigma_eps=0.01).fit(D, Y)
+    >>> gp
+    MultiOutputGP(q=2, n_d=1, N=20, fitted)
+    >>> gp.theta.shape
+    (2, 3)
+    >>> print(np.round(gp.predict([[1.0]]), 2), np.round([np.sin(1.0), np.cos(1.0)], 2))
+    [[0.84 0.54]] [0.84 0.54]
     """
 
     def __init__(
@@ -523,15 +876,27 @@ class MultiOutputGP:
 
     @property
     def n_outputs(self) -> int:
+        """Number of outputs q.
+
+        The number of columns of the training targets; raises `NotFittedError` before ``fit``.
+        """
         return self._model().n_outputs
 
     @property
     def dim(self) -> int:
+        """Input dimension n_d.
+
+        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
+        """
         return self._model().dim
 
     @property
     def theta(self) -> np.ndarray:
-        """(q, n_d + 2) log-hyperparameters, one row per output."""
+        """Log-hyperparameters, shape (q, n_d + 2), one row per output.
+
+        Each row is log([sigma_f, lengthscales..., sigma_eps]). Setting it refactors the fitted
+        model at the new values without optimising.
+        """
         return self._model().thetas
 
     @theta.setter
@@ -544,21 +909,70 @@ class MultiOutputGP:
 
     @property
     def D_train(self) -> np.ndarray:
+        """Training inputs, shape (N, n_d).
+
+        Those of the last successful ``fit``; raises `NotFittedError` before it.
+        """
         self._model()
         return self._D
 
     @property
     def y_train(self) -> np.ndarray:
+        """Training targets, shape (N, q).
+
+        Those of the last successful ``fit``; raises `NotFittedError` before it.
+        """
         self._model()
         return self._Y
 
     @property
     def jitter(self) -> np.ndarray:
+        """Diagonal jitter of each output's kernel factorisation, shape (q,).
+
+        Normally 0; positive where a kernel matrix was numerically singular.
+        """
         return self._model().jitters
 
     def fit(self, D: Any, Y: Any) -> "MultiOutputGP":
-        """Fit to D (N, n_d) and Y (N, q) (a 1-D Y is one output); returns self.
-        A failed fit leaves the model unchanged."""
+        """Fit one GP per output column, optimising each output's hyperparameters if set.
+
+        Parameters
+        ----------
+        D : array_like of shape (N, n_d)
+            Training inputs, N >= 2 finite rows.
+        Y : array_like of shape (N, q) or (N,)
+            Training targets, one column per output (a 1-D Y is one output).
+
+        Returns
+        -------
+        MultiOutputGP
+            ``self``, fitted.
+
+        Raises
+        ------
+        ValueError
+            If D or Y have the wrong shape or contain NaN or inf.
+        gpmhe.NumericalError
+            If an output's fit failed numerically (see `GaussianProcess.fit`).
+
+        Warns
+        -----
+        ConvergenceWarning
+            If the optimiser did not converge for some output.
+
+        Notes
+        -----
+        A failed fit leaves the model unchanged.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import MultiOutputGP
+        >>> D = np.random.default_rng(0).uniform(size=(10, 3))
+        >>> gp = MultiOutputGP(optimizer=None).fit(D, D[:, :2] ** 2)
+        >>> gp.n_outputs, gp.dim, gp.lengthscales.shape
+        (2, 3, (2, 3))
+        """
         if np.ndim(Y) == 1:
             Y = np.asarray(Y)[:, None]
         D, Y = _check_training(D, Y, 2)
@@ -581,8 +995,32 @@ class MultiOutputGP:
         return self
 
     def log_marginal_likelihood(self, theta: Any = None, eval_gradient: bool = False):
-        """Per-output log marginal likelihoods (q,) (at the current theta if None, else at theta
-        of shape (q, n_d + 2)); with ``eval_gradient`` also the gradients (q, n_d + 2)."""
+        """Log marginal likelihood of each output's training data.
+
+        Parameters
+        ----------
+        theta : array_like of shape (q, n_d + 2) or None, default None
+            Log-hyperparameters, one row per output; None uses the current ``theta``.
+        eval_gradient : bool, default False
+            Also return the gradients with respect to theta.
+
+        Returns
+        -------
+        lml : ndarray of shape (q,)
+            The log marginal likelihood of each output.
+        grad : ndarray of shape (q, n_d + 2)
+            Their gradients; only returned if ``eval_gradient`` is True.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import MultiOutputGP
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = MultiOutputGP().fit(D, np.column_stack([np.sin(D[:, 0]), np.cos(D[:, 0])]))
+        >>> lml, grad = gp.log_marginal_likelihood(eval_gradient=True)
+        >>> lml.shape, grad.shape
+        ((2,), (2, 3))
+        """
         m = self._model()
         theta = m.thetas if theta is None else _as_float_array(theta, "theta", 2)
         if theta.shape != (m.n_outputs, m.dim + 2):
@@ -597,7 +1035,35 @@ class MultiOutputGP:
         return (lml, np.array([r[1] for r in res])) if eval_gradient else lml
 
     def predict(self, D: Any, return_std: bool = False):
-        """Posterior means (k, q) at D (k, n_d); with ``return_std`` also latent stds (k, q)."""
+        """Posterior means, and optionally latent standard deviations, of all outputs.
+
+        Parameters
+        ----------
+        D : array_like of shape (k, n_d)
+            Test points.
+        return_std : bool, default False
+            Also return the posterior standard deviations of the latent (noise-free) outputs.
+
+        Returns
+        -------
+        mean : ndarray of shape (k, q)
+            Posterior means, one column per output.
+        std : ndarray of shape (k, q)
+            Latent posterior standard deviations; only returned if ``return_std`` is True.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import MultiOutputGP
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = MultiOutputGP(sigma_eps=0.01, optimizer=None).fit(D, np.column_stack([D, -D]))
+        >>> mean, std = gp.predict([[1.0], [2.0]], return_std=True)
+        >>> print(np.round(mean, 2))
+        [[ 1. -1.]
+         [ 2. -2.]]
+        >>> std.shape
+        (2, 2)
+        """
         m = self._model()
         if not return_std:
             return m.predict_mean(_check_points(D, m.dim))
@@ -605,12 +1071,70 @@ class MultiOutputGP:
         return mean, np.sqrt(var)
 
     def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(mean, var, dmean_dd, dvar_dd) of shapes (k, q), (k, q), (k, q, n_d), (k, q, n_d)."""
+        """Posterior means and latent variances of all outputs with their input gradients.
+
+        Parameters
+        ----------
+        D : array_like of shape (k, n_d)
+            Test points.
+
+        Returns
+        -------
+        mean : ndarray of shape (k, q)
+            Posterior means.
+        var : ndarray of shape (k, q)
+            Latent (noise-free) posterior variances.
+        dmean_dd : ndarray of shape (k, q, n_d)
+            Gradients of the means with respect to d: [i, o, :] belongs to point i, output o.
+        dvar_dd : ndarray of shape (k, q, n_d)
+            Gradients of the variances with respect to d.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import MultiOutputGP
+        >>> D = np.random.default_rng(1).uniform(-1.0, 1.0, size=(40, 2))
+        >>> Y = np.column_stack([np.sin(D[:, 0]), D[:, 0] * D[:, 1]])
+        >>> gp = MultiOutputGP(sigma_eps=0.01).fit(D, Y)
+        >>> mean, var, dmean, dvar = gp.predict_with_gradients([[0.5, 0.2]])
+        >>> dmean.shape
+        (1, 2, 2)
+        >>> print(round(float(dmean[0, 0, 0]), 2), round(float(np.cos(0.5)), 2))  # d sin(d1)/d d1
+        0.88 0.88
+        >>> print(np.round(dmean[0, 1], 2))  # gradient of d1 d2 at (0.5, 0.2)
+        [0.2 0.5]
+        """
         m = self._model()
         return m.predict_with_gradients(_check_points(D, m.dim))
 
     def save(self, path: Union[str, os.PathLike]) -> None:
-        """Save the fitted model and its settings to an ``.npz`` file (no pickle)."""
+        """Save the fitted model and its settings to an ``.npz`` file (no pickle).
+
+        The training data, theta and the optimiser settings are stored; ``random_state`` is not.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
+            it).
+
+        See Also
+        --------
+        load : Read the file back.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import MultiOutputGP
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> gp = MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2]))
+        >>> buf = io.BytesIO()
+        >>> gp.save(buf)
+        >>> _ = buf.seek(0)
+        >>> bool(np.array_equal(MultiOutputGP.load(buf).predict(D), gp.predict(D)))
+        True
+        """
         m = self._model()
         np.savez(
             path,
@@ -624,7 +1148,35 @@ class MultiOutputGP:
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike]) -> "MultiOutputGP":
-        """Load a model written by ``save``."""
+        """Load a model written by ``save``.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            The ``.npz`` file.
+
+        Returns
+        -------
+        MultiOutputGP
+            The fitted model, with the saved settings (``random_state`` None).
+
+        Raises
+        ------
+        ValueError
+            If the file is not a saved `MultiOutputGP` or was written by a newer gpmhe.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import MultiOutputGP
+        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
+        >>> buf = io.BytesIO()
+        >>> MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2])).save(buf)
+        >>> _ = buf.seek(0)
+        >>> MultiOutputGP.load(buf)
+        MultiOutputGP(q=2, n_d=1, N=20, fitted)
+        """
         with np.load(path, allow_pickle=False) as f:
             _check_kind(f, "MultiOutputGP")
             gp = cls(**_settings_from(f))

@@ -1,10 +1,10 @@
 """GPMHE: the GP-based moving horizon estimator of Wolff, Lopez & Müller, in filterpy's style.
 
-The window problem (DESIGN.md §3) is assembled in Rust (`gpmhe._core.MheWindow`: residuals, banded
-Jacobian, cost, gradient, Gauss-Newton Hessian, the warm start); this module keeps the history,
-builds each window's data and calls a solver: the default Rust solver does data, warm start, solve
-and covariance in one call per update (`WindowSolver.step`). The solver dispatch is the `_SOLVERS`
-table at the bottom of the class: one method per solver.
+The window problem (see the user guide, *The window problem*) is assembled in Rust
+(`gpmhe._core.MheWindow`: residuals, banded Jacobian, cost, gradient, Gauss-Newton Hessian, the
+warm start); this module keeps the history, builds each window's data and calls a solver: the
+default Rust solver does data, warm start, solve and covariance in one call per update
+(`WindowSolver.step`, see the user guide, *The window solver*).
 """
 
 from __future__ import annotations
@@ -59,19 +59,25 @@ class _Unsaved:
 
 
 class GPMHE:
-    """Moving horizon estimator for x(t+1) = f(x, u) + w, y = h(x, u) + v with a learned
-    (`gpmhe.LearnedModel`, the paper's GP-MHE) or known (`gpmhe.KnownModel`) model.
+    """Moving horizon estimator with a learned (GP) or known model, in filterpy's style.
 
-    At each step it minimises over the window states z = (x̄_{t−M_t}, …, x̄_t), inside the box
-    `x_bounds`, the cost (DESIGN.md §3, the paper's eq. 10e)
+    The system is x(t+1) = f(x(t), u(t)) + w(t), y(t) = h(x(t), u(t)) + v(t). With a
+    `LearnedModel` (the paper's GP-MHE [1]_) f and h are replaced by GP posterior means m_x(d),
+    m_y(d) at d = [x; u] and the GP latent variances σ²_x(d), σ²_y(d) enter the weights; with a
+    `KnownModel` (the exact-model MHE) the variances are zero.
+
+    At each step the estimator minimises over the window states z = (x̄_{t−M_t}, …, x̄_t), inside
+    the box ``x_bounds``, the cost (the paper's eq. 10e)::
 
         J = 2 η^{M_t} ‖x̄_{t−M_t} − x̂(t−M_t)‖²_{P2}
             + Σ_{j=1}^{M_t} 2 η^{j−1} ( w̄ᵀ Q(d̄)⁻¹ w̄ + v̄ᵀ R(d̄)⁻¹ v̄ )(t−j),
 
-    w̄_j = x̄_{j+1} − m_x(d̄_j), v̄_j = y_j − m_y(d̄_j), Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0,
-    with M_t = min(t, M) (full information while t < M).
+    with w̄_j = x̄_{j+1} − m_x(d̄_j), v̄_j = y_j − m_y(d̄_j), d̄_j = [x̄_j; u_j],
+    Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0 and M_t = min(t, M) (full information
+    while t < M). Missing outputs (``y=None``) drop their v̄ term. The estimate is the last window
+    state, x̂(t) = x̄_t.
 
-    Forms and the loop, next to filterpy's EKF:
+    The loop, next to filterpy's EKF::
 
         # filterpy EKF                            # GPMHE
         for u, y in zip(us, ys):                  for u, y in zip(us, ys):
@@ -80,65 +86,150 @@ class GPMHE:
             ekf.predict(u)                             # form="prediction": mhe.x is x̂(t+1)
             x_pred = ekf.x      # x̂(t+1|t)
 
-    i.e. the t-th call `update(u(t), y(t))` (t = 0, 1, …) leaves `x` = x̂(t+1) in the prediction
-    form and x̂(t) in the filtering form; before any call `x` is the given x̂(0). The filtering form
-    uses as arrival prior for x(t−M_t) the one-step prediction m_x(x̂(t−M_t−1), u) of its own
-    filtered estimate (x0 when t−M_t = 0), so that no output is counted twice.
+    The t-th call ``update(u(t), y(t))`` (t = 0, 1, …) leaves ``x`` = x̂(t+1) in the prediction
+    form (the paper's: the window ends one step after the newest output) and x̂(t) in the
+    filtering form (the window ends at the newest output, which adds the term 2 v̄ᵀR⁻¹v̄ at time t
+    to J); before any call ``x`` is the given x̂(0). The filtering form uses as arrival prior for
+    x(t−M_t) the one-step prediction m_x(x̂(t−M_t−1), u) of its own filtered estimate (x0 when
+    t−M_t = 0), so that no output is counted twice.
 
     Parameters
     ----------
-    model : LearnedModel or KnownModel.
-    x0 : (dim_x,) initial estimate x̂(0); must lie in `x_bounds`.
-    horizon : M ≥ 1.  eta : discount η ∈ [0, 1).
-    P2 : (dim_x, dim_x) positive definite prior weight (identity by default).
-    Q0, R0 : process / output noise covariances (scalar, diagonal vector or diagonal matrix; the
-        weights are their inverses; identity by default).
-    x_bounds : (lower, upper) arrays of shape (dim_x,), the box X; unbounded by default.
-    form : "prediction" (the paper's) or "filtering".
-    solver : "gauss-newton" (default: the real-time Rust solver, one Rust call per update:
-        bounded Gauss-Newton/Levenberg-Marquardt with a block-tridiagonal factorisation, linear
-        in the horizon; a barrier phase keeps early iterations off the bounds, see README),
-        "trust-constr" (SciPy interior point, exact gradient and Gauss-Newton Hessian from
-        Rust; slow but the general reference) or "least-squares" (SciPy's bounded TRF on the
-        stacked residuals with the Rust Jacobian). With a KnownModel, "gauss-newton" still
-        solves in Rust but calls the model's Python functions at every window evaluation: once
-        per window point, or once for all points with `KnownModel(..., vectorized=True)`.
-    solver_options : dict overriding gpmhe's tuned defaults: passed to the SciPy solver, or for
-        "gauss-newton" any of max_iter (100), gtol (1e-6, on ‖z − P(z − ∇J)‖∞), dtol (1e-2),
-        xtol (1e-12), ftol (1e-15), interior ("auto" | "always" | "never"), interior_zone
-        (1e-5), mu_init (0.1), mu_final (1e-5). `dtol` stops the solver (message
-        "decrement-tolerance", a success) when its next Gauss-Newton step Δ predicts a decrease
-        ½ΔᵀHΔ ≤ dtol. J is 4× a negative log-likelihood, so the window's Laplace posterior has
-        covariance 4H⁻¹ and that step is √(dtol/2) ≈ 0.07 of its standard deviations long (for
-        the default): the point returned is that close to the window optimum, far inside the
-        estimation error (~1 standard deviation), and its cost within ~dtol of the local
-        minimum. Over 20 batch-reactor runs it leaves the mean RMSE unchanged (0.812 vs 0.814
-        with dtol=0) at a third of the window evaluations (README, `benches/stopping.py`);
-        dtol=0 runs every window to gtol. The Rust solver also stops at the cost's rounding
-        noise (message "noise-floor", a success): when a GP fit ran to a large σ_f, J is only
-        accurate to ~1e-6 relative and its gradient to ~1e-3, so gtol cannot be reached; the
-        solver stops once its next step predicts less decrease than that noise.
+    model : LearnedModel or KnownModel
+        The model: means m_x, m_y, variances σ²_x, σ²_y and their gradients.
+    x0 : array_like of shape (dim_x,)
+        Initial estimate x̂(0); must lie in ``x_bounds``.
+    horizon : int, default 15
+        Window length M >= 1 (number of stages).
+    eta : float, default 0.91
+        Discount factor η in [0, 1): older terms are weighted by η^{j−1}.
+    P2 : array_like of shape (dim_x, dim_x) or None, default None
+        Symmetric positive definite weight of the arrival prior; None is the identity.
+    Q0 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
+        Process-noise covariance: a scalar (times I), the diagonal, or a diagonal matrix. Its
+        inverse (plus the GP variances) weights w̄. None is the identity.
+    R0 : float, array_like of shape (dim_y,) or (dim_y, dim_y), or None, default None
+        Output-noise covariance, as ``Q0``. None is the identity.
+    x_bounds : tuple (lower, upper) of array_like of shape (dim_x,), or None, default None
+        The box X for every window state (entries may be ±inf; lower < upper). None: unbounded.
+    form : {"prediction", "filtering"}, default "prediction"
+        Which estimate ``x`` holds after an update, see above.
+    solver : {"gauss-newton", "trust-constr", "least-squares"}, default "gauss-newton"
+        The window solver. "gauss-newton" is the real-time Rust solver: one Rust call per update,
+        a bounded Gauss-Newton / Levenberg-Marquardt method with a block-tridiagonal
+        factorisation (linear in the horizon) and a barrier phase that keeps early iterations off
+        the bounds. "trust-constr" is SciPy's interior-point method with the exact gradient and
+        the Gauss-Newton Hessian from Rust (slow, a general reference). "least-squares" is
+        SciPy's bounded TRF on the stacked residuals with the Rust Jacobian. With a
+        `KnownModel`, "gauss-newton" still solves in Rust but calls the model's Python
+        functions at every window evaluation: once per window point, or once for all points
+        with ``KnownModel(..., vectorized=True)``.
+    solver_options : dict or None, default None
+        Overrides of gpmhe's defaults. For "gauss-newton": ``max_iter`` (100), ``gtol`` (1e-6,
+        on ‖z − Π(z − ∇J)‖∞ with Π the projection on the box), ``dtol`` (1e-2, see Notes),
+        ``xtol`` (1e-12), ``ftol`` (1e-15), ``interior`` ("auto", "always" or "never": when the
+        barrier phase runs), ``interior_zone`` (1e-5) and ``mu_init`` (0.1), ``mu_final``
+        (1e-5), the first and last barrier parameter. For "trust-constr" the options of
+        `scipy.optimize.minimize` (defaults gtol=1e-6, xtol=1e-8, maxiter=200,
+        initial_barrier_parameter=1e-4); for "least-squares" the keywords of
+        `scipy.optimize.least_squares` (defaults ftol=xtol=gtol=1e-10, max_nfev=200).
 
     Attributes
     ----------
-    x : (dim_x,) current estimate (see the forms above).
-    x_prior : (dim_x,) arrival prior x̂(t−M_t) used in the last window.
-    x_window : (M_t+1, dim_x) optimal window trajectory of the last update.
-    P : (dim_x, dim_x) covariance estimate of `x`: the last block of 4 H⁻¹ with H the
-        Gauss-Newton Hessian of J (J is 4× a negative log-likelihood); a rough indication, exact
-        only for linear-Gaussian models and η = 1.
-    cost, success, nit, message : the last window's optimal cost, solver status, iterations and
-        message. With "gauss-newton" also `nfev` (window evaluations) and `projected_gradient`;
-        its message starts with the stopping reason (gradient-tolerance, decrement-tolerance,
-        step-tolerance, cost-tolerance, noise-floor; max-iterations and no-progress are
-        failures). On failure
-        (`success` False, a RuntimeWarning), the window keeps whichever of the solver's last
-        finite iterate and the warm start costs less; `x` is never NaN.
-    t : number of updates so far.
+    x : ndarray of shape (dim_x,)
+        Current estimate: x̂(t+1) (prediction form) or x̂(t) (filtering form).
+    P : ndarray of shape (dim_x, dim_x)
+        Covariance estimate of ``x``: the last block of 4 H⁻¹ with H the Gauss-Newton Hessian of
+        J (J is 4× a negative log-likelihood). A rough indication, exact only for linear-Gaussian
+        models and η = 1. Before the first update it is P2⁻¹; if H is singular it keeps its
+        previous value.
+    x_prior : ndarray of shape (dim_x,)
+        Arrival prior x̂(t−M_t) used in the last window.
+    x_window : ndarray of shape (M_t + 1, dim_x)
+        Optimal window trajectory z of the last update, oldest first (``x`` is its last row).
+    cost : float
+        Optimal cost J of the last window.
+    success : bool
+        Whether the last window's solver reported convergence.
+    message : str
+        The solver's message. With "gauss-newton" it starts with the stopping reason:
+        gradient-tolerance, decrement-tolerance, step-tolerance, cost-tolerance, noise-floor
+        (successes); max-iterations, no-progress (failures).
+    nit : int
+        Iterations of the last window's solver ("least-squares": function evaluations).
+    nfev : int
+        Window evaluations of the last update ("gauss-newton" only; 0 otherwise).
+    projected_gradient : float
+        Final ‖z − Π(z − ∇J)‖∞ of the last update ("gauss-newton" only; 0 otherwise).
+    t : int
+        Number of updates since construction or ``reset``.
+    model, horizon, eta, form, solver, solver_options, P2, x_bounds
+        The settings as given (``x_bounds`` as a (lower, upper) pair of arrays, ±inf where
+        unbounded).
+    Q0, R0 : ndarray
+        The covariances as diagonal matrices of shape (dim_x, dim_x) and (dim_y, dim_y).
+    dim_x, dim_y, dim_u : int
+        The model's dimensions n, p, m.
 
-    With filterpy's `Saver`, every attribute is recorded; `Saver.to_array()` needs equal shapes,
-    so pass `ignore=("x_window",)` if you save during the full-information phase (t < M), where
-    the window grows.
+    Raises
+    ------
+    ValueError
+        If a setting is invalid (shapes, P2 not positive definite, Q0 or R0 not positive
+        diagonal, lower >= upper, x0 outside the bounds, an unknown solver or solver option).
+
+    See Also
+    --------
+    LearnedModel : The GP model of the GP-MHE.
+    KnownModel : An exactly known model.
+    gpmhe.baselines.GPEKF : The EKF on the same learned model.
+
+    Notes
+    -----
+    ``dtol`` stops the "gauss-newton" solver (message "decrement-tolerance", a success) when its
+    next Gauss-Newton step Δ predicts a decrease ½ΔᵀHΔ <= dtol. J is 4× a negative
+    log-likelihood, so the window's Laplace posterior has covariance 4H⁻¹ and that step is
+    √(dtol/2) ≈ 0.07 of its standard deviations long (for the default): the point returned is
+    that close to the window optimum, far inside the estimation error, and its cost is within
+    about dtol of the local minimum. ``dtol=0`` runs every window to ``gtol``. The solver also
+    stops at the cost's rounding noise (message "noise-floor", a success): when a GP fit ran to
+    a large σ_f, J is only accurate to about 1e-6 relative and its gradient to about 1e-3, so
+    ``gtol`` cannot be reached; the solver stops once its next step predicts less decrease than
+    that noise.
+
+    On a solver failure (``success`` False, a `RuntimeWarning`), the window keeps whichever of
+    the solver's last finite iterate and the warm start costs less; ``x`` is never NaN. Bad
+    input to ``update`` raises ValueError and leaves the estimator unchanged.
+
+    With filterpy's ``Saver`` every attribute is recorded; ``Saver.to_array()`` needs equal
+    shapes, so pass ``ignore=("x_window",)`` if you save during the full-information phase
+    (t < M), where the window grows.
+
+    See the user guide, *The window problem*, *Weights from GP variances* and *The window
+    solver*.
+
+    References
+    ----------
+    .. [1] T. M. Wolff, V. G. Lopez and M. A. Müller, "Robust Stability of Gaussian Process
+       Based Moving Horizon Estimation".
+
+    Examples
+    --------
+    Estimate the batch reactor's two concentrations from their measured sum, with the known
+    model:
+
+    >>> import numpy as np
+    >>> from gpmhe import GPMHE, KnownModel
+    >>> from gpmhe.systems import batch_reactor as br
+    >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1,
+    ...                    f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
+    >>> x_true, y = br.simulate(br.X_TRUE0, 10, np.random.default_rng(0))
+    >>> mhe = GPMHE(model, x0=[3.0, 1.0], horizon=5, Q0=1e-3, R0=1e-2, x_bounds=br.X_BOUNDS)
+    >>> for t in range(10):
+    ...     x_hat = mhe.update(None, y[t])  # no input: u = None
+    >>> mhe.t, mhe.success, mhe.x_window.shape
+    (10, True, (6, 2))
+    >>> print(np.round(mhe.x, 1), np.round(x_true[10], 1))  # x̂(10) and x(10)
+    [1.5 1.7] [1.5 1.8]
     """
 
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
@@ -201,7 +292,32 @@ class GPMHE:
         return x0
 
     def reset(self, x0):
-        """Forget the history and restart from the estimate x̂(0) = x0."""
+        """Forget the history and restart from the estimate x̂(0) = x0.
+
+        Sets ``t`` to 0, ``x``, ``x_prior`` to x0, ``x_window`` to x0 as one row, ``P`` to P2⁻¹
+        and the solver statistics to their initial values. The settings are kept.
+
+        Parameters
+        ----------
+        x0 : array_like of shape (dim_x,)
+            New initial estimate; must lie in ``x_bounds``.
+
+        Raises
+        ------
+        ValueError
+            If x0 has the wrong shape, is not finite or lies outside ``x_bounds``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> model = KnownModel(lambda x, u: 0.9 * x, lambda x, u: x, dim_x=1, dim_y=1)
+        >>> mhe = GPMHE(model, x0=[0.0], horizon=3)
+        >>> _ = mhe.update(None, [1.0])
+        >>> mhe.reset([2.0])
+        >>> mhe.t, mhe.x
+        (0, array([2.]))
+        """
         x0 = self._check_x0(x0)
         M = self.horizon
         self.t = 0
@@ -238,17 +354,92 @@ class GPMHE:
         return u, y, True
 
     def update(self, u, y):
-        """Append (u(t), y(t)) (`y=None`: no measurement at this step; `u` may be None when
-        dim_u = 0), slide the window, solve it and set `x`. Bad input raises ValueError and leaves
-        the estimator unchanged."""
+        """Add the input and output of the next step, solve the window and update the estimate.
+
+        The t-th call appends (u(t), y(t)), slides the window (it grows until it holds M stages),
+        warm-starts it from the previous solution, solves it and sets ``x``, ``P``,
+        ``x_window``, ``cost`` and the solver statistics.
+
+        Parameters
+        ----------
+        u : array_like of shape (dim_u,) or None
+            Input u(t); None when the model has no input (dim_u = 0).
+        y : array_like of shape (dim_y,) or None
+            Output y(t); None when there is no measurement at this step.
+
+        Returns
+        -------
+        ndarray of shape (dim_x,)
+            The new estimate ``x``: x̂(t+1) (prediction form) or x̂(t) (filtering form).
+
+        Raises
+        ------
+        ValueError
+            On bad input (shape, NaN or inf, a required u missing) or if a `KnownModel` callable
+            fails at the window's start point; the estimator is then unchanged.
+
+        Warns
+        -----
+        RuntimeWarning
+            If the window solver did not converge (``success`` False).
+
+        Examples
+        --------
+        A scalar random walk observed directly, in the filtering form:
+
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> model = KnownModel(lambda x, u: x + u, lambda x, u: x, dim_x=1, dim_y=1, dim_u=1)
+        >>> mhe = GPMHE(model, x0=[0.0], horizon=3, Q0=1.0, R0=1.0, form="filtering")
+        >>> print(np.round(mhe.update([1.0], [2.0]), 3))  # x̂(0): halfway between x0 and y(0)
+        [1.]
+        >>> print(np.round(mhe.update([0.0], None), 3))  # x̂(1) = x̂(0) + u(0): no measurement
+        [2.]
+        """
         u, y, present = self._check_step(u, y)
         self._step(u, y, present)
         return self.x
 
     def batch_filter(self, ys, us=None):
-        """Run `update` over a sequence; rows of `ys` may be None (missing). Returns (xs, Ps) of
-        shapes (T, dim_x) and (T, dim_x, dim_x): `x` and `P` after each update. All input is
-        validated before the first update."""
+        """Run `update` over a sequence of outputs (and inputs), as filterpy's ``batch_filter``.
+
+        All input is validated before the first update, so bad input raises ValueError (naming
+        the row) with the estimator unchanged.
+
+        Parameters
+        ----------
+        ys : sequence of array_like of shape (dim_y,) or None, length T
+            Outputs y(t); a row may be None (no measurement at that step).
+        us : sequence of array_like of shape (dim_u,) or None, length T, or None, default None
+            Inputs u(t); None when the model has no input.
+
+        Returns
+        -------
+        xs : ndarray of shape (T, dim_x)
+            ``x`` after each update.
+        Ps : ndarray of shape (T, dim_x, dim_x)
+            ``P`` after each update.
+
+        Raises
+        ------
+        ValueError
+            If a row has the wrong shape or ``us`` and ``ys`` differ in length.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+        >>> x_true, y = br.simulate(br.X_TRUE0, 20, np.random.default_rng(1))
+        >>> mhe = GPMHE(model, x0=br.X_TRUE0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+        >>> xs, Ps = mhe.batch_filter(y[:20])
+        >>> xs.shape, Ps.shape
+        ((20, 2), (20, 2, 2))
+        >>> rmse = np.sqrt(np.mean((xs - x_true[1:21]) ** 2))
+        >>> bool(rmse < 0.3)
+        True
+        """
         ys = list(ys)
         us = [None] * len(ys) if us is None else list(us)
         if len(us) != len(ys):

@@ -1,9 +1,10 @@
-"""Models for the estimators: `LearnedModel` (GPs for f and h, the paper's GP-MHE) and
-`KnownModel` (user callables, the exact-model MHE of the paper's comparison).
+"""Models for the moving horizon estimator: `LearnedModel` (GPs for f and h, the paper's GP-MHE)
+and `KnownModel` (user callables, the exact-model MHE of the paper's comparison).
 
 Both describe x(t+1) = f(x(t), u(t)) + w(t), y(t) = h(x(t), u(t)) + v(t) and give the estimator,
 for a batch of points d = [x; u], the means m_x(d), m_y(d), the latent variances σ²_x(d), σ²_y(d)
-(zero for a known model) and their gradients with respect to d (DESIGN.md §2, §3).
+(zero for a known model) and their gradients with respect to d. See the user guide, *Notation*
+and *Weights from GP variances*.
 """
 
 from __future__ import annotations
@@ -38,38 +39,94 @@ class _SharedOnCopy:
 
 
 class KnownModel(_SharedOnCopy):
-    """An exactly known model for the exact-model MHE.
+    """An exactly known model x(t+1) = f(x, u) + w, y = h(x, u) + v for the exact-model MHE.
+
+    The model's means are m_x(d) = f(x, u) and m_y(d) = h(x, u) at d = [x; u], its variances
+    σ²_x, σ²_y are zero, so the weights of `GPMHE` reduce to Q0⁻¹ and R0⁻¹.
 
     Parameters
     ----------
-    f : callable, the noise-free x(t+1). Per point (default): f(x, u) -> (dim_x,) array for 1-D
-        `x` (dim_x,) and `u` (dim_u,) (`u` is an empty array when dim_u = 0).
-    h : callable, the noise-free output y(t): h(x, u) -> (dim_y,) array.
-    dim_x, dim_y, dim_u : the dimensions n, p, m.
-    f_jacobian, h_jacobian : optional callables returning ∂f/∂x (n, n) and ∂h/∂x (p, n); central
-        finite differences with step `fd_step`·max(1, |x_i|) when not given.
-    vectorized : bool (default False). If True, every callable receives all points of a window
-        evaluation at once: `X` of shape (k, n) and `U` of shape (k, m) (k ≥ 1 rows; `U` has m = 0
-        columns when dim_u = 0), and returns f(X, U) (k, n), h(X, U) (k, p),
-        f_jacobian(X, U) (k, n, n), h_jacobian(X, U) (k, p, n); row i belongs to point i. Without
-        Jacobians, the central differences stack the 2n shifted copies of X with X itself and
-        call f (and h) once on those (2n+1)k rows. The callables must not modify X, U in place.
-        `predict` calls f with k = 1.
-
-    A window evaluation of the MHE (all M+1 window points) then costs one Python call per
-    callable instead of k (per point: k calls each, plus 2nk without Jacobians), which is what
-    bounds the exact-model MHE's time with the Rust solver (see README, "Real-time window
-    solver"). Every returned array is checked for its shape and for NaN/inf in both modes; a
-    violation raises ValueError naming the callable. At the window's start point, `GPMHE.update`
-    then raises it and leaves the estimator's state unchanged; at a trial point of the Rust
-    solver it only rejects that step (the SciPy solvers stop there: `success` False, a warning).
-
-    The variances are zero, so the MHE weights reduce to Q0 and R0. Gradients with respect to u
-    are not needed by the estimator (u is data) and are reported as zero.
+    f : callable
+        Noise-free transition x(t+1) = f(x, u). Per point (the default): ``f(x, u)`` returns a
+        (dim_x,) array for 1-D ``x`` of shape (dim_x,) and ``u`` of shape (dim_u,) (an empty
+        array when dim_u = 0). With ``vectorized=True`` see below.
+    h : callable
+        Noise-free output y = h(x, u), returning a (dim_y,) array.
+    dim_x : int
+        Number of states n (>= 1).
+    dim_y : int
+        Number of outputs p (>= 0).
+    dim_u : int, default 0
+        Number of inputs m (>= 0).
+    f_jacobian : callable or None, default None
+        ``f_jacobian(x, u)`` returning ∂f/∂x of shape (n, n). None: central finite differences
+        with step ``fd_step`` · max(1, abs(x_i)).
+    h_jacobian : callable or None, default None
+        ``h_jacobian(x, u)`` returning ∂h/∂x of shape (p, n); None: finite differences.
+    fd_step : float, default 1e-6
+        Relative step of the finite differences.
+    vectorized : bool, default False
+        If True, every callable receives all points of a window evaluation at once: ``X`` of
+        shape (k, n) and ``U`` of shape (k, m) (k >= 1 rows; ``U`` has m = 0 columns when
+        dim_u = 0), and returns f(X, U) (k, n), h(X, U) (k, p), f_jacobian(X, U) (k, n, n),
+        h_jacobian(X, U) (k, p, n); row i belongs to point i. Without Jacobians, the central
+        differences stack the 2n shifted copies of X with X itself and call f (and h) once on
+        those (2n+1)k rows. The callables must not modify X, U in place. `predict` calls f with
+        k = 1.
 
     Attributes
     ----------
-    f, h, f_jacobian, h_jacobian, dim_x, dim_y, dim_u, vectorized, fd_step : as given.
+    f, h : callable
+        The model functions, as given.
+    f_jacobian, h_jacobian : callable or None
+        The Jacobians, as given.
+    dim_x, dim_y, dim_u : int
+        The dimensions n, p, m.
+    fd_step : float
+        The finite-difference step.
+    vectorized : bool
+        Whether the callables take all points at once.
+
+    Raises
+    ------
+    ValueError
+        If a function is not callable, a dimension is not a valid integer, ``fd_step`` is not
+        positive or ``vectorized`` is not a bool.
+
+    See Also
+    --------
+    LearnedModel : The model learned by Gaussian processes.
+    GPMHE : The estimator that uses the model.
+
+    Notes
+    -----
+    With ``vectorized=True``, a window evaluation of the MHE (all M+1 window points) costs one
+    Python call per callable instead of k (per point: k calls each, plus 2nk without
+    Jacobians); this is what bounds the exact-model MHE's time with the Rust solver (see the user
+    guide, *The window solver*).
+
+    Every returned array is checked for its shape and for NaN or inf in both modes; a violation
+    raises ValueError naming the callable. At the window's start point, `GPMHE.update` then
+    raises it and leaves the estimator's state unchanged; at a trial point of the Rust solver it
+    only rejects that step (the SciPy solvers stop there: ``success`` False and a warning).
+
+    Gradients with respect to u are not needed by the estimator (u is data) and are reported as
+    zero.
+
+    Examples
+    --------
+    The batch reactor of the GP-MHE paper, per point and vectorised:
+
+    >>> import numpy as np
+    >>> from gpmhe import KnownModel
+    >>> from gpmhe.systems import batch_reactor as br
+    >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+    >>> print(model.predict([3.0, 1.0]))
+    [2.71328 1.14336]
+    >>> fast = KnownModel(br.f_batch, br.h_batch, dim_x=2, dim_y=1, vectorized=True,
+    ...                   f_jacobian=br.f_jacobian_batch, h_jacobian=br.h_jacobian_batch)
+    >>> print(fast.predict([3.0, 1.0]))
+    [2.71328 1.14336]
     """
 
     def __init__(self, f, h, dim_x, dim_y, dim_u=0, f_jacobian=None, h_jacobian=None,
@@ -171,7 +228,34 @@ class KnownModel(_SharedOnCopy):
 
     # ----------------------------------------------------------------------------------------
     def predict(self, x, u=None):
-        """m_x: the one-step prediction f(x, u) as a (dim_x,) array."""
+        """One-step prediction m_x = f(x, u).
+
+        Parameters
+        ----------
+        x : array_like of shape (dim_x,)
+            State.
+        u : array_like of shape (dim_u,) or None, default None
+            Input; None for no input (dim_u = 0).
+
+        Returns
+        -------
+        ndarray of shape (dim_x,)
+            f(x, u).
+
+        Raises
+        ------
+        ValueError
+            If f returns the wrong shape, NaN or inf.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import KnownModel
+        >>> model = KnownModel(lambda x, u: 0.5 * x + u, lambda x, u: x[:1], dim_x=2, dim_y=1,
+        ...                    dim_u=2)
+        >>> print(model.predict([2.0, 4.0], u=[1.0, 0.0]))
+        [2. 2.]
+        """
         x = np.asarray(x, dtype=np.float64).reshape(-1)
         u = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(-1)
         if self.vectorized:
@@ -183,8 +267,55 @@ class KnownModel(_SharedOnCopy):
         return v
 
     def stage_eval(self, d):
-        """For points d (k, n+m): (mean_x, var_x, dmean_x, dvar_x, mean_y, var_y, dmean_y,
-        dvar_y) with shapes (k,n), (k,n), (k,n,nd), (k,n,nd), (k,p), (k,p), (k,p,nd), (k,p,nd)."""
+        """Means, variances and their gradients at a batch of points d = [x; u].
+
+        This is what the estimators evaluate at every window point. For a known model the
+        variances and their gradients are zero and the mean gradients' u-columns are zero.
+
+        Parameters
+        ----------
+        d : array_like of shape (k, n + m) or (n + m,)
+            Points [x; u], one per row (a 1-D array is one point).
+
+        Returns
+        -------
+        mean_x : ndarray of shape (k, n)
+            m_x(d) = f(x, u).
+        var_x : ndarray of shape (k, n)
+            σ²_x(d) (zeros).
+        dmean_x : ndarray of shape (k, n, n + m)
+            ∂m_x/∂d.
+        dvar_x : ndarray of shape (k, n, n + m)
+            ∂σ²_x/∂d (zeros).
+        mean_y : ndarray of shape (k, p)
+            m_y(d) = h(x, u).
+        var_y : ndarray of shape (k, p)
+            σ²_y(d) (zeros).
+        dmean_y : ndarray of shape (k, p, n + m)
+            ∂m_y/∂d.
+        dvar_y : ndarray of shape (k, p, n + m)
+            ∂σ²_y/∂d (zeros).
+
+        Raises
+        ------
+        ValueError
+            If d has the wrong shape or contains NaN or inf, or a callable returns the wrong
+            shape, NaN or inf.
+
+        Examples
+        --------
+        Finite differences reproduce the analytic Jacobian:
+
+        >>> import numpy as np
+        >>> from gpmhe import KnownModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+        >>> mx, vx, dmx, dvx, my, vy, dmy, dvy = model.stage_eval([[3.0, 1.0], [1.0, 2.0]])
+        >>> mx.shape, dmx.shape, my.shape, dmy.shape
+        ((2, 2), (2, 2, 2), (2, 1), (2, 1, 2))
+        >>> bool(np.allclose(dmx[0], br.f_jacobian([3.0, 1.0]), atol=1e-8)), float(vx.max())
+        (True, 0.0)
+        """
         n, m, p = self.dim_x, self.dim_u, self.dim_y
         nd = n + m
         d = _as_points(d, nd)
@@ -256,13 +387,71 @@ def _trajectories(states, outputs, inputs, n, p, m):
 class LearnedModel(_SharedOnCopy):
     """The GP model of GP-MHE: n independent GPs for f and p for h on inputs d = [x; u].
 
-    m_x(d), σ²_x(d) are the f-GPs' posterior means and latent variances; with `f_residual=True`
-    the f-GPs are trained on the increments x(t+1) − x(t) and m_x(d) = x + GP mean (a prior mean
-    equal to the identity), otherwise on x(t+1) with zero prior mean, as in the paper.
+    The model x(t+1) = f(x, u) + w, y = h(x, u) + v is replaced by GP regressions on
+    d = [x; u]: m_x(d), σ²_x(d) are the f-GPs' posterior means and latent variances, m_y(d),
+    σ²_y(d) those of the h-GPs. With ``f_residual=True`` the f-GPs are trained on the increments
+    x(t+1) − x(t) and m_x(d) = x + GP mean (a prior mean equal to the identity), otherwise on
+    x(t+1) with zero prior mean, as in the paper [1]_. `GPMHE` adds the variances to its weights:
+    Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0.
 
-    Build with `from_trajectories`; `f_gp`, `h_gp` are fitted `gpmhe.MultiOutputGP`s (their Rust
-    models are handed to the estimator's window, which evaluates all GPs at all window points in
-    one Rust call).
+    Usually built with `from_trajectories`. The Rust models of ``f_gp`` and ``h_gp`` are handed to
+    the estimator's window, which evaluates all GPs at all window points in one Rust call.
+
+    Parameters
+    ----------
+    f_gp : MultiOutputGP
+        Fitted GPs of f: n outputs on n + m inputs.
+    h_gp : MultiOutputGP or None
+        Fitted GPs of h: p outputs on n + m inputs; None for no outputs (p = 0).
+    dim_u : int, default 0
+        Number of inputs m.
+    f_residual : bool, default False
+        Whether ``f_gp`` models the increments x(t+1) − x(t) rather than x(t+1).
+
+    Attributes
+    ----------
+    f_gp : MultiOutputGP
+        The GPs of f.
+    h_gp : MultiOutputGP or None
+        The GPs of h.
+    dim_x, dim_y, dim_u : int
+        The dimensions n, p, m.
+    f_residual : bool
+        As given.
+
+    Raises
+    ------
+    ValueError
+        If a GP is not a fitted `MultiOutputGP` or its input dimension is not n + m.
+
+    See Also
+    --------
+    KnownModel : An exactly known model.
+    GPMHE : The estimator that uses the model.
+    MultiOutputGP : The GPs inside.
+
+    Notes
+    -----
+    See the user guide, *Gaussian processes* and *Weights from GP variances*.
+
+    References
+    ----------
+    .. [1] T. M. Wolff, V. G. Lopez and M. A. Müller, "Robust Stability of Gaussian Process
+       Based Moving Horizon Estimation".
+
+    Examples
+    --------
+    Learn the batch reactor from three short noisy trajectories:
+
+    >>> import numpy as np
+    >>> from gpmhe import LearnedModel
+    >>> from gpmhe.systems import batch_reactor as br
+    >>> states, outputs = br.training_data(3, rng=0, steps=10)
+    >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True)
+    >>> model.dim_x, model.dim_y, model.dim_u
+    (2, 1, 0)
+    >>> print(np.round(model.predict([2.0, 4.0]), 2), np.round(br.f([2.0, 4.0]), 2))
+    [1.87 4.06] [1.88 4.06]
     """
 
     def __init__(self, f_gp, h_gp, dim_u=0, f_residual=False):
@@ -286,10 +475,59 @@ class LearnedModel(_SharedOnCopy):
 
     @classmethod
     def from_trajectories(cls, states, outputs, inputs=None, f_residual=False, **gp_options):
-        """Fit the GPs on measured trajectories: `states` a list of (T+1, n) arrays, `outputs` of
-        (T+1, p), `inputs` of (T+1, m) or (T, m) (None when m = 0). The f-GPs regress x(t+1) (or
-        x(t+1) − x(t) with `f_residual`) on d(t) = [x(t); u(t)], the h-GPs y(t) on d(t).
-        `gp_options` go to `gpmhe.MultiOutputGP` (e.g. n_restarts, random_state)."""
+        """Fit the GPs of f and h on measured trajectories.
+
+        The f-GPs regress x(t+1) (or x(t+1) − x(t) with ``f_residual``) on d(t) = [x(t); u(t)],
+        the h-GPs y(t) on d(t), over all trajectories.
+
+        Parameters
+        ----------
+        states : sequence of array_like of shape (T+1, n), or one such array
+            Measured state trajectories x(0..T) (T >= 1; T may differ between trajectories).
+        outputs : sequence of array_like of shape (T+1, p) or (T+1,)
+            Measured outputs y(0..T), one per state trajectory.
+        inputs : sequence of array_like of shape (T+1, m) or (T, m), or None, default None
+            Inputs u(0..T) or u(0..T-1); None when there is no input (m = 0). With T rows,
+            the output y(T) is not used.
+        f_residual : bool, default False
+            Regress the increments x(t+1) − x(t) (a prior mean equal to the identity).
+        **gp_options
+            Passed to both `MultiOutputGP` constructors (e.g. ``n_restarts``, ``random_state``,
+            ``optimizer``, ``sigma_eps``).
+
+        Returns
+        -------
+        LearnedModel
+            The model with fitted GPs.
+
+        Raises
+        ------
+        ValueError
+            If the trajectories' shapes do not match or contain NaN or inf.
+
+        Warns
+        -----
+        ConvergenceWarning
+            If a hyperparameter fit did not converge.
+
+        Examples
+        --------
+        Without hyperparameter optimisation, on a linear system with an input:
+
+        >>> import numpy as np
+        >>> from gpmhe import LearnedModel
+        >>> rng = np.random.default_rng(0)
+        >>> U = rng.uniform(-1.0, 1.0, size=(30, 1))
+        >>> X = np.zeros((31, 1))
+        >>> for t in range(30):
+        ...     X[t + 1] = 0.9 * X[t] + U[t]
+        >>> model = LearnedModel.from_trajectories([X], [2.0 * X], [U], optimizer=None,
+        ...                                        sigma_eps=0.01)
+        >>> model.dim_x, model.dim_y, model.dim_u
+        (1, 1, 1)
+        >>> print(np.round(model.predict([0.5], [0.2]), 2))
+        [0.65]
+        """
         from gpmhe.gp import MultiOutputGP
 
         X0 = np.asarray(states[0] if not (isinstance(states, np.ndarray) and states.ndim == 2)
@@ -313,7 +551,31 @@ class LearnedModel(_SharedOnCopy):
         return cls(f_gp, h_gp, dim_u=m, f_residual=f_residual)
 
     def predict(self, x, u=None):
-        """m_x: the one-step prediction for one point, a (dim_x,) array."""
+        """One-step prediction m_x(d) at one point d = [x; u].
+
+        Parameters
+        ----------
+        x : array_like of shape (dim_x,)
+            State.
+        u : array_like of shape (dim_u,) or None, default None
+            Input; None when dim_u = 0.
+
+        Returns
+        -------
+        ndarray of shape (dim_x,)
+            The f-GPs' posterior mean (plus x with ``f_residual``).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import LearnedModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(3, rng=0, steps=10)
+        >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True,
+        ...                                        optimizer=None, sigma_eps=0.01)
+        >>> print(np.round(model.predict([2.0, 4.0]), 1), np.round(br.f([2.0, 4.0]), 1))
+        [1.9 4.1] [1.9 4.1]
+        """
         x = np.asarray(x, dtype=np.float64).reshape(-1)
         u = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(-1)
         d = np.concatenate([x, u])[None, :]
@@ -321,7 +583,50 @@ class LearnedModel(_SharedOnCopy):
         return mean + x if self.f_residual else mean
 
     def stage_eval(self, d):
-        """As `KnownModel.stage_eval`: means, latent variances and their gradients at d (k, nd)."""
+        """Means, latent variances and their gradients at a batch of points d = [x; u].
+
+        Parameters
+        ----------
+        d : array_like of shape (k, n + m) or (n + m,)
+            Points [x; u], one per row (a 1-D array is one point).
+
+        Returns
+        -------
+        mean_x : ndarray of shape (k, n)
+            m_x(d).
+        var_x : ndarray of shape (k, n)
+            σ²_x(d), the f-GPs' latent variances.
+        dmean_x : ndarray of shape (k, n, n + m)
+            ∂m_x/∂d.
+        dvar_x : ndarray of shape (k, n, n + m)
+            ∂σ²_x/∂d.
+        mean_y : ndarray of shape (k, p)
+            m_y(d).
+        var_y : ndarray of shape (k, p)
+            σ²_y(d).
+        dmean_y : ndarray of shape (k, p, n + m)
+            ∂m_y/∂d.
+        dvar_y : ndarray of shape (k, p, n + m)
+            ∂σ²_y/∂d.
+
+        See Also
+        --------
+        KnownModel.stage_eval : The same for a known model.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import LearnedModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(3, rng=0, steps=10)
+        >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True,
+        ...                                        optimizer=None, sigma_eps=0.01)
+        >>> mx, vx, dmx, dvx, my, vy, dmy, dvy = model.stage_eval([[2.0, 4.0], [1.0, 3.0]])
+        >>> mx.shape, vx.shape, dmx.shape, my.shape, dmy.shape
+        ((2, 2), (2, 2), (2, 2, 2), (2, 1), (2, 1, 2))
+        >>> bool(np.all(vx > 0))
+        True
+        """
         n, p = self.dim_x, self.dim_y
         nd = n + self.dim_u
         d = _as_points(d, nd)
@@ -342,7 +647,32 @@ class LearnedModel(_SharedOnCopy):
                                        eta, q0, r0, p2_sqrt, filtering)
 
     def save(self, path):
-        """Save both GPs and the settings to one `.npz` file (no pickle)."""
+        """Save both GPs and the settings to one ``.npz`` file (no pickle).
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            Destination, passed to `numpy.savez`.
+
+        See Also
+        --------
+        load : Read the file back.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import LearnedModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(3, rng=0, steps=10)
+        >>> model = LearnedModel.from_trajectories(states, outputs, optimizer=None)
+        >>> buf = io.BytesIO()
+        >>> model.save(buf)
+        >>> _ = buf.seek(0)
+        >>> loaded = LearnedModel.load(buf)
+        >>> bool(np.array_equal(loaded.predict([1.0, 2.0]), model.predict([1.0, 2.0])))
+        True
+        """
         import io
 
         blobs = {}
@@ -355,7 +685,36 @@ class LearnedModel(_SharedOnCopy):
 
     @classmethod
     def load(cls, path):
-        """Load a model written by `save`."""
+        """Load a model written by `save`.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            The ``.npz`` file.
+
+        Returns
+        -------
+        LearnedModel
+            The model with its fitted GPs.
+
+        Raises
+        ------
+        ValueError
+            If the file is not a saved `LearnedModel`.
+
+        Examples
+        --------
+        >>> import io
+        >>> from gpmhe import LearnedModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(3, rng=0, steps=10)
+        >>> buf = io.BytesIO()
+        >>> LearnedModel.from_trajectories(states, outputs, optimizer=None).save(buf)
+        >>> _ = buf.seek(0)
+        >>> model = LearnedModel.load(buf)
+        >>> model.dim_x, model.dim_y, model.f_gp.n_outputs
+        (2, 1, 2)
+        """
         import io
 
         from gpmhe.gp import MultiOutputGP

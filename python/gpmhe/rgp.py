@@ -1,7 +1,8 @@
 """Recursive GP regression and the RGP-dKF (an EKF that learns a disturbance model online).
 
 After Husmann, Weishaupt & Aschemann, "Direct Integration of Recursive Gaussian Process Regression
-Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP. Two classes:
+Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP; see the user guide,
+*The RGP-dKF*. Two classes:
 
 * :class:`RecursiveGP` learns z(ζ) from direct noisy measurements of z on a grid of basis vectors.
 * :class:`RGPEKF` estimates the state of x_{k+1} = f(x_k, u_k, z(ζ_k)), y_k = h(x_k) + v_k when z is
@@ -83,29 +84,83 @@ class RecursiveGP:
 
     Parameters
     ----------
-    lower, upper : float or array of shape (dim_zeta,)
-        Bounds of the input ζ that the grid spans (inputs outside are allowed; the GP reverts to
-        its prior there).
+    lower : float or array_like of shape (dim_zeta,)
+        Lower bounds of the input ζ that the grid spans.
+    upper : float or array_like of shape (dim_zeta,)
+        Upper bounds of the grid, > lower on every axis. Inputs outside the grid are allowed; the
+        GP reverts to its prior there.
     n_points : int or sequence of int
-        Basis vectors per axis N_i (≥ 2); ``n_basis`` = Π N_i.
-    sigma_K : float
+        Basis vectors per axis N_i (≥ 2; an int is used for every axis); ``n_basis`` = Π N_i.
+    sigma_K : float, default 1.0
         Prior standard deviation σ_K of z.
-    L : float
+    L : float, default 1.0
         Squared length-scale in grid units (the kernel's 2L denominator); the length-scale in ζ
         units is √L (upper − lower) / (N_i − 1).
-    sigma_r : float
+    sigma_r : float, default 0.0
         Floor σ_r added to the prediction standard deviation (variance σ_r²) for the model error of
         a finite basis; the paper suggests 0.01–0.1 σ_K.
-    sigma_p : float
+    sigma_p : float, default 0.0
         Process noise σ_p of the weights (a forgetting factor: C += σ_p² I per update).
 
     Attributes
     ----------
-    mean : ndarray (n_basis,)      weights' mean w̄ (μ_z)
-    cov : ndarray (n_basis, n_basis)  weights' covariance C (C_z)
-    basis_vectors : ndarray (n_basis, dim_zeta)  the basis vectors in ζ units
-    K : ndarray (n_basis, n_basis)  the kernel matrix k(X, X) on the normalised grid
-    jitter : float                 diagonal jitter that was needed to factor K (0 if none)
+    mean : ndarray of shape (n_basis,)
+        Weights' mean w̄ (the paper's μ_z).
+    cov : ndarray of shape (n_basis, n_basis)
+        Weights' covariance C (the paper's C_z).
+    basis_vectors : ndarray of shape (n_basis, dim_zeta)
+        The basis vectors in ζ units (the first axis varies fastest).
+    K : ndarray of shape (n_basis, n_basis)
+        The kernel matrix k(X, X) on the normalised grid.
+    jitter : float
+        Diagonal jitter that was needed to factor K (0 if none).
+    n_basis : int
+        Number of basis vectors Π N_i.
+    dim_zeta : int
+        Input dimension.
+    lower, upper : ndarray of shape (dim_zeta,)
+        The grid's bounds.
+    n_points : tuple of int
+        Basis vectors per axis.
+    sigma_K, L, sigma_r, sigma_p : float
+        The hyperparameters, as given.
+
+    Raises
+    ------
+    ValueError
+        If the bounds, grid sizes or hyperparameters are invalid.
+
+    See Also
+    --------
+    RGPEKF : Learns the weights from indirect measurements inside an EKF.
+
+    Notes
+    -----
+    Compared with Huber's RGP, the paper adds the floor σ_r² to the predictive variance and the
+    weights' process noise σ_p² I (see the user guide, *The RGP-dKF*).
+
+    References
+    ----------
+    .. [1] R. Husmann, S. Weishaupt and H. Aschemann, "Direct Integration of Recursive Gaussian
+       Process Regression Into Extended Kalman Filters With Application to Vapor Compression
+       Cycle Control".
+
+    Examples
+    --------
+    Learn sin(ζ) on [−2, 2] from 200 noisy measurements, in one call, with 9 basis vectors
+    (L = 1: the length-scale is one grid step, 0.5 in ζ) [1]_:
+
+    >>> import numpy as np
+    >>> from gpmhe import RecursiveGP
+    >>> gp = RecursiveGP(-2.0, 2.0, 9, sigma_K=2.0, L=1.0, sigma_r=0.01)
+    >>> rng = np.random.default_rng(0)
+    >>> zeta = rng.uniform(-2.0, 2.0, 200)
+    >>> _ = gp.update(zeta, np.sin(zeta) + 0.05 * rng.standard_normal(200), 0.05 ** 2)
+    >>> mean, std = gp.predict([0.5, 1.0], return_std=True)
+    >>> print(np.round(mean, 2), np.round(np.sin([0.5, 1.0]), 2))
+    [0.47 0.85] [0.48 0.84]
+    >>> bool(np.all(std < 0.05))
+    True
     """
 
     def __init__(
@@ -146,26 +201,71 @@ class RecursiveGP:
     # -- state -------------------------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
+        """Weights' mean w̄ (μ_z), shape (n_basis,).
+
+        Initially zero; changed by `update` and `set_weights`.
+        """
         return self._core.mean
 
     @property
     def cov(self) -> np.ndarray:
+        """Weights' covariance C (C_z), shape (n_basis, n_basis).
+
+        Initially the kernel matrix K; changed by `update` and `set_weights`.
+        """
         return self._core.cov
 
     @property
     def basis_vectors(self) -> np.ndarray:
+        """The basis vectors in ζ units, shape (n_basis, dim_zeta).
+
+        A grid spanning [lower, upper] with ``n_points`` per axis, the first axis varying
+        fastest.
+        """
         return self._core.basis_vectors
 
     @property
     def K(self) -> np.ndarray:
+        """Kernel matrix k(X, X) of the basis vectors, shape (n_basis, n_basis).
+
+        Computed on the normalised (unit-spaced) grid; the prior covariance of the weights.
+        """
         return self._core.kernel_matrix
 
     @property
     def jitter(self) -> float:
+        """Diagonal jitter that was needed to factor K.
+
+        0 unless K was numerically singular (e.g. a dense grid with a long length-scale).
+        """
         return self._core.jitter
 
     def set_weights(self, mean: ArrayLike, cov: ArrayLike) -> None:
-        """Replace the weights' mean and covariance (e.g. from a previous run)."""
+        """Replace the weights' mean and covariance (e.g. from a previous run).
+
+        Parameters
+        ----------
+        mean : array_like of shape (n_basis,)
+            New weights' mean w̄.
+        cov : array_like of shape (n_basis, n_basis) or float
+            New weights' covariance C: a symmetric positive semi-definite matrix, or a scalar
+            (times I).
+
+        Raises
+        ------
+        ValueError
+            On a wrong shape, NaN or inf, or a covariance that is not symmetric positive
+            semi-definite; the weights are then unchanged.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import RecursiveGP
+        >>> gp = RecursiveGP(0.0, 1.0, 5)
+        >>> gp.set_weights(np.ones(5), 1e-6)
+        >>> print(np.round(gp.predict([0.25, 0.5]), 2))
+        [1. 1.]
+        """
         m = _finite_array("mean", mean, ndim=1)
         if m.shape != (self.n_basis,):
             raise ValueError(f"mean: expected shape ({self.n_basis},), got {m.shape}")
@@ -173,7 +273,22 @@ class RecursiveGP:
         self._core.set_weights(np.ascontiguousarray(m), c)
 
     def copy(self) -> "RecursiveGP":
-        """An independent copy (same grid, hyperparameters and current weights)."""
+        """An independent copy (same grid, hyperparameters and current weights).
+
+        Returns
+        -------
+        RecursiveGP
+            The copy; updating it leaves this GP unchanged.
+
+        Examples
+        --------
+        >>> from gpmhe import RecursiveGP
+        >>> gp = RecursiveGP(0.0, 1.0, 5)
+        >>> other = gp.copy()
+        >>> _ = other.update(0.5, 1.0, 0.01)
+        >>> float(gp.mean.max()), bool(other.mean.max() > 0)
+        (0.0, True)
+        """
         new = object.__new__(RecursiveGP)
         new.__dict__.update(self.__dict__)
         new._core = self._core.copy()
@@ -200,11 +315,39 @@ class RecursiveGP:
 
     # -- learning and prediction ---------------------------------------------------------------
     def update(self, zeta: ArrayLike, y: Any, var_y: Any) -> Any:
-        """Learn from one measurement y = z(ζ) + ε, ε ~ N(0, var_y), and return the prediction J w̄
-        made before the update. With ``y`` of shape (m,) and ``zeta`` of shape (m, dim_zeta) (or
-        (m,)), the m measurements are processed in order in one call (``var_y`` a scalar or (m,))
-        and the m predictions are returned. Bad input raises ValueError and leaves the weights
-        unchanged."""
+        """Learn from direct measurements y = z(ζ) + ε, ε ~ N(0, var_y).
+
+        Applies the update of the class description (eq. 4) once per measurement, in order.
+
+        Parameters
+        ----------
+        zeta : float or array_like of shape (dim_zeta,), or (m, dim_zeta) / (m,) for m values
+            Input(s) ζ; for several measurements one row per measurement (a 1-D array of m
+            values when dim_zeta = 1).
+        y : float or array_like of shape (m,)
+            Measurement(s) of z.
+        var_y : float or array_like of shape (m,)
+            Measurement-noise variance(s), >= 0.
+
+        Returns
+        -------
+        float or ndarray of shape (m,)
+            The prediction J w̄ at each input, made just before its own update.
+
+        Raises
+        ------
+        ValueError
+            On bad input; the weights are then unchanged.
+
+        Examples
+        --------
+        >>> from gpmhe import RecursiveGP
+        >>> gp = RecursiveGP(0.0, 1.0, 5, sigma_K=1.0)
+        >>> gp.update(0.5, 2.0, 1e-4)  # the prior mean, before learning
+        0.0
+        >>> round(gp.update(0.5, 2.0, 1e-4), 2)  # after learning the first measurement
+        2.0
+        """
         if np.ndim(y) > 0:
             ys = _finite_array("y", y, ndim=1)
             zs = self._zeta_many(zeta)
@@ -223,13 +366,59 @@ class RecursiveGP:
     def predict(
         self, zeta: ArrayLike, return_std: bool = False
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-        """Mean (and standard deviation, σ_r floor included) of z at inputs of shape
-        (m, dim_zeta) (or (m,) when dim_zeta = 1)."""
+        """Predict z at inputs ζ: mean J w̄ and optionally the standard deviation.
+
+        Parameters
+        ----------
+        zeta : array_like of shape (m, dim_zeta), or (m,) when dim_zeta = 1
+            Inputs (one input of dimension dim_zeta may also be a 1-D array).
+        return_std : bool, default False
+            Also return the standard deviation √(σ_K² − J K Jᵀ + J C Jᵀ + σ_r²).
+
+        Returns
+        -------
+        mean : ndarray of shape (m,)
+            Predicted mean of z.
+        std : ndarray of shape (m,)
+            Predicted standard deviation, the σ_r floor included; only returned if
+            ``return_std`` is True.
+
+        Examples
+        --------
+        Before any update the prediction is the prior N(0, σ_K² + σ_r²):
+
+        >>> from gpmhe import RecursiveGP
+        >>> gp = RecursiveGP(0.0, 1.0, 5, sigma_K=3.0, sigma_r=0.0)
+        >>> mean, std = gp.predict([0.1, 0.9], return_std=True)
+        >>> print(mean, std.round(6))
+        [0. 0.] [3. 3.]
+        """
         mean, var = self._core.predict(self._zeta_many(zeta))
         return (mean, np.sqrt(var)) if return_std else mean
 
     def J(self, zeta: ArrayLike) -> np.ndarray:
-        """The inference row J = k(f_norm(ζ), X) K⁻¹ at one input."""
+        """The inference row J = k(f_norm(ζ), X) K⁻¹ at one input.
+
+        Parameters
+        ----------
+        zeta : float or array_like of shape (dim_zeta,)
+            One input ζ.
+
+        Returns
+        -------
+        ndarray of shape (n_basis,)
+            J; the prediction's mean is J w̄.
+
+        Examples
+        --------
+        At a basis vector, J picks that vector's weight:
+
+        >>> import numpy as np
+        >>> from gpmhe import RecursiveGP
+        >>> gp = RecursiveGP(0.0, 1.0, 5)
+        >>> print(np.round(gp.J(0.25), 6) + 0.0)
+        [0. 1. 0. 0. 0.]
+        """
         return self._core.j_row(self._zeta_one(zeta))
 
     def __repr__(self) -> str:
@@ -284,40 +473,108 @@ class RGPEKF:
         ∂f/∂z.
     h : callable h(x) -> (p,)
         Measurement function.
-    H : callable H(x) -> (p, n), or constant array
-        ∂h/∂x.
-    Q_x : (n, n) array or scalar (times I)
+    H : callable H(x) -> (p, n), or constant array_like of shape (p, n) or (n,)
+        ∂h/∂x (a 1-D array is one output row).
+    Q_x : array_like of shape (n, n), or float (times I)
         State process-noise covariance.
-    R_x : (p, p) array or scalar (times I)
+    R_x : array_like of shape (p, p), or float (times I)
         Measurement-noise covariance.
-    x0 : (n,) array
+    x0 : array_like of shape (n,)
         Initial state estimate.
-    P0 : (n, n) array or scalar
+    P0 : array_like of shape (n, n), or float (times I)
         Initial state covariance.
     gps : RecursiveGP or sequence of RecursiveGP
         One GP per disturbance (the paper's "repeated implementation"); their grids, kernels, σ_r,
         σ_p and *current* weights define the GP part. They are copied, not modified.
-    learning : bool
+    learning : bool, default True
         True: variant 4a (learn the GP); False: variant 4b (states only). Can be changed any time.
-    pure_prediction : bool
+    pure_prediction : bool, default False
         Paper §3.2: the GPs are used as fixed noisy inputs, nothing is learned.
 
     Attributes
     ----------
-    x : (n,) state estimate;  P : (n, n) its covariance (the state block of C). Both can be
-        assigned as in filterpy (``kf.x = ...``, ``kf.P = ...``; validated, ValueError and no
-        change on bad input); assigning P resets the states' cross-covariance with the GP weights
-        to zero so that C stays positive semi-definite.
-    mu : (N,) augmented mean;  C : (N, N) augmented covariance
-    z_pred : (q,) μ_z^p of the last ``predict``
-    y : (p,) last innovation y − h(x⁻);  S : (p, p) its covariance
-    log_likelihood : log N(y; h(x⁻), S) of the last update
-    f, h, Q_x, R_x : read at every step, so they can be reassigned between steps (Q_x and R_x
-        are then only checked for shape and finiteness)
+    x : ndarray of shape (n,)
+        State estimate. Can be assigned as in filterpy (``kf.x = ...``; validated, ValueError
+        and no change on bad input).
+    P : ndarray of shape (n, n)
+        Its covariance, the state block of C. Can be assigned (symmetric positive semi-definite
+        or a scalar times I); assigning it resets the states' cross-covariance with the GP
+        weights to zero so that C stays positive semi-definite.
+    mu : ndarray of shape (N,)
+        Augmented mean [x; μ_z1; …; μ_zq], N = n + Σ n_b (N = n with ``pure_prediction``).
+    C : ndarray of shape (N, N)
+        Augmented covariance.
+    z_pred : ndarray of shape (q,)
+        μ_z^p = J_k μ_z of the last ``predict``.
+    y : ndarray of shape (p,)
+        Last innovation y − h(x⁻).
+    S : ndarray of shape (p, p)
+        Its covariance H̃ C⁻ H̃ᵀ + R_x.
+    log_likelihood : float
+        log N(y; h(x⁻), S) of the last update.
+    likelihood : float
+        exp(log_likelihood).
+    f, h : callable
+        The model functions. They are read at every step, so they can be reassigned between
+        steps.
+    Q_x, R_x : ndarray
+        The noise covariances; can be reassigned between steps (then only checked for shape and
+        finiteness).
+    learning : bool
+        Variant 4a (True) or 4b (False); can be changed any time.
+    pure_prediction : bool
+        As given.
+    gps : list of RecursiveGP
+        Copies of the given GPs (grids and hyperparameters; their weights are not updated, use
+        `gp_weights`).
+    dim_x, dim_z : int
+        Number of states n and of GPs q.
+    dim_y : int or None
+        Number of outputs p (None until known from R_x, H or the first update).
 
+    Raises
+    ------
+    ValueError
+        If a setting is invalid (shapes, non-callable f or h, covariances not symmetric positive
+        semi-definite, ``gps`` empty).
+
+    See Also
+    --------
+    RecursiveGP : The recursive GP, learned from direct measurements.
+    gpmhe.systems.second_order : The paper's example, with `make_rgp_dkf`.
+
+    Notes
+    -----
     Internally the weights of a GP with σ_p = 0 are kept whitened (L⁻¹ μ_z, with K = L Lᵀ), an
     exact change of coordinates that saves one triangular solve per step; ``mu``, ``C`` and
-    ``gp_weights`` return them in the weights' coordinates.
+    ``gp_weights`` return them in the weights' coordinates. See the user guide, *The RGP-dKF*.
+
+    References
+    ----------
+    .. [1] R. Husmann, S. Weishaupt and H. Aschemann, "Direct Integration of Recursive Gaussian
+       Process Regression Into Extended Kalman Filters With Application to Vapor Compression
+       Cycle Control".
+
+    Examples
+    --------
+    A scalar plant x⁺ = 0.5 x + u + z(ζ) with the unknown z(ζ) = sin(ζ), measured state [1]_:
+
+    >>> import numpy as np
+    >>> from gpmhe import RGPEKF, RecursiveGP
+    >>> gp = RecursiveGP(-2.0, 2.0, 9, sigma_K=2.0, L=1.0, sigma_r=0.01)
+    >>> kf = RGPEKF(dim_x=1, f=lambda x, u, z: 0.5 * x + u + z, A=[[0.5]], e=[[1.0]],
+    ...             h=lambda x: x, H=[[1.0]], Q_x=1e-6, R_x=1e-4, x0=[0.0], P0=1e-4, gps=gp)
+    >>> rng = np.random.default_rng(0)
+    >>> x = 0.0
+    >>> for k in range(300):
+    ...     u, zeta = rng.uniform(-1.0, 1.0), rng.uniform(-2.0, 2.0)
+    ...     kf.predict(u, zeta)
+    ...     x = 0.5 * x + u + np.sin(zeta)
+    ...     kf.update([x + 0.01 * rng.standard_normal()])
+    >>> kf.mu.shape, kf.C.shape  # one state and 9 weights
+    ((10,), (10, 10))
+    >>> print(np.round(kf.gp_predict([0.5, 1.0]), 1), np.round(np.sin([0.5, 1.0]), 1))
+    [0.5 0.8] [0.5 0.8]
     """
 
     def __init__(
@@ -401,11 +658,15 @@ class RGPEKF:
     # -- state ---------------------------------------------------------------------------------
     @property
     def x(self) -> np.ndarray:
+        """State estimate, shape (n,).
+
+        Assignable (n values; ValueError and no change on bad input).
+        """
         return self._core.x
 
     @x.setter
     def x(self, value: ArrayLike) -> None:
-        """Replace the state estimate (n values; ValueError and no change on bad input)."""
+        # Replace the state estimate (n values; ValueError and no change on bad input).
         a = _finite_array("x", value).reshape(-1)
         if a.size != self.dim_x:
             raise ValueError(f"x: expected {self.dim_x} values, got {a.size}")
@@ -413,50 +674,142 @@ class RGPEKF:
 
     @property
     def P(self) -> np.ndarray:
+        """State covariance, shape (n, n): the state block of C.
+
+        Assignable (symmetric positive semi-definite or a scalar times I); assigning resets the
+        states' cross-covariance with the GP weights to zero.
+        """
         return self._core.P
 
     @P.setter
     def P(self, value: Any) -> None:
-        """Replace the state covariance (symmetric PSD (n, n) or a scalar times I; ValueError and
-        no change on bad input). The states' cross-covariance with the GP weights is reset to 0."""
+        # Replace the state covariance (symmetric PSD (n, n) or a scalar times I; ValueError and
+        # no change on bad input). The states' cross-covariance with the GP weights is reset to 0.
         self._core.set_p(_square("P", value, self.dim_x))
 
     @property
     def z_pred(self) -> np.ndarray:
+        """Predicted disturbances μ_z^p = J_k μ_z of the last ``predict``, shape (q,).
+
+        The values passed to f, A and e as z.
+        """
         return self._core.z_pred
 
     @property
     def mu(self) -> np.ndarray:
+        """Augmented mean [x; μ_z1; …; μ_zq], shape (N,).
+
+        The weights in their own coordinates (see Notes of the class).
+        """
         return self._core.mu
 
     @property
     def C(self) -> np.ndarray:
+        """Augmented covariance of [x; μ_z1; …; μ_zq], shape (N, N).
+
+        The weights' blocks in their own coordinates (see Notes of the class).
+        """
         return self._core.C
 
     @property
     def y(self) -> np.ndarray:
+        """Innovation y − h(x⁻) of the last update, shape (p,).
+
+        Named as filterpy's ``y``.
+        """
         return self._core.innovation
 
     @property
     def S(self) -> np.ndarray:
+        """Innovation covariance of the last update, shape (p, p).
+
+        S = H̃ C⁻ H̃ᵀ + R_x, as filterpy's ``S``.
+        """
         return self._core.S
 
     @property
     def log_likelihood(self) -> float:
+        """Log-likelihood log N(y; h(x⁻), S) of the last measurement.
+
+        Computed by ``update``, as filterpy's ``log_likelihood``.
+        """
         return self._core.log_likelihood
 
     @property
     def likelihood(self) -> float:
+        """Likelihood N(y; h(x⁻), S) of the last measurement.
+
+        exp(``log_likelihood``), as filterpy's ``likelihood``.
+        """
         return float(np.exp(self._core.log_likelihood))
 
     def gp_weights(self, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """(mean, cov) of the basis-vector weights of GP ``index``."""
+        """Current mean and covariance of the basis-vector weights of one GP.
+
+        Parameters
+        ----------
+        index : int, default 0
+            Which GP (0 <= index < q).
+
+        Returns
+        -------
+        mean : ndarray of shape (n_b,)
+            The weights' mean μ_z.
+        cov : ndarray of shape (n_b, n_b)
+            Their covariance C_z.
+
+        Raises
+        ------
+        ValueError
+            If ``index`` is out of range.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import RGPEKF, RecursiveGP
+        >>> gp = RecursiveGP(0.0, 1.0, 5)
+        >>> kf = RGPEKF(1, lambda x, u, z: x + z, 1.0, 1.0, lambda x: x, [[1.0]],
+        ...             Q_x=0.0, R_x=0.01, x0=[0.0], P0=0.0, gps=gp)
+        >>> mean, cov = kf.gp_weights()
+        >>> mean.shape, bool(np.allclose(cov, gp.K))  # a fresh GP: N(0, K)
+        ((5,), True)
+        """
         return self._core.gp_weights(self._index(index))
 
     def gp_predict(
         self, zeta: ArrayLike, index: int = 0, return_std: bool = False
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-        """The current GP ``index``'s mean (and std, σ_r floor included) of z at inputs ζ."""
+        """Predict one GP's disturbance z at inputs ζ with the filter's current weights.
+
+        Parameters
+        ----------
+        zeta : array_like of shape (m, dim_zeta), or (m,) when dim_zeta = 1
+            Inputs ζ of GP ``index``.
+        index : int, default 0
+            Which GP (0 <= index < q).
+        return_std : bool, default False
+            Also return the standard deviation (σ_r floor included).
+
+        Returns
+        -------
+        mean : ndarray of shape (m,)
+            Predicted mean of z.
+        std : ndarray of shape (m,)
+            Predicted standard deviation; only returned if ``return_std`` is True.
+
+        See Also
+        --------
+        RecursiveGP.predict : The same for a stand-alone GP.
+
+        Examples
+        --------
+        >>> from gpmhe import RGPEKF, RecursiveGP
+        >>> kf = RGPEKF(1, lambda x, u, z: x + z, 1.0, 1.0, lambda x: x, [[1.0]], Q_x=0.0,
+        ...             R_x=0.01, x0=[0.0], P0=0.0, gps=RecursiveGP(0.0, 1.0, 5, sigma_K=2.0))
+        >>> mean, std = kf.gp_predict([0.2, 0.8], return_std=True)
+        >>> print(mean, std.round(6))
+        [0. 0.] [2. 2.]
+        """
         i = self._index(index)
         mean, var = self._core.gp_predict(i, self.gps[i]._zeta_many(zeta))
         return (mean, np.sqrt(var)) if return_std else mean
@@ -488,9 +841,37 @@ class RGPEKF:
         return np.ascontiguousarray(z)
 
     def predict(self, u: Any = None, zeta: Any = None) -> None:
-        """Predict x and C one step with input u and the GPs' inputs ζ (one per GP: a scalar or
-        array for one GP, a sequence for several). ``u`` is passed to f, A, e untouched.
-        Bad input raises ValueError naming it and leaves the filter unchanged."""
+        """Predict the state and the augmented covariance one step ahead.
+
+        Computes J_k at ζ, μ_z^p = J_k μ_z, x⁻ = f(x, u, μ_z^p) and
+        C⁻ = Ã C Ãᵀ + ẽ (σ_K² − J_k K J_kᵀ + σ_r²) ẽᵀ + blockdiag(Q_x, σ_p² I) (step 1 of the
+        class description).
+
+        Parameters
+        ----------
+        u : object, default None
+            Input, passed to f, A and e untouched.
+        zeta : float, array_like or sequence
+            The GPs' inputs ζ_k: a scalar or array for one GP, a sequence with one entry per GP
+            for several. Required.
+
+        Raises
+        ------
+        ValueError
+            On bad input or if f, A or e return a wrong shape, NaN or inf; the filter is then
+            unchanged.
+
+        Examples
+        --------
+        With a fresh GP the predicted disturbance is the prior mean 0:
+
+        >>> from gpmhe import RGPEKF, RecursiveGP
+        >>> kf = RGPEKF(1, lambda x, u, z: x + u + z, 1.0, 1.0, lambda x: x, [[1.0]], Q_x=0.0,
+        ...             R_x=0.01, x0=[1.0], P0=0.0, gps=RecursiveGP(0.0, 1.0, 5))
+        >>> kf.predict(u=2.0, zeta=0.5)
+        >>> kf.x, kf.z_pred
+        (array([3.]), array([0.]))
+        """
         # One core call per step: it computes J_k, calls f (and A, e if callables) with
         # z = μ_z^p and predicts C. Finiteness of ζ and of the results is checked there.
         if not (self._scalar_zeta and isinstance(zeta, float)):
@@ -499,8 +880,35 @@ class RGPEKF:
 
     def update(self, y: ArrayLike) -> None:
         """EKF update with the measurement y (variant 4a, or 4b when ``learning`` is False).
-        Raises ValueError for bad y (state unchanged) and gpmhe.NumericalError if the innovation
-        covariance is not positive definite (state unchanged)."""
+
+        Evaluates h and H at the predicted state x⁻ (or whatever was assigned to ``x`` since),
+        forms the innovation ν = y − h(x⁻) and its covariance S, and updates the augmented mean
+        and covariance (only the state rows with ``learning=False`` or ``pure_prediction``).
+
+        Parameters
+        ----------
+        y : array_like of shape (p,)
+            The measurement.
+
+        Raises
+        ------
+        ValueError
+            For a bad y or bad results of h or H (state unchanged).
+        gpmhe.NumericalError
+            If the innovation covariance is not positive definite (state unchanged).
+
+        Examples
+        --------
+        The disturbance is learned from the state measurement:
+
+        >>> from gpmhe import RGPEKF, RecursiveGP
+        >>> kf = RGPEKF(1, lambda x, u, z: x + z, 1.0, 1.0, lambda x: x, [[1.0]], Q_x=0.0,
+        ...             R_x=1e-4, x0=[0.0], P0=0.0, gps=RecursiveGP(0.0, 1.0, 5))
+        >>> kf.predict(zeta=0.5)
+        >>> kf.update([1.0])
+        >>> round(float(kf.x[0]), 3), round(float(kf.gp_predict([0.5])[0]), 3)
+        (1.0, 1.0)
+        """
         # One core call: it evaluates h (and H if callable) at the predicted state x⁻ (or
         # whatever was assigned to x since), forms ν = y − h(x⁻) and updates.
         self._core.update_step(

@@ -1,13 +1,14 @@
 """The second-order example of the RGP-dKF paper (§4), its scenarios S1–S3 and the RGP-B baseline.
 
+See the user guide, *Example systems* and *The RGP-dKF*.
+
 Plant (eq. 21, 22): ẋ = [[0, 1], [−4, −4]] x + [0, 1]ᵀ u + [0, 1]ᵀ z, with the hidden disturbance
 z(ζ) = −10 (1 + 0.1 ζ + ζ³), discretised by explicit Euler:
 
     x_{k+1} = A_d x_k + b_d (u_k + z(ζ_k)),  A_d = I + T A_c,  b_d = T [0, 1]ᵀ,
 
 outputs y₁ = x₁ or y₂ = x plus white Gaussian noise. The paper does not give the sampling time,
-the noise levels, the ζ filter or the step input; gpmhe fixes them here (and the benchmark prints
-them):
+the noise levels, the ζ filter or the step input; gpmhe fixes them here:
 
 * sampling time T = 0.01 s; 100 s of data (10 000 steps) per run;
 * ζ: first-order low-pass filtered Gaussian white noise, ζ_{k+1} = a ζ_k + √(1 − a²) σ_ζ w_k,
@@ -61,13 +62,53 @@ SCENARIOS = {"S1": ("high", "y2"), "S2": ("low", "y2"), "S3": ("low", "y1")}
 
 
 def disturbance(zeta: np.ndarray | float) -> np.ndarray:
-    """The hidden function z(ζ) = −10 (1 + 0.1 ζ + ζ³)."""
+    """The hidden disturbance z(ζ) = −10 (1 + 0.1 ζ + ζ³).
+
+    Parameters
+    ----------
+    zeta : float or ndarray
+        Input(s) ζ.
+
+    Returns
+    -------
+    ndarray
+        z(ζ), the shape of ``zeta``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe.systems import second_order as so
+    >>> print(so.disturbance(np.array([0.0, 1.0])))
+    [-10. -21.]
+    """
     z = np.asarray(zeta, dtype=float)
     return -10.0 * (1.0 + 0.1 * z + z**3)
 
 
 def output_matrix(output: str) -> np.ndarray:
-    """C of y₁ = x₁ ("y1") or y₂ = x ("y2")."""
+    """Output matrix C of y₁ = x₁ ("y1") or y₂ = x ("y2").
+
+    Parameters
+    ----------
+    output : {"y1", "y2"}
+        The measured output.
+
+    Returns
+    -------
+    ndarray of shape (1, 2) or (2, 2)
+        C.
+
+    Raises
+    ------
+    ValueError
+        For another ``output``.
+
+    Examples
+    --------
+    >>> from gpmhe.systems import second_order as so
+    >>> print(so.output_matrix("y1"))
+    [[1. 0.]]
+    """
     if output == "y1":
         return np.array([[1.0, 0.0]])
     if output == "y2":
@@ -77,8 +118,37 @@ def output_matrix(output: str) -> np.ndarray:
 
 @dataclass
 class Run:
-    """One simulated run: u[k], ζ[k], z[k] = z(ζ[k]) act from step k to k+1; x[k] is the state at
-    step k (k = 0..steps) and y[k] = C x[k] + v[k] (y[0] unused by the estimators)."""
+    """One simulated run of the plant, as returned by `simulate`.
+
+    u[k], ζ[k] and z[k] = z(ζ[k]) act from step k to k+1; x[k] is the state at step k
+    (k = 0..steps) and y[k] = C x[k] + v[k] (y[0] is not used by the estimators).
+
+    Parameters
+    ----------
+    u : ndarray of shape (steps,)
+        Inputs u[k].
+    zeta : ndarray of shape (steps,)
+        GP inputs ζ[k].
+    z : ndarray of shape (steps,)
+        Disturbances z(ζ[k]).
+    x : ndarray of shape (steps + 1, 2)
+        True states.
+    y : ndarray of shape (steps + 1, p)
+        Measurements, p = 1 ("y1") or 2 ("y2").
+    C : ndarray of shape (p, 2)
+        Output matrix.
+    noise_std : float
+        Measurement-noise standard deviation.
+    info : dict, optional
+        The simulation settings (seed, noise, output).
+
+    Examples
+    --------
+    >>> from gpmhe.systems import second_order as so
+    >>> run = so.simulate(0, duration=0.5)
+    >>> run.u.shape, run.x.shape, run.y.shape, run.info["output"]
+    ((50,), (51, 2), (51, 2), 'y2')
+    """
 
     u: np.ndarray
     zeta: np.ndarray
@@ -91,7 +161,39 @@ class Run:
 
 
 def simulate(seed: int, noise: str = "low", output: str = "y2", duration: float = DURATION) -> Run:
-    """Simulate the plant for ``duration`` seconds with the fixed settings above."""
+    """Simulate the plant for ``duration`` seconds with the settings of the module description.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of ζ, u and the measurement noise.
+    noise : {"low", "high"}, default "low"
+        Measurement-noise level (standard deviation 0.01 or 0.1).
+    output : {"y1", "y2"}, default "y2"
+        Measured output: x₁ or both states.
+    duration : float, default ``DURATION`` (100.0)
+        Length in seconds; the run has round(duration / T) steps.
+
+    Returns
+    -------
+    Run
+        The inputs, disturbances, states and measurements.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``noise`` or ``output``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe.systems import second_order as so
+    >>> run = so.simulate(0, noise="high", output="y1", duration=1.0)
+    >>> run.y.shape, run.noise_std
+    ((101, 1), 0.1)
+    >>> bool(np.allclose(run.z, so.disturbance(run.zeta)))
+    True
+    """
     if noise not in NOISE:
         raise ValueError(f"noise: expected one of {list(NOISE)}, got {noise!r}")
     C = output_matrix(output)
@@ -118,7 +220,23 @@ def simulate(seed: int, noise: str = "low", output: str = "y2", duration: float 
 
 
 def make_gp() -> RecursiveGP:
-    """A fresh RGP with the shared hyperparameters."""
+    """A fresh RGP with the hyperparameters shared by the RGP-dKF and RGP-B.
+
+    ζ-grid on ``ZETA_BOUNDS`` with ``N_BASIS`` basis vectors, σ_K = ``SIGMA_K``, L = ``L_GRID``,
+    σ_r = ``SIGMA_R``, σ_p = ``SIGMA_P``.
+
+    Returns
+    -------
+    RecursiveGP
+        The GP with zero mean weights.
+
+    Examples
+    --------
+    >>> from gpmhe.systems import second_order as so
+    >>> so.make_gp()
+    RecursiveGP(lower=[-2.0], upper=[2.0], n_points=[25], sigma_K=30.0, L=4.0,
+                sigma_r=0.3, sigma_p=0.0)
+    """
     return RecursiveGP(
         ZETA_BOUNDS[0], ZETA_BOUNDS[1], N_BASIS, sigma_K=SIGMA_K, L=L_GRID,
         sigma_r=SIGMA_R, sigma_p=SIGMA_P,
@@ -126,12 +244,57 @@ def make_gp() -> RecursiveGP:
 
 
 def f(x: np.ndarray, u: float, z: float) -> np.ndarray:
-    """Euler transition x⁺ = A_d x + b_d (u + z)."""
+    """Euler transition x⁺ = A_d x + b_d (u + z), the ``f`` of the RGP-dKF.
+
+    Parameters
+    ----------
+    x : ndarray of shape (2,)
+        State.
+    u : float
+        Input.
+    z : float
+        Disturbance.
+
+    Returns
+    -------
+    ndarray of shape (2,)
+        The next state.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe.systems import second_order as so
+    >>> print(so.f(np.zeros(2), 1.0, 2.0))
+    [0.   0.03]
+    """
     return A_D @ x + B_D * (u + z)
 
 
 def make_rgp_dkf(run: Run, gp: RecursiveGP | None = None) -> RGPEKF:
-    """The RGP-dKF for a run (A, e, H constant: the plant is linear in x and z)."""
+    """The RGP-dKF for a run, with the module's settings.
+
+    A = A_d, e = b_d and H = C are constant (the plant is linear in x and z); Q_x = ``Q_X``,
+    R_x = noise_std² I, x̂_0 = ``X0``, P_0 = ``P0``.
+
+    Parameters
+    ----------
+    run : Run
+        The run (for C and the noise level).
+    gp : RecursiveGP or None, default None
+        The GP to start from; None is a fresh `make_gp`.
+
+    Returns
+    -------
+    RGPEKF
+        The filter.
+
+    Examples
+    --------
+    >>> from gpmhe.systems import second_order as so
+    >>> kf = so.make_rgp_dkf(so.simulate(0, duration=0.1))
+    >>> kf.mu.shape  # two states and 25 weights
+    (27,)
+    """
     C = run.C
     return RGPEKF(
         dim_x=2, f=f, A=A_D, e=E_D, h=lambda x: C @ x, H=C, Q_x=Q_X,
@@ -141,8 +304,35 @@ def make_rgp_dkf(run: Run, gp: RecursiveGP | None = None) -> RGPEKF:
 
 
 def run_rgp_dkf(run: Run, snapshots: tuple[int, ...] = ()) -> tuple[RGPEKF, dict[int, RGPEKF], np.ndarray]:
-    """Filter a run with the RGP-dKF: predict(u_k, ζ_k), update(y_{k+1}). Returns the filter, the GP
-    weights (mean, cov) after the requested numbers of steps, and the estimates x̂[k], k = 0..steps."""
+    """Filter a run with the RGP-dKF: predict(u_k, ζ_k), then update(y_{k+1}), for every step.
+
+    Parameters
+    ----------
+    run : Run
+        The run to filter.
+    snapshots : tuple of int, default ()
+        Step counts after which to record the GP weights.
+
+    Returns
+    -------
+    ekf : RGPEKF
+        The filter after the last step.
+    snapshots : dict
+        Step count -> (mean, cov) of the GP weights after that many steps.
+    xs : ndarray of shape (steps + 1, 2)
+        The estimates x̂[k], k = 0..steps.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe.systems import second_order as so
+    >>> run = so.simulate(0, duration=1.0)
+    >>> ekf, snaps, xs = so.run_rgp_dkf(run, snapshots=(50,))
+    >>> xs.shape, list(snaps), snaps[50][0].shape
+    ((101, 2), [50], (25,))
+    >>> bool(np.abs(xs - run.x).max() < 0.05)
+    True
+    """
     ekf = make_rgp_dkf(run)
     steps = len(run.u)
     xs = np.empty((steps + 1, 2))
@@ -159,7 +349,34 @@ def run_rgp_dkf(run: Run, snapshots: tuple[int, ...] = ()) -> tuple[RGPEKF, dict
 
 
 def rgp_b_targets(run: Run) -> np.ndarray:
-    """RGP-B's disturbance "measurements" y_GP,k = e⁺ (y_{k+1} − A_d y_k − b_d u_k), k = 0..steps−1."""
+    """RGP-B's disturbance "measurements" y_GP,k = e⁺ (y_{k+1} − A_d y_k − b_d u_k).
+
+    Parameters
+    ----------
+    run : Run
+        A run with both states measured (output "y2").
+
+    Returns
+    -------
+    ndarray of shape (steps,)
+        y_GP,k for k = 0..steps−1.
+
+    Raises
+    ------
+    ValueError
+        If the run measures only x₁.
+
+    Examples
+    --------
+    Without noise the targets are the disturbances:
+
+    >>> import numpy as np
+    >>> from gpmhe.systems import second_order as so
+    >>> run = so.simulate(0, duration=0.5)
+    >>> run.y = run.x  # noise-free measurements
+    >>> bool(np.allclose(so.rgp_b_targets(run), run.z))
+    True
+    """
     if run.C.shape[0] != 2:
         raise ValueError("RGP-B needs both states measured (output 'y2')")
     pinv = E_D / (E_D @ E_D)
@@ -168,7 +385,33 @@ def rgp_b_targets(run: Run) -> np.ndarray:
 
 
 def run_rgp_b(run: Run, sigma_y_gp: float, snapshots: tuple[int, ...] = ()) -> tuple[RecursiveGP, dict]:
-    """RGP-B: a plain RecursiveGP fed with rgp_b_targets at ζ_k with noise std ``sigma_y_gp``."""
+    """RGP-B: a plain `RecursiveGP` fed with `rgp_b_targets` at ζ_k.
+
+    Parameters
+    ----------
+    run : Run
+        A run with both states measured.
+    sigma_y_gp : float
+        Noise standard deviation σ_y,GP assumed for the targets (a design parameter).
+    snapshots : tuple of int, default ()
+        Step counts after which to record the GP weights.
+
+    Returns
+    -------
+    gp : RecursiveGP
+        The GP after all targets.
+    snapshots : dict
+        Step count -> (mean, cov) of the weights, for the requested counts within the run and
+        always for the final count (steps).
+
+    Examples
+    --------
+    >>> from gpmhe.systems import second_order as so
+    >>> run = so.simulate(0, duration=1.0)
+    >>> gp, snaps = so.run_rgp_b(run, 1.0, snapshots=(50,))
+    >>> sorted(snaps)
+    [50, 100]
+    """
     gp = make_gp()
     targets = rgp_b_targets(run)
     var = float(sigma_y_gp) ** 2
@@ -183,13 +426,60 @@ def run_rgp_b(run: Run, sigma_y_gp: float, snapshots: tuple[int, ...] = ()) -> t
 
 
 def evaluation_grid(run: Run, m: int = 200) -> np.ndarray:
-    """m points spanning the visited ζ range (its 1 % to 99 % quantiles) of a run."""
+    """Evaluation points spanning the ζ range a run visited (its 1 % to 99 % quantiles).
+
+    Parameters
+    ----------
+    run : Run
+        The run.
+    m : int, default 200
+        Number of points.
+
+    Returns
+    -------
+    ndarray of shape (m,)
+        Evenly spaced points.
+
+    Examples
+    --------
+    >>> from gpmhe.systems import second_order as so
+    >>> grid = so.evaluation_grid(so.simulate(0, duration=1.0), m=5)
+    >>> grid.shape
+    (5,)
+    """
     lo, hi = np.quantile(run.zeta, [0.01, 0.99])
     return np.linspace(lo, hi, m)
 
 
 def rmse_nll(mean: np.ndarray, std: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    """RMSE of the mean and the average negative log predictive density of the truth."""
+    """RMSE of a predicted mean and the average negative log predictive density of the truth.
+
+    NLL = mean(½ log(2π σ²) + ½ (truth − mean)² / σ²).
+
+    Parameters
+    ----------
+    mean : ndarray
+        Predicted means.
+    std : ndarray
+        Predicted standard deviations σ (> 0).
+    truth : ndarray
+        True values.
+
+    Returns
+    -------
+    rmse : float
+        Root-mean-square error of ``mean``.
+    nll : float
+        Average negative log-likelihood of ``truth`` under N(mean, std²).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe.systems import second_order as so
+    >>> rmse, nll = so.rmse_nll(np.zeros(2), np.ones(2), np.array([1.0, -1.0]))
+    >>> print(rmse, round(nll, 4))
+    1.0 1.4189
+    """
     err = truth - mean
     var = std**2
     return float(np.sqrt(np.mean(err**2))), float(np.mean(0.5 * np.log(2 * np.pi * var) + 0.5 * err**2 / var))
