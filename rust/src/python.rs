@@ -12,7 +12,7 @@ use crate::error::{check_finite, check_len, Error};
 use crate::kernel::SeArd;
 
 create_exception!(
-    _core,
+    gpmhe._core,
     NumericalError,
     PyRuntimeError,
     "A numerical failure on valid input (e.g. a matrix not positive definite after jitter)."

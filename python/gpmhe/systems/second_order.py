@@ -34,6 +34,11 @@ import numpy as np
 
 from gpmhe.rgp import RGPEKF, RecursiveGP
 
+__all__ = [
+    "Run", "disturbance", "output_matrix", "simulate", "make_gp", "f", "make_rgp_dkf",
+    "run_rgp_dkf", "rgp_b_targets", "run_rgp_b", "evaluation_grid", "rmse_nll",
+]
+
 T = 0.01
 DURATION = 100.0
 A_C = np.array([[0.0, 1.0], [-4.0, -4.0]])
@@ -303,7 +308,7 @@ def make_rgp_dkf(run: Run, gp: RecursiveGP | None = None) -> RGPEKF:
     )
 
 
-def run_rgp_dkf(run: Run, snapshots: tuple[int, ...] = ()) -> tuple[RGPEKF, dict[int, RGPEKF], np.ndarray]:
+def run_rgp_dkf(run: Run, snapshots: tuple[int, ...] = ()) -> tuple[RGPEKF, dict[int, tuple[np.ndarray, np.ndarray]], np.ndarray]:
     """Filter a run with the RGP-dKF: predict(u_k, ζ_k), then update(y_{k+1}), for every step.
 
     Parameters
