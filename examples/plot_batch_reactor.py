@@ -78,7 +78,7 @@ for i, ax in enumerate(axes):
     for name, xs in estimates.items():
         ax.plot(t[1:], xs[:, i], lw=1.2, label=name)
     ax.set_ylabel(f"$x_{i + 1}$")
-    ax.set_ylim(-4, 5)
+    ax.set_ylim(-4, 6.5)
 axes[0].legend(fontsize=8, ncol=2)
 axes[-1].set_xlabel("t")
 fig.suptitle("Batch reactor from the prior x̂(0) = [0.1, 4.5]")
