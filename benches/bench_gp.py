@@ -10,7 +10,7 @@ Prints two tables (median and p95 time per call, ratios against gpmhe measured i
 
 All three run single-threaded by default (gpmhe's core is sequential; BLAS is limited to one thread
 with threadpoolctl) so the ratios compare algorithms, not core counts; ``--blas-threads`` changes
-that. Goals (issue 2): one test point at N = 150 at least 20x faster than scikit-learn's
+that. Targets: one test point at N = 150 at least 20x faster than scikit-learn's
 predict(return_std=True); N = 5000 with 256 test points within 2x of numpy/SciPy or faster.
 
     python benches/bench_gp.py            # full run (a few minutes, mostly N = 5000 set-up)

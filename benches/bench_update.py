@@ -1,4 +1,4 @@
-"""Benchmark: time per `update()` of GPMHE's window solvers against filterpy's filters (issue 4).
+"""Benchmark: time per `update()` of GPMHE's window solvers against filterpy's filters.
 
     python benches/bench_update.py [--seed 0] [--steps 100] [--tc-steps 40] [--block 10] [--quick]
 
