@@ -477,44 +477,52 @@ class _LMIData:
 
     def __init__(self, A, C, dA, dC, Q_inv, R_inv):
         self.nu = float(np.linalg.eigvalsh(Q_inv)[-1])
-        self.A, self.dA, self.dC = A, float(dA), float(dC)
+        self.A, self.C, self.dA, self.dC = A, C, float(dA), float(dC)
         self.Qi = Q_inv / self.nu
         self.Ri = R_inv / self.nu
-        p = C.shape[1]
-        self.n, self.p = A.shape[1], p
-        self.C_hat = C.mean(axis=0) if p else np.zeros((0, A.shape[1]))
-        RC = self.Ri @ self.C_hat                                         # (p, n)
-        # S_g = C_gᵀ Ri Ĉ + Ĉᵀ Ri C_g − Ĉᵀ Ri Ĉ: the lower bound of C_gᵀ Ri C_g that is affine in C.
-        self.S = (np.einsum("kpi,pj->kij", C, RC) + np.einsum("pi,kpj->kij", RC, C)
-                  - self.C_hat.T @ RC)
-        self.RC = RC
+        self.n, self.p = A.shape[1], C.shape[1]
+        self.Ri_chol = np.linalg.cholesky(self.Ri) if self.p else np.zeros((0, 0))
         self.use_A = self.dA > 0
-        self.use_C = bool(p) and self.dC > 0
+        self.use_C = bool(self.p) and self.dC > 0
 
 
-def _lmi_blocks(data, g, P, eta, lamA, lamC, cp):
+def _lmi_blocks(data, g, P, eta, C_hat, lamA, lamC, cp):
     """The block matrix of node g whose negative semidefiniteness is the sufficient condition.
 
-    Block rows: (Δx, Δw, Schur row of P, A-remainder multiplier, C-remainder multiplier); the
-    last two only when the remainders δ_A, δ_C are non-zero (Petersen's lemma)."""
+    Block rows: Δx, Δw, the Schur row of P, then (if δ_A > 0) the A-remainder multiplier, (if
+    δ_C > 0) the C-remainder multiplier, and (if p > 0) the Schur row of Ĉᵀ R⁻¹ Ĉ. Affine in
+    (P, η P, Ĉ, λ_A, λ_C)."""
     n, p = data.n, data.p
     I, Z = np.eye(n), np.zeros((n, n))
-    A, S = data.A[g], data.S[g]
-    X11 = -eta * P - S
+    A = data.A[g]
+    X11 = -eta * P
+    if p:
+        RC = data.Ri @ C_hat
+        Cg = data.C[g]
+        X11 = X11 - (Cg.T @ RC + RC.T @ Cg)
     if data.use_A:
         X11 = X11 + lamA * I
     if data.use_C:
         X11 = X11 + (lamC * data.dC ** 2) * I
     rows = [[X11, Z, A.T @ P], [Z, -data.Qi, P], [P @ A, P, -P]]
+    extra = []  # (column block for rows 1..3, diagonal block)
     if data.use_A:
-        for r, blk in zip(rows, (Z, Z, data.dA * P)):
-            r.append(blk)
-        rows.append([Z, Z, data.dA * P, -lamA * I])
+        extra.append(([Z, Z, data.dA * P], -lamA * I))
     if data.use_C:
         zc = np.zeros((n, p))
-        for r, blk in zip(rows, (data.RC.T, zc, zc) + ((zc,) if data.use_A else ())):
+        extra.append(([RC.T, zc, zc], -lamC * np.eye(p)))
+    if p:
+        zc = np.zeros((n, p))
+        extra.append(([C_hat.T @ data.Ri_chol, zc, zc], -np.eye(p)))
+    sizes = [blk.shape[0] for _, blk in extra]
+    for i, (col, diag) in enumerate(extra):
+        for r, blk in zip(rows, col):
             r.append(blk)
-        rows.append([data.RC, zc.T, zc.T] + ([zc.T] if data.use_A else []) + [-lamC * np.eye(p)])
+    for i, (col, diag) in enumerate(extra):
+        row = [c.T for c in col]
+        for j in range(len(extra)):
+            row.append(diag if i == j else np.zeros((sizes[i], sizes[j])))
+        rows.append(row)
     return cp.bmat(rows) if cp is not None else np.block(rows)
 
 
@@ -531,20 +539,28 @@ def _sym_basis(n):
 
 class _SDP:
     """The gridded LMI as a cvxpy problem, built once (η is a parameter, so a bisection re-solves
-    without rebuilding). With `P_fixed` None: for a given η, maximise λ_min(P) subject to
-    cond(P) ≤ max_condition; otherwise minimise η for that P.
+    without rebuilding). Variables: P, the reference output Jacobian Ĉ and the multipliers. With
+    `P_fixed` None: for a given η, maximise λ_min(P) subject to cond(P) ≤ max_condition;
+    otherwise minimise η for that P.
 
-    Each node's block matrix is affine in (P, η P, λ_A, λ_C); it is assembled from its
-    coefficient matrices (NumPy) as one matrix-vector product per node."""
+    Each node's block matrix is affine in the variables; it is assembled from its coefficient
+    matrices (computed with NumPy) as one matrix-vector product per node."""
 
     def __init__(self, data, P_fixed, max_condition, solver):
         cp = self.cp = _require_cvxpy()
-        k, n = data.A.shape[0], data.n
+        k, n, p = data.A.shape[0], data.n, data.p
         self.data, self.solver, self.fixed = data, solver, P_fixed is not None
         basis = _sym_basis(n)
-        zero = np.zeros((n, n))
+        zero, zc = np.zeros((n, n)), np.zeros((p, n))
+        c_basis = []
+        for i in range(p):
+            for j in range(n):
+                E = np.zeros((p, n))
+                E[i, j] = 1.0
+                c_basis.append(E)
         self.lamA = cp.Variable(k, nonneg=True) if data.use_A else None
         self.lamC = cp.Variable(k, nonneg=True) if data.use_C else None
+        self.c = cp.Variable(len(c_basis)) if p else None
         if P_fixed is None:
             self.p = cp.Variable(len(basis))
             self.s = cp.Variable(nonneg=True)
@@ -558,34 +574,37 @@ class _SDP:
             cons = []
             objective = cp.Minimize(self.eta)
         strict = 1e-9
+
+        def lmi(g, P=zero, eta=0.0, C_hat=zc, lamA=0.0, lamC=0.0):
+            return _lmi_blocks(data, g, P, eta, C_hat, lamA, lamC, None)
+
         for g in range(k):
-            base = _lmi_blocks(data, g, zero, 0.0, 0.0, 0.0, None)
+            base = lmi(g)
             size = base.shape[0]
-            coeff_P = np.column_stack([(_lmi_blocks(data, g, E, 0.0, 0.0, 0.0, None) - base)
-                                       .reshape(-1) for E in basis])
-            coeff_eta = np.column_stack([(_lmi_blocks(data, g, E, 1.0, 0.0, 0.0, None)
-                                          - _lmi_blocks(data, g, E, 0.0, 0.0, 0.0, None))
-                                         .reshape(-1) for E in basis])
+            coeff_P = np.column_stack([(lmi(g, P=E) - base).reshape(-1) for E in basis])
+            coeff_eta = np.column_stack([(lmi(g, P=E, eta=1.0) - lmi(g, P=E)).reshape(-1)
+                                         for E in basis])
             vec = base.reshape(-1) + coeff_P @ self.p + self.eta * (coeff_eta @ self.p)
+            if p:
+                coeff_C = np.column_stack([(lmi(g, C_hat=E) - base).reshape(-1) for E in c_basis])
+                vec = vec + coeff_C @ self.c
             if data.use_A:
-                vec = vec + self.lamA[g] * (_lmi_blocks(data, g, zero, 0.0, 1.0, 0.0, None)
-                                            - base).reshape(-1)
+                vec = vec + self.lamA[g] * (lmi(g, lamA=1.0) - base).reshape(-1)
             if data.use_C:
-                vec = vec + self.lamC[g] * (_lmi_blocks(data, g, zero, 0.0, 0.0, 1.0, None)
-                                            - base).reshape(-1)
+                # the C-remainder block couples λ_C with Ĉ only through separate entries
+                vec = vec + self.lamC[g] * (lmi(g, lamC=1.0) - base).reshape(-1)
             M = cp.reshape(vec, (size, size), order="C")
             cons.append(0.5 * (M + M.T) << -strict * np.eye(size))
         self.problem = cp.Problem(objective, cons)
-        self.basis = basis
+        self.basis, self.c_basis = basis, c_basis
 
     def solve(self, eta=None):
-        """Returns (P (normalised units), λ_A (k,), λ_C (k,), status); P is None on failure."""
+        """Returns (P (normalised units), Ĉ, λ_A (k,), λ_C (k,), status); P None on failure."""
         import warnings
 
         cp, k = self.cp, self.data.A.shape[0]
         if eta is not None:
             self.eta.value = float(eta)
-        status = "not solved"
         name = self.solver or ("CLARABEL" if "CLARABEL" in cp.installed_solvers() else "SCS")
         try:
             with warnings.catch_warnings():
@@ -595,20 +614,22 @@ class _SDP:
         except cp.error.SolverError as exc:
             status = f"solver error ({exc})"
         if status not in ("optimal", "optimal_inaccurate"):
-            return None, None, None, status
+            return None, None, None, None, status
         if self.fixed:
             p = self.p
         else:
             if self.s.value is None or self.s.value <= 1e-9:
-                return None, None, None, "degenerate P"
+                return None, None, None, None, "degenerate P"
             p = self.p.value
         P = sum(p[j] * self.basis[j] for j in range(len(self.basis)))
+        C_hat = (sum(self.c.value[j] * self.c_basis[j] for j in range(len(self.c_basis)))
+                 if self.data.p else np.zeros((0, self.data.n)))
         la = np.maximum(self.lamA.value, 0.0) if self.lamA is not None else np.zeros(k)
         lc = np.maximum(self.lamC.value, 0.0) if self.lamC is not None else np.zeros(k)
-        return 0.5 * (P + P.T), la, lc, status
+        return 0.5 * (P + P.T), C_hat, la, lc, status
 
 
-def _verified_eta(data, P, lamA, lamC):
+def _verified_eta(data, P, C_hat, lamA, lamC):
     """The smallest η for which every cell's LMI holds with this P and these λ (NumPy, per cell:
     a Schur complement and a generalised eigenvalue), or inf if some cell fails for every η."""
     n = data.n
@@ -619,7 +640,7 @@ def _verified_eta(data, P, lamA, lamC):
     Linv = np.linalg.inv(L)
     worst = -math.inf
     for g in range(data.A.shape[0]):
-        M = _lmi_blocks(data, g, P, 0.0, lamA[g], lamC[g], None)
+        M = _lmi_blocks(data, g, P, 0.0, C_hat, lamA[g], lamC[g], None)
         M = 0.5 * (M + M.T)
         X11, X12, X22 = M[:n, :n], M[:n, n:], M[n:, n:]
         ev = np.linalg.eigvalsh(X22)
@@ -815,7 +836,7 @@ class Certificate:
         >>> import numpy as np
         >>> from gpmhe.theory import Certificate
         >>> round(Certificate(feasible=True, P=np.eye(2), eta=0.9).mu(14), 4)
-        0.9954
+        0.9937
         """
         M = _check_int(M, "M", 1)
         self._need_feasible()
@@ -1017,11 +1038,11 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
     dA, dC, proved = _interpolation_remainder(model, grid, A, C, lip, curv)
     data = _LMIData(A, C, dA, dC, wb.Q_min_inv, wb.R_min_inv)
     common = dict(Q_inv=wb.Q_min_inv, R_inv=wb.R_min_inv, weights=wb, Q0=Q0, R0=R0,
-                  x_bounds=(xl, xu), u_bounds=(ul, uu), C_hat=data.C_hat,
+                  x_bounds=(xl, xu), u_bounds=(ul, uu),
                   jacobian_variation=(dA, dC), margin_proved=proved,
                   cells=grid.counts)
 
-    P_n, lamA, lamC, eta_v, status = _search(data, eta, None if P is None else P / data.nu,
+    P_n, C_hat, lamA, lamC, eta_v, status = _search(data, eta, None if P is None else P / data.nu,
                                              max_condition, eta_tol, solver)
     if P_n is None or not eta_v < 1.0:
         why = ("no P satisfies the gridded LMI" + (f" with eta = {eta}" if eta is not None else
@@ -1036,7 +1057,8 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
                            "independent re-check", solver_status=str(status), **common)
     P_out = 0.5 * (P_n + P_n.T) * data.nu
     no_margin = _LMIData(A, C, 0.0, 0.0, wb.Q_min_inv, wb.R_min_inv)
-    eta_grid = _verified_eta(no_margin, P_n, np.zeros(A.shape[0]), np.zeros(A.shape[0]))
+    eta_grid = _verified_eta(no_margin, P_n, C_hat, np.zeros(A.shape[0]), np.zeros(A.shape[0]))
+    common["C_hat"] = C_hat
     worst = None
     if n_check:
         d, d2 = _random_pairs(lower, upper, n, n_check, np.random.default_rng(seed))
@@ -1056,27 +1078,466 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
 
 
 def _search(data, eta, P_fixed, max_condition, eta_tol, solver):
-    """Fixed P, fixed η, or bisection on η. Returns (P, λ_A, λ_C, verified η, status)."""
+    """Fixed P, fixed η, or bisection on η. Returns (P, Ĉ, λ_A, λ_C, verified η, status)."""
+    fail = (None, None, None, None, math.inf)
     if P_fixed is not None or eta is not None:
-        P_n, la, lc, status = _SDP(data, P_fixed, max_condition, solver).solve(eta)
+        P_n, C_hat, la, lc, status = _SDP(data, P_fixed, max_condition, solver).solve(eta)
         if P_n is None:
-            return None, None, None, math.inf, status
-        return P_n, la, lc, _verified_eta(data, P_n, la, lc), status
+            return fail + (status,)
+        return P_n, C_hat, la, lc, _verified_eta(data, P_n, C_hat, la, lc), status
     sdp = _SDP(data, None, max_condition, solver)
     best, status = None, None
     lo, hi = 0.0, 1.0 - 1e-6
     trial = hi
     while True:
-        P_n, la, lc, status = sdp.solve(trial)
-        eta_v = _verified_eta(data, P_n, la, lc) if P_n is not None else math.inf
+        P_n, C_hat, la, lc, status = sdp.solve(trial)
+        eta_v = _verified_eta(data, P_n, C_hat, la, lc) if P_n is not None else math.inf
         if eta_v < 1.0:
-            if best is None or eta_v < best[3]:
-                best = (P_n, la, lc, eta_v, status)
+            if best is None or eta_v < best[4]:
+                best = (P_n, C_hat, la, lc, eta_v, status)
             hi = min(trial, eta_v)
         elif best is None:
-            return None, None, None, math.inf, status
+            return fail + (status,)
         else:
             lo = trial
         if hi - lo <= eta_tol:
             return best
         trial = 0.5 * (lo + hi)
+
+
+# ============================================================================ model mismatch
+
+
+class Mismatch:
+    """The model mismatch (19)–(20) of a learned model against known true functions.
+
+    Attributes
+    ----------
+    alpha_1, alpha_2 : float
+        α₁^max = max ‖f − m_x‖_{Q_max⁻¹} and α₂^max = max ‖h − m_y‖_{R_max⁻¹} over X × U.
+    alpha : float
+        α^max = max(α₁^max, α₂^max), the last term of the bound (21).
+    argmax_1, argmax_2 : ndarray (n_d,)
+        The points d = [x; u] where the maxima were found.
+    """
+
+    def __init__(self, alpha_1, alpha_2, argmax_1, argmax_2):
+        self.alpha_1, self.alpha_2 = float(alpha_1), float(alpha_2)
+        self.alpha = max(self.alpha_1, self.alpha_2)
+        self.argmax_1, self.argmax_2 = argmax_1, argmax_2
+
+    def __repr__(self):
+        return f"Mismatch(alpha_1={self.alpha_1:.6g}, alpha_2={self.alpha_2:.6g})"
+
+
+def _true_values(fn, d, n, size, vectorized, name):
+    X, U = d[:, :n].copy(), d[:, n:].copy()
+    if vectorized:
+        out = np.asarray(fn(X, U), dtype=np.float64)
+    else:
+        out = np.array([np.asarray(fn(x, u), dtype=np.float64).reshape(-1) for x, u in zip(X, U)])
+    if out.shape != (d.shape[0], size) or not np.all(np.isfinite(out)):
+        raise ValueError(f"{name}: must return finite values of shape ({size},) per point")
+    return out
+
+
+def mismatch(model, f, h, x_bounds, Q0, R0, u_bounds=None, *, n_samples=4096, n_local=5, seed=0,
+             vectorized=False):
+    """The maximal mismatch α₁^max, α₂^max (eqs. 19–20) between true functions and the model.
+
+    For simulation studies in which the true f and h are known. The maxima over X × U are found
+    by dense random sampling followed by bounded local maximisation (L-BFGS-B) from the best
+    samples: a lower estimate of the true maximum, not a guaranteed bound.
+
+    Parameters
+    ----------
+    model : LearnedModel or KnownModel
+        The model whose means m_x, m_y the MHE uses.
+    f, h : callable
+        The true noise-free functions, f(x, u) -> (n,), h(x, u) -> (p,) per point (or, with
+        `vectorized`, for arrays X (k, n), U (k, m)).
+    x_bounds : pair of arrays (n,)
+        The box X.
+    Q0, R0 : float, array or matrix
+        The constant covariance parts of the weights; Q_max⁻¹ = Q0⁻¹, R_max⁻¹ = R0⁻¹ (eq. 17).
+    u_bounds : pair of arrays (m,), optional
+        The box U (required when the model has inputs).
+    n_samples : int
+        Random points of the dense sampling.
+    n_local : int
+        Local maximisations started from the best samples.
+    seed : int
+        Seed of the sampling.
+    vectorized : bool
+        Whether f and h take arrays of points.
+
+    Returns
+    -------
+    Mismatch
+        α₁^max, α₂^max, α^max and where they were found.
+
+    Raises
+    ------
+    ValueError
+        On invalid arguments or if f, h return values of the wrong shape or non-finite values.
+
+    Notes
+    -----
+    .. math:: \\alpha_1^{\\max} = \\max_{x\\in X, u\\in U} \\|f(x,u) - m_{+,x}(d)\\|_{Q_{\\max}^{-1}},
+              \\quad \\alpha_2^{\\max} = \\max_{x\\in X, u\\in U} \\|h(x,u) - m_{+,y}(d)\\|_{R_{\\max}^{-1}}.
+
+    References
+    ----------
+    .. [1] T. M. Wolff, V. G. Lopez and M. A. Müller, "Robust stability of Gaussian process based
+       moving horizon estimation", IEEE CDC 2023, eqs. (19)–(21).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe import KnownModel
+    >>> from gpmhe.theory import mismatch
+    >>> model = KnownModel(lambda x, u: 0.5 * x, lambda x, u: x[:1], dim_x=1, dim_y=1)
+    >>> mm = mismatch(model, lambda x, u: 0.6 * x, lambda x, u: x[:1], (np.zeros(1), np.ones(1)),
+    ...               Q0=1.0, R0=1.0, n_samples=64)
+    >>> round(mm.alpha_1, 6), mm.alpha_2
+    (0.1, 0.0)
+    """
+    model = _check_model(model)
+    n, p, m = model.dim_x, model.dim_y, model.dim_u
+    for name, fn in (("f", f), ("h", h)):
+        if not callable(fn):
+            raise ValueError(f"{name}: must be callable")
+    xl, xu = _check_box(x_bounds, n, "x_bounds")
+    ul, uu = _check_box(u_bounds, m, "u_bounds")
+    Qmax_inv = np.linalg.inv(_check_spd(Q0, n, "Q0"))
+    Rmax_inv = np.linalg.inv(_check_spd(R0, p, "R0")) if p else np.zeros((0, 0))
+    n_samples = _check_int(n_samples, "n_samples", 1)
+    n_local = _check_int(n_local, "n_local", 0)
+    seed = _check_int(seed, "seed", 0)
+    if not isinstance(vectorized, (bool, np.bool_)):
+        raise ValueError(f"vectorized: must be True or False, got {vectorized!r}")
+    lower, upper = np.concatenate([xl, ul]), np.concatenate([xu, uu])
+    rng = np.random.default_rng(seed)
+    d = np.vstack([rng.uniform(lower, upper, size=(n_samples, lower.size)),
+                   lower, upper, 0.5 * (lower + upper)])
+
+    def errors(points):
+        mx, my = _means(model, points)
+        ex = _true_values(f, points, n, n, vectorized, "f") - mx
+        ey = _true_values(h, points, n, p, vectorized, "h") - my if p else np.zeros((len(points), 0))
+        return (np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", ex, Qmax_inv, ex), 0.0)),
+                np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", ey, Rmax_inv, ey), 0.0)))
+
+    samples = errors(d)
+    results = []
+    for which in range(2):
+        values = samples[which]
+        best = int(np.argmax(values))
+        best_val, best_pt = float(values[best]), d[best].copy()
+        if which == 1 and not p:
+            results.append((0.0, best_pt))
+            continue
+        for start in d[np.argsort(values)[::-1][:n_local]]:
+            res = scipy.optimize.minimize(lambda z: -errors(z[None, :])[which][0], start,
+                                          method="L-BFGS-B", bounds=list(zip(lower, upper)))
+            if -res.fun > best_val:
+                best_val, best_pt = float(-res.fun), np.asarray(res.x, dtype=float)
+        results.append((best_val, best_pt))
+    return Mismatch(results[0][0], results[1][0], results[0][1], results[1][1])
+
+
+# ============================================================================ Corollary 1
+
+
+class Corollary1:
+    """The quantities (22)–(28) of Corollary 1 for a learned model.
+
+    Attributes
+    ----------
+    tau, delta : float
+        The grid constant τ and the failure probability δ per GP.
+    covering_number : int
+        B(τ, X × U): points of a grid of the box with every point within τ of one of them.
+    beta : float
+        β(τ) = 2 log(B(τ)/δ), eq. (22).
+    L_m_x, L_m_y : ndarray (n,), (p,)
+        Guaranteed Lipschitz constants (Euclidean) of the posterior means over the box.
+    omega_x, omega_y : ndarray (n,), (p,)
+        Moduli of continuity ω_σ(τ) of the posterior standard deviations.
+    gamma_f, gamma_h : ndarray (n,), (p,)
+        γ_{f_i}(τ), γ_{h_j}(τ) of eqs. (23)–(26).
+    sigma_x_max, sigma_y_max : ndarray (n,), (p,)
+        Guaranteed upper bounds of the posterior standard deviations over the box.
+    Delta_x, Delta_y : float
+        Δ_x^max(τ), Δ_y^max(τ) of eqs. (27)–(28).
+    alpha : float
+        max(Δ_x, Δ_y): the mismatch term to pass to :func:`error_bound` for the bound (29).
+    probability : float
+        (1 − δ)^{n+p}, the probability with which (29) holds.
+    """
+
+    def __init__(self, **fields):
+        for key, value in fields.items():
+            setattr(self, key, value)
+        self.alpha = max(self.Delta_x, self.Delta_y)
+
+    def __repr__(self):
+        return (f"Corollary1(tau={self.tau}, delta={self.delta}, beta={self.beta:.4g}, "
+                f"Delta_x={self.Delta_x:.4g}, Delta_y={self.Delta_y:.4g}, "
+                f"probability={self.probability:.4g})")
+
+
+def _gradient_variation(post, grid):
+    """Bounds |∂m/∂d_b(d) − ∂m/∂d_b(d_g)| over each cell (k, n_d): the Hessian at the centre plus
+    its variation over the cell, |∂_bc m(x) − ∂_bc m(z)| ≤ ‖m‖_H σ_f sqrt(c_bc) ‖(x−z)/φ‖/(φ_b φ_c)
+    (c_bb = 15, else 3)."""
+    H = np.abs(post.mean_hessian(grid.centers))
+    nd = grid.half.size
+    c = np.full((nd, nd), 3.0)
+    np.fill_diagonal(c, 15.0)
+    lip = post.rkhs_norm * post.sigma_f * np.sqrt(c) / np.outer(post.ls, post.ls)
+    scaled = float(np.linalg.norm(grid.half / post.ls))
+    return H @ grid.half + 0.5 * scaled * (lip @ grid.half)[None, :]
+
+
+def _per_output(value, size, name):
+    arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (size,)) if size else np.zeros(0)
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"{name}: must be finite and >= 0 (a number or one per component)")
+    return arr.copy()
+
+
+def corollary1(model, x_bounds, Q0, R0, tau, delta, L_f, L_h, u_bounds=None, *, cells=None):
+    """The quantities (22)–(28) of Corollary 1 (probabilistic mismatch bound) for a learned model.
+
+    Parameters
+    ----------
+    model : LearnedModel
+        The GP model.
+    x_bounds : pair of arrays (n,)
+        The box X.
+    Q0, R0 : float, array or matrix
+        The constant covariance parts of the weights (Q_max⁻¹ = Q0⁻¹, R_max⁻¹ = R0⁻¹).
+    tau : float
+        The grid constant τ > 0.
+    delta : float
+        The failure probability δ ∈ (0, 1) per GP.
+    L_f, L_h : float or array
+        Lipschitz constants of the true f_i (n values or one) and h_j (p values or one),
+        assumed known (Assumption 2).
+    u_bounds : pair of arrays (m,), optional
+        The box U (required when the model has inputs).
+    cells : int or sequence of int, optional
+        Cells per dimension of the grid used for the guaranteed maxima over the box.
+
+    Returns
+    -------
+    Corollary1
+        β, γ, the Lipschitz constants of the means, the moduli of continuity, Δ_x, Δ_y, the
+        probability and ``alpha`` = max(Δ_x, Δ_y) for :func:`error_bound`.
+
+    Raises
+    ------
+    ValueError
+        On invalid arguments or if `model` is not a LearnedModel.
+
+    Notes
+    -----
+    Following Lederer, Umlauf & Hirche (2019) as used in the paper:
+
+    .. math:: \\beta(\\tau) = 2\\log\\frac{B(\\tau)}{\\delta}, \\quad
+              \\gamma_{f_i}(\\tau) = (L_{m_{x_i}} + L_{f_i})\\tau
+              + \\sqrt{\\beta(\\tau)}\\,\\omega_{\\sigma_{x_i}}(\\tau),
+
+    .. math:: \\Delta_x^{\\max}(\\tau) = \\sqrt{\\lambda_{\\max}(Q_{\\max}^{-1})}
+              \\sum_i \\max_{d} \\big(\\sqrt{\\beta(\\tau)}\\sigma_{x_i}(d) + \\gamma_{f_i}(\\tau)\\big).
+
+    Computed, not guessed: B(τ) counts a grid of the box whose cells have half-diagonal ≤ τ; the
+    Lipschitz constants of the means are the largest gradient norms at the cell centres plus a
+    proved bound of the gradient's variation in a cell (the Hessian at the centre and the SE
+    kernel bound on its change); the modulus of continuity of the posterior standard deviation
+    is ω(τ) = σ_f sqrt(2(1 − exp(−τ²/(2 φ_min²)))) (the posterior standard deviation changes by at
+    most the prior distance of the kernel features); max σ is the guaranteed bound of
+    :func:`weight_bounds`.
+
+    References
+    ----------
+    .. [1] T. M. Wolff, V. G. Lopez and M. A. Müller, "Robust stability of Gaussian process based
+       moving horizon estimation", IEEE CDC 2023, Corollary 1, eqs. (22)–(29).
+    .. [2] A. Lederer, J. Umlauf and S. Hirche, "Uniform error bounds for Gaussian process
+       regression with application to safe control", NeurIPS 2019, Thm. 3.1.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe import LearnedModel
+    >>> from gpmhe.theory import corollary1
+    >>> rng = np.random.default_rng(0)
+    >>> X = [np.column_stack([np.linspace(0, 1, 20), np.linspace(1, 0, 20)])]
+    >>> Y = [X[0].sum(axis=1, keepdims=True)]
+    >>> model = LearnedModel.from_trajectories(X, Y, optimizer=None)
+    >>> c1 = corollary1(model, (np.zeros(2), np.ones(2)), 1e-2, 1e-2, tau=1e-3, delta=0.01,
+    ...                 L_f=1.0, L_h=1.5)
+    >>> c1.probability == 0.99 ** 3, c1.Delta_x > 0
+    (True, True)
+    """
+    model = _check_model(model)
+    if not _is_learned(model):
+        raise ValueError("model: corollary1 needs a LearnedModel (its bounds come from the GPs)")
+    n, p, m = model.dim_x, model.dim_y, model.dim_u
+    xl, xu = _check_box(x_bounds, n, "x_bounds")
+    ul, uu = _check_box(u_bounds, m, "u_bounds")
+    Qmax_inv = np.linalg.inv(_check_spd(Q0, n, "Q0"))
+    Rmax_inv = np.linalg.inv(_check_spd(R0, p, "R0")) if p else np.zeros((0, 0))
+    tau = _check_positive(tau, "tau")
+    delta = _check_positive(delta, "delta")
+    if not delta < 1:
+        raise ValueError(f"delta: must be in (0, 1), got {delta!r}")
+    L_f = _per_output(L_f, n, "L_f")
+    L_h = _per_output(L_h, p, "L_h")
+    lower, upper = np.concatenate([xl, ul]), np.concatenate([xu, uu])
+    nd = lower.size
+    grid = _Grid(lower, upper, _check_cells(cells, nd))
+    side = 2.0 * tau / math.sqrt(nd)
+    covering = int(np.prod(np.ceil((upper - lower) / side)))
+    beta = 2.0 * math.log(covering / delta)
+    out = model.stage_eval(grid.centers)
+    grads = {"x": np.asarray(out[2]), "y": np.asarray(out[6])}
+    result = {}
+    for key, gp, size in (("x", model.f_gp, n), ("y", model.h_gp, p)):
+        if not size:
+            result[key] = [np.zeros(0)] * 3
+            continue
+        posts = _posteriors(gp)
+        _, std = gp.predict(grid.centers, return_std=True)
+        std = std.reshape(len(grid.centers), size)
+        lips, omegas, sig = [], [], []
+        for o, post in enumerate(posts):
+            g = np.abs(grads[key][:, o, :]) + _gradient_variation(post, grid)
+            lips.append(float(np.max(np.linalg.norm(g, axis=1))))
+            phi_min = float(np.min(post.ls))
+            omegas.append(post.sigma_f * math.sqrt(2.0 * (1.0 - math.exp(-tau ** 2 / (2 * phi_min ** 2)))))
+            sig.append(min(_std_upper_bound(post, grid, std[:, o]), post.sigma_f))
+        result[key] = [np.array(lips), np.array(omegas), np.array(sig)]
+    (Lmx, omx, sx), (Lmy, omy, sy) = result["x"], result["y"]
+    gamma_f = (Lmx + L_f) * tau + math.sqrt(beta) * omx
+    gamma_h = (Lmy + L_h) * tau + math.sqrt(beta) * omy
+    Delta_x = math.sqrt(float(np.linalg.eigvalsh(Qmax_inv)[-1])) * float(np.sum(math.sqrt(beta) * sx + gamma_f))
+    Delta_y = (math.sqrt(float(np.linalg.eigvalsh(Rmax_inv)[-1])) * float(np.sum(math.sqrt(beta) * sy + gamma_h))
+               if p else 0.0)
+    return Corollary1(tau=tau, delta=delta, covering_number=covering, beta=beta, L_m_x=Lmx,
+                      L_m_y=Lmy, omega_x=omx, omega_y=omy, gamma_f=gamma_f, gamma_h=gamma_h,
+                      sigma_x_max=sx, sigma_y_max=sy, Delta_x=Delta_x, Delta_y=Delta_y,
+                      probability=(1.0 - delta) ** (n + p))
+
+
+# ============================================================================ the error bound
+
+
+def _noise_array(a, T, dim, name):
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be an array of shape (T, {dim})") from None
+    if arr.ndim == 1 and dim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2 or arr.shape[1] != dim or (T is not None and arr.shape[0] != T):
+        raise ValueError(f"{name}: expected shape ({'T' if T is None else T}, {dim}), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return arr
+
+
+def _discounted_max(values, r):
+    """B[t] = max_{q in [0, t-1]} r^q values[t-q-1] for t = 0..T (B[0] = 0)."""
+    out = np.zeros(values.size + 1)
+    for t in range(1, values.size + 1):
+        out[t] = max(values[t - 1], r * out[t - 1])
+    return out
+
+
+def error_bound(cert, M, x0_error, w, v, alpha):
+    """The right-hand side of the error bound (21) of Theorem 1 for t = 0, …, T.
+
+    Parameters
+    ----------
+    cert : Certificate
+        A feasible certificate of the model the MHE uses (P1, P2, η, Q_max⁻¹, R_max⁻¹).
+    M : int
+        The MHE horizon, M ≥ ``cert.min_horizon()``.
+    x0_error : array (n,)
+        The initial estimation error x̂(0) − x(0).
+    w : array (T, n)
+        The true process disturbances w(0), …, w(T−1).
+    v : array (T, p)
+        The true measurement noise v(0), …, v(T−1).
+    alpha : float
+        The mismatch α^max (eqs. 19–20, :func:`mismatch`; 0 for the exact model), or
+        ``corollary1(...).alpha`` for the probabilistic bound (29).
+
+    Returns
+    -------
+    ndarray (T + 1,)
+        Upper bounds of ‖x̂(t) − x(t)‖_{P1}, t = 0, …, T.
+
+    Raises
+    ------
+    ValueError
+        On wrong shapes, non-finite values, a negative `alpha`, an infeasible certificate or
+        M < ``cert.min_horizon()``.
+
+    Notes
+    -----
+    With μ from μ^M = 4 λ_max(P2, P1) η^M and ρ = μ^{1/4},
+
+    .. math:: \\|\\hat x(t) - x(t)\\|_{P_1} \\le \\max\\Big\\{6\\sqrt{\\mu}^{\\,t}
+              \\|\\hat x(0) - x(0)\\|_{P_2},\\ \\max_{q\\in[0,t-1]} \\frac{12\\rho^q}{1-\\rho}
+              \\|w(t-q-1)\\|_{Q_{\\max}^{-1}},\\ \\max_{q\\in[0,t-1]}\\frac{12\\rho^q}{1-\\rho}
+              \\|v(t-q-1)\\|_{R_{\\max}^{-1}},\\ \\frac{12}{1-\\rho}\\alpha^{\\max}\\Big\\}.
+
+    It holds for the exact minimiser of every window problem of the prediction-form MHE (10) run
+    with P2, η of the certificate, Q0, R0, the constraint x̂ ∈ X, and true states in X.
+
+    References
+    ----------
+    .. [1] T. M. Wolff, V. G. Lopez and M. A. Müller, "Robust stability of Gaussian process based
+       moving horizon estimation", IEEE CDC 2023, Theorem 1, eq. (21).
+    .. [2] J. D. Schiller, S. Muntwiler, J. Köhler, M. N. Zeilinger and M. A. Müller, "A Lyapunov
+       function for robust stability of moving horizon estimation", IEEE Trans. Automat. Control
+       68(12), 2023, Cor. 1.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe.theory import Certificate, error_bound
+    >>> cert = Certificate(feasible=True, P=np.eye(1), eta=0.5, Q0=np.eye(1), R0=np.eye(1))
+    >>> b = error_bound(cert, M=3, x0_error=[1.0], w=np.zeros((2, 1)), v=np.zeros((2, 1)),
+    ...                 alpha=0.0)
+    >>> np.round(b, 4)
+    array([6.    , 5.3454, 4.7622])
+    """
+    if not isinstance(cert, Certificate):
+        raise ValueError("cert: must be a gpmhe.theory.Certificate")
+    M = _check_int(M, "M", 1)
+    mu = cert.mu(M)
+    if not mu < 1.0:
+        raise ValueError(f"M: must be >= cert.min_horizon() = {cert.min_horizon()} (mu = {mu:.4g})")
+    n = cert.P.shape[0]
+    e0 = np.asarray(x0_error, dtype=np.float64).reshape(-1) if np.ndim(x0_error) <= 1 else None
+    if e0 is None or e0.shape != (n,) or not np.all(np.isfinite(e0)):
+        raise ValueError(f"x0_error: must be a finite array of shape ({n},)")
+    w = _noise_array(w, None, n, "w")
+    T = w.shape[0]
+    Qmax_inv = np.linalg.inv(cert.Q0)                      # eq. (17)
+    p = cert.R0.shape[0]
+    Rmax_inv = np.linalg.inv(cert.R0) if p else np.zeros((0, 0))
+    v = _noise_array(v, T, p, "v")
+    alpha = _check_positive(alpha, "alpha", allow_zero=True)
+    rho = mu ** 0.25
+    gain = 12.0 / (1.0 - rho)
+    nw = np.sqrt(np.maximum(np.einsum("ti,ij,tj->t", w, Qmax_inv, w), 0.0))
+    nv = np.sqrt(np.maximum(np.einsum("ti,ij,tj->t", v, Rmax_inv, v), 0.0))
+    t = np.arange(T + 1)
+    initial = 6.0 * mu ** (t / 2.0) * math.sqrt(float(e0 @ cert.P2 @ e0))
+    return np.maximum.reduce([initial, gain * _discounted_max(nw, rho),
+                              gain * _discounted_max(nv, rho), np.full(T + 1, gain * alpha)])
