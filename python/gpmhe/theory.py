@@ -674,14 +674,21 @@ def _means(model, d):
     return mx, my
 
 
-def _random_pairs(lower, upper, n, n_pairs, rng):
-    """Pairs (d, d̃) in the box with the same input part: half uniform, half close together."""
+def _random_pairs(lower, upper, n, n_pairs, rng, C_hat):
+    """Pairs (d, d̃) in the box with the same input part: a third uniform, a third close
+    together, a third close together along the null space of Ĉ (state differences the outputs
+    barely see, where (18b) is tightest)."""
     nd = lower.size
     d = rng.uniform(lower, upper, size=(n_pairs, nd))
     other = rng.uniform(lower, upper, size=(n_pairs, nd))
-    close = n_pairs // 2
+    third = n_pairs // 3
     width = upper - lower
-    other[:close] = d[:close] + 1e-2 * width * rng.uniform(-1, 1, size=(close, nd))
+    other[:third] = d[:third] + 1e-2 * width * rng.uniform(-1, 1, size=(third, nd))
+    null = scipy.linalg.null_space(C_hat) if C_hat.shape[0] else np.eye(n)
+    if null.shape[1]:
+        step = rng.standard_normal((third, null.shape[1])) @ null.T       # (third, n)
+        scale = 1e-2 * float(np.min(width[:n]))
+        other[third:2 * third, :n] = d[third:2 * third, :n] + scale * step
     other = np.clip(other, lower, upper)
     other[:, n:] = d[:, n:]
     return d, other
@@ -1061,7 +1068,7 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
     common["C_hat"] = C_hat
     worst = None
     if n_check:
-        d, d2 = _random_pairs(lower, upper, n, n_check, np.random.default_rng(seed))
+        d, d2 = _random_pairs(lower, upper, n, n_check, np.random.default_rng(seed), C_hat)
         worst = float(np.max(_violation_18b(model, P_out, eta_cert, wb.Q_min_inv, wb.R_min_inv,
                                             d, d2)))
         if worst > 1e-9:
