@@ -1108,8 +1108,16 @@ def _search(data, eta, P_fixed, max_condition, eta_tol, solver):
         else:
             lo = trial
         if hi - lo <= eta_tol:
-            return best
+            break
         trial = 0.5 * (lo + hi)
+    # At the smallest feasible η the feasible set is thin and the P found there is nearly
+    # singular; one more solve, eta_tol above it, returns a well-scaled P.
+    relaxed = min(best[4] + eta_tol, 1.0 - 1e-6)
+    P_n, C_hat, la, lc, status = sdp.solve(relaxed)
+    eta_v = _verified_eta(data, P_n, C_hat, la, lc) if P_n is not None else math.inf
+    if eta_v < 1.0 and np.linalg.eigvalsh(P_n)[0] > np.linalg.eigvalsh(best[0])[0]:
+        return P_n, C_hat, la, lc, eta_v, status
+    return best
 
 
 # ============================================================================ model mismatch
