@@ -274,6 +274,17 @@ def _jacobian_curvature(post, n):
 class WeightBounds:
     """The bounds (14)–(17) of the MHE's weights Q(d)⁻¹ and R(d)⁻¹ over the box.
 
+    Returned by :func:`weight_bounds`; the parameters become the attributes of the same name.
+
+    Parameters
+    ----------
+    Q_min_inv, Q_max_inv, R_min_inv, R_max_inv : ndarray
+        The four weight bounds.
+    var_x_max, var_y_max : ndarray
+        The variance bounds used.
+    variance_bound : str
+        Which variance bound was used.
+
     Attributes
     ----------
     Q_min_inv, Q_max_inv : ndarray, shape (n, n)
@@ -723,6 +734,12 @@ class Certificate:
     functions on X × U with P1 = P2 = P, the discount `eta` and the weights `Q_inv`, `R_inv`; then
     Theorem 1 holds for the MHE run with ``mhe_options()`` and a horizon M ≥ ``min_horizon()``.
 
+    Parameters
+    ----------
+    **fields
+        Values of the attributes below (normally set by :func:`certify_ioss`); missing ones
+        default to None (False for `feasible`).
+
     Attributes
     ----------
     feasible : bool
@@ -923,9 +940,16 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
         Grid cells per dimension of X × U (default about 400 cells in total).
     jacobian_lipschitz : float or pair of float, optional
         For a KnownModel: Lipschitz constants of d ↦ ∂f/∂x(d) and d ↦ ∂h/∂x(d) (spectral norm,
-        Euclidean norm on d). With them the grid margin is proved; without, it is estimated from
-        finite differences of the Jacobians (``margin_proved`` False). Ignored for learned models,
-        whose bounds are computed from the GPs.
+        Euclidean norm on d); the grid remainder is then at most 2 L ‖h‖ (h the cell
+        half-widths).
+    jacobian_curvature : float or pair of float, optional
+        For a KnownModel: bounds of |∂²A_ij/∂d_c²| and |∂²C_ij/∂d_c²| over the box (entries of
+        the Jacobians A = ∂f/∂x, C = ∂h/∂x, every coordinate c of d); 0 when f and h are
+        quadratic. The remainder is then at most Σ_c ½ h_c² times the bound per entry, which
+        shrinks with the square of the cell size. With either constant the grid margin is proved;
+        with neither, it is estimated from second differences of the Jacobians
+        (``margin_proved`` False). Both are ignored for learned models, whose bounds are computed
+        from the GPs.
     max_condition : float
         Upper bound of the condition number of P (keeps P usable as the MHE's prior weight).
     eta_tol : float
@@ -1126,6 +1150,15 @@ def _search(data, eta, P_fixed, max_condition, eta_tol, solver):
 class Mismatch:
     """The model mismatch (19)–(20) of a learned model against known true functions.
 
+    Returned by :func:`mismatch`.
+
+    Parameters
+    ----------
+    alpha_1, alpha_2 : float
+        α₁^max and α₂^max.
+    argmax_1, argmax_2 : ndarray (n_d,)
+        Where they were found.
+
     Attributes
     ----------
     alpha_1, alpha_2 : float
@@ -1266,6 +1299,13 @@ def mismatch(model, f, h, x_bounds, Q0, R0, u_bounds=None, *, n_samples=4096, n_
 
 class Corollary1:
     """The quantities (22)–(28) of Corollary 1 for a learned model.
+
+    Returned by :func:`corollary1`.
+
+    Parameters
+    ----------
+    **fields
+        Values of the attributes below except `alpha`, which is computed.
 
     Attributes
     ----------
