@@ -761,14 +761,14 @@ class Certificate:
     x_bounds, u_bounds : tuple of ndarray
         The box X (and U) on which the certificate holds.
     C_hat : ndarray (p, n)
-        The reference output Jacobian of the output term's linearisation (see Notes of
-        :func:`certify_ioss`).
+        The reference output Jacobian Ĉ of the output term's lower bound, chosen by the SDP
+        (see Notes of :func:`certify_ioss`).
     eta_without_margin : float or None
-        The η this P needs at the cell centres alone (no allowance for the variation inside the
-        cells): ``eta - eta_without_margin`` is the price of making the grid rigorous.
+        The η this P needs at the grid nodes alone (no allowance for the interpolation
+        remainder): ``eta - eta_without_margin`` is the price of making the grid rigorous.
     jacobian_variation : tuple of float
-        The largest bounds δ_A, δ_C of ‖∂m_x/∂x(d) − ∂m_x/∂x(d_g)‖₂ and of the same for m_y over
-        a cell.
+        The bounds δ_A, δ_C of the spectral norm of the difference between ∂m_x/∂x (resp.
+        ∂m_y/∂x) and its multilinear interpolation from the corners of a grid cell.
     margin_proved : bool
         True when δ_A, δ_C are proved bounds (learned models; known models with
         `jacobian_lipschitz`), False when estimated from finite differences.
@@ -943,9 +943,9 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
         Euclidean norm on d); the grid remainder is then at most 2 L ‖h‖ (h the cell
         half-widths).
     jacobian_curvature : float or pair of float, optional
-        For a KnownModel: bounds of |∂²A_ij/∂d_c²| and |∂²C_ij/∂d_c²| over the box (entries of
-        the Jacobians A = ∂f/∂x, C = ∂h/∂x, every coordinate c of d); 0 when f and h are
-        quadratic. The remainder is then at most Σ_c ½ h_c² times the bound per entry, which
+        For a KnownModel: bounds of the absolute second derivatives ∂²A_ij/∂d_c² and
+        ∂²C_ij/∂d_c² over the box (entries of the Jacobians A = ∂f/∂x, C = ∂h/∂x, every
+        coordinate c of d); 0 when f and h are quadratic. The remainder is then at most Σ_c ½ h_c² times the bound per entry, which
         shrinks with the square of the cell size. With either constant the grid margin is proved;
         with neither, it is estimated from second differences of the Jacobians
         (``margin_proved`` False). Both are ignored for learned models, whose bounds are computed
@@ -988,8 +988,8 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
               + \\hat C^\\top R^{-1} C - \\hat C^\\top R^{-1} \\hat C) \\Delta
               = \\|C\\Delta\\|^2_{R^{-1}} - \\|(C - \\hat C)\\Delta\\|^2_{R^{-1}},
 
-    valid for any fixed Ĉ (here the mean of C over the grid). Being affine, it averages along
-    the segment exactly, so the pointwise condition, for all d in X × U,
+    valid for any fixed Ĉ. Being affine, it averages along the segment exactly, so the pointwise
+    condition, for all d in X × U,
 
     .. math:: \\begin{bmatrix} A^\\top P A - \\eta P - S(d) & A^\\top P \\\\ P A & P - Q^{-1}
               \\end{bmatrix} \\preceq 0, \\quad S = C^\\top R^{-1}\\hat C + \\hat C^\\top
@@ -998,17 +998,28 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
     implies (18b) for every pair. It is exact for a linear output map (C = Ĉ) and costs
     ‖(C − Ĉ)Δ‖²_{R⁻¹} otherwise.
 
-    **From the grid to the box.** The box is cut into cells; at each centre d_g the condition is
-    written as an LMI affine in A (Schur complement) and made robust against every A(d) with
-    ‖A(d) − A(d_g)‖₂ ≤ δ_A and C(d) with ‖C(d) − C(d_g)‖₂ ≤ δ_C in the cell (Petersen's lemma:
-    one multiplier λ per cell and uncertainty). For a GP, δ_A and δ_C are proved: the Hessian of
-    the posterior mean at d_g (exact) plus the variation of the Hessian over the cell, bounded by
-    the mean's RKHS norm and the SE kernel's derivatives.
+    Ĉ is a decision variable of the semidefinite program (the condition is jointly convex in P
+    and Ĉ once Ĉᵀ R⁻¹ Ĉ is written as a Schur complement).
 
-    **Checks.** The η reported is recomputed in NumPy from the solver's P and multipliers (a
-    Schur complement and a generalised eigenvalue per cell), not taken from the solver. Then
-    (18b) itself, in its worst case over the disturbances, is evaluated on `n_check` random pairs
-    (half of them close together); a violation makes the certificate infeasible.
+    **From the grid to the box.** The box is cut into cells and the condition, written as an LMI
+    affine in A and C (Schur complement), is imposed at the cell corners. Inside a cell, A(d) is
+    the multilinear interpolation of its corner values — a convex combination, for which the
+    affine LMI follows from the corners — plus a remainder with ‖·‖₂ ≤ δ_A (and alike δ_C for C).
+    Each corner's LMI is made robust against any such remainder (Petersen's lemma, one multiplier
+    per corner and remainder). Per entry the remainder is at most Σ_c ½ h_c² max abs(∂²A_ij/∂d_c²);
+    for a GP the third derivatives of the posterior mean are bounded by its RKHS norm
+    sqrt(αᵀKα) times the SE kernel's derivative bounds σ_f sqrt(15)/(φ_b φ_c²), so δ_A, δ_C are
+    proved.
+
+    **η and P.** η is minimised by bisection; a final solve `eta_tol` above the smallest η
+    returns a well-scaled P. Among the feasible P the one with the largest smallest eigenvalue
+    and condition number ≤ `max_condition` is returned.
+
+    **Checks.** The η reported is recomputed in NumPy from the solver's P, Ĉ and multipliers (a
+    Schur complement and a generalised eigenvalue per grid node), not taken from the solver.
+    Then (18b) itself, in its worst case over the disturbances, is evaluated on `n_check` random
+    pairs (a third uniform, a third close together, a third close together along the null space
+    of Ĉ); a violation makes the certificate infeasible.
 
     **Proved and sampled.** For learned models and for known models with `jacobian_lipschitz`,
     the certificate is a proof up to floating-point rounding and the solver-independent NumPy
