@@ -207,9 +207,6 @@ class _SEPosterior:
         r = (a[:, None, :] - b[None, :, :]) / self.ls
         return self.sf2 * np.exp(-0.5 * np.sum(r * r, axis=-1))
 
-    def mean(self, d):
-        return self._kernel(d, self.D) @ self.alpha
-
     def mean_hessian(self, d):
         """∂²m/∂d∂d at the points d (k, n_d) -> (k, n_d, n_d)."""
         k = self._kernel(d, self.D) * self.alpha                        # (k, N)
@@ -236,6 +233,14 @@ def _posteriors(gp):
     sf, ls, se, jit = (np.atleast_1d(gp.sigma_f), np.atleast_2d(gp.lengthscales),
                        np.atleast_1d(gp.sigma_eps), np.atleast_1d(gp.jitter))
     return [_SEPosterior(D, Y[:, o], sf[o], ls[o], se[o], jit[o]) for o in range(Y.shape[1])]
+
+
+def _model_posteriors(model):
+    """The `_SEPosterior`s of a LearnedModel's f-GPs and h-GPs (None for a KnownModel), built
+    once per call of a public function: each factorises its N × N kernel matrix."""
+    if not _is_learned(model):
+        return None
+    return {"f": _posteriors(model.f_gp), "h": _posteriors(model.h_gp) if model.dim_y else []}
 
 
 def _std_upper_bound(post, grid, std_at_centers):
@@ -309,20 +314,20 @@ class WeightBounds:
                 f" var_y_max={self.var_y_max})")
 
 
-def _variance_maxima(model, variance_bound, grid):
+def _variance_maxima(model, variance_bound, grid, posts):
     """Upper bounds of the posterior variances (n,), (p,) of the model's GPs."""
     n, p = model.dim_x, model.dim_y
     if not _is_learned(model):
         return np.zeros(n), np.zeros(p)
-    gps = [(model.f_gp, n)] + ([(model.h_gp, p)] if p else [])
+    gps = [(model.f_gp, "f")] + ([(model.h_gp, "h")] if p else [])
     out = []
-    for gp, q in gps:
+    for gp, key in gps:
         if variance_bound == "prior":
             out.append(np.atleast_1d(gp.sigma_f) ** 2 + np.atleast_1d(gp.sigma_eps) ** 2)
             continue
         _, std = gp.predict(grid.centers, return_std=True)
         std = np.atleast_2d(std.T).T if std.ndim == 1 else std
-        bounds = [_std_upper_bound(post, grid, std[:, o]) for o, post in enumerate(_posteriors(gp))]
+        bounds = [_std_upper_bound(post, grid, std[:, o]) for o, post in enumerate(posts[key])]
         out.append(np.minimum(np.square(bounds), np.atleast_1d(gp.sigma_f) ** 2))
     if not p:
         out.append(np.zeros(0))
@@ -407,11 +412,12 @@ def weight_bounds(model, Q0, R0, variance_bound="prior", x_bounds=None, u_bounds
         ul, uu = _check_box(u_bounds, m, "u_bounds")
         grid = _Grid(np.concatenate([xl, ul]), np.concatenate([xu, uu]),
                      _check_cells(cells, n + m))
-    return _weight_bounds(model, Q0, R0, variance_bound, grid)
+    posts = _model_posteriors(model) if grid is not None else None
+    return _weight_bounds(model, Q0, R0, variance_bound, grid, posts)
 
 
-def _weight_bounds(model, Q0, R0, variance_bound, grid):
-    var_x, var_y = _variance_maxima(model, variance_bound, grid)
+def _weight_bounds(model, Q0, R0, variance_bound, grid, posts):
+    var_x, var_y = _variance_maxima(model, variance_bound, grid, posts)
     Q_min_inv = np.linalg.inv(np.diag(var_x) + Q0)
     R_min_inv = np.linalg.inv(np.diag(var_y) + R0) if model.dim_y else np.zeros((0, 0))
     Q_max_inv = np.linalg.inv(Q0)
@@ -440,7 +446,7 @@ def _check_pair(value, name):
     return (float(vals[0]), float(vals[-1]))
 
 
-def _interpolation_remainder(model, grid, A_nodes, C_nodes, lipschitz, curvature):
+def _interpolation_remainder(model, grid, A_nodes, C_nodes, lipschitz, curvature, posts):
     """Bounds δ_A, δ_C of ‖A(d) − Σ_v w_v(d) A(v)‖₂ over the box, where Σ_v w_v(d) A(v) is the
     multilinear interpolation of the Jacobian from the corners v of d's cell (a convex
     combination), and whether they are proved.
@@ -451,8 +457,8 @@ def _interpolation_remainder(model, grid, A_nodes, C_nodes, lipschitz, curvature
     n, p = model.dim_x, model.dim_y
     h2 = grid.half ** 2
     if _is_learned(model):
-        rA = np.stack([0.5 * _jacobian_curvature(post, n) @ h2 for post in _posteriors(model.f_gp)])
-        rC = (np.stack([0.5 * _jacobian_curvature(post, n) @ h2 for post in _posteriors(model.h_gp)])
+        rA = np.stack([0.5 * _jacobian_curvature(post, n) @ h2 for post in posts["f"]])
+        rC = (np.stack([0.5 * _jacobian_curvature(post, n) @ h2 for post in posts["h"]])
               if p else np.zeros((0, n)))
         return float(np.linalg.norm(rA)), float(np.linalg.norm(rC)), True
     bounds = []
@@ -1075,9 +1081,10 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
 
     lower, upper = np.concatenate([xl, ul]), np.concatenate([xu, uu])
     grid = _Grid(lower, upper, _check_cells(cells, n + m))
-    wb = _weight_bounds(model, Q0, R0, variance_bound, grid)
+    posts = _model_posteriors(model)
+    wb = _weight_bounds(model, Q0, R0, variance_bound, grid, posts)
     A, C = _jacobians(model, grid.nodes())
-    dA, dC, proved = _interpolation_remainder(model, grid, A, C, lip, curv)
+    dA, dC, proved = _interpolation_remainder(model, grid, A, C, lip, curv, posts)
     data = _LMIData(A, C, dA, dC, wb.Q_min_inv, wb.R_min_inv)
     common = dict(Q_inv=wb.Q_min_inv, R_inv=wb.R_min_inv, weights=wb, Q0=Q0, R0=R0,
                   x_bounds=(xl, xu), u_bounds=(ul, uu),
