@@ -1,5 +1,5 @@
 //! gpmhe's numerical core: Gaussian-process regression, the GP-MHE window problem and its solver,
-//! and the recursive GP inside an EKF. Pure Rust; the pyo3 binding lives in `python.rs` behind the
+//! and the recursive GP inside an EKF. Pure Rust; the pyo3 binding lives in `python/` behind the
 //! `python` cargo feature, so `cargo test` needs no Python.
 
 pub mod error;

@@ -1,0 +1,389 @@
+//! Exact GPs (`crate::gp`): `MultiGP` (independent outputs on shared inputs; one output is the
+//! q = 1 case), `log_marginal_likelihood` and the kernel matrix. Inputs must be C-contiguous
+//! float64 (gpmhe/gp.py converts and validates first); the numerics run without the GIL.
+
+use numpy::{PyArray2, PyReadonlyArray1, PyReadonlyArray2};
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+
+use super::convert::{array2, slice1, slice2};
+use crate::error::Error;
+use crate::kernel::SeArd;
+
+use crate::gp::{log_marginal_likelihood, Gp, GpWorkspace, MultiGp};
+use numpy::{IntoPyArray, PyArray1, PyArrayDyn};
+
+/// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
+fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
+    if cols == nd {
+        Ok(())
+    } else {
+        Err(PyValueError::new_err(format!(
+            "{arg}: expected {nd} columns (input dimension n_d), got {cols}"
+        )))
+    }
+}
+
+/// A numpy array of the given shape that takes over a row-major vector (no copy, no reshape).
+fn array_nd<'py, const D: usize>(
+    py: Python<'py>,
+    data: Vec<f64>,
+    shape: [usize; D],
+) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+    let arr = numpy::ndarray::ArrayD::from_shape_vec(&shape[..], data)
+        .map_err(|e| PyRuntimeError::new_err(format!("internal: output shape: {e}")))?;
+    Ok(arr.into_pyarray(py))
+}
+
+type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
+/// mean, var and, when asked for, (dmean_dd, dvar_dd).
+type Predicted<'py> = (Arr<'py>, Arr<'py>, Option<(Arr<'py>, Arr<'py>)>);
+
+/// Runs a batch prediction of `q` outputs at the points `d` with the GIL released and returns
+/// (mean, var[, dmean, dvar]) shaped (k, q...) / (k, q..., n_d); `squeeze` drops the q axis.
+/// Posterior means at the points `d`: shape (k,) with `squeeze` (one output), else (k, q).
+fn mean_array<'py>(
+    py: Python<'py>,
+    model: &MultiGp,
+    d: &PyReadonlyArray2<'py, f64>,
+    squeeze: bool,
+) -> PyResult<Arr<'py>> {
+    let (d, k, cols) = slice2("D", d)?;
+    let q = model.n_outputs();
+    check_cols("D", cols, model.dim())?;
+    crate::error::check_finite("D", d)?;
+    let mut mean = vec![0.0; k * q];
+    model.predict_mean_into(d, &mut mean, &mut GpWorkspace::default())?;
+    if squeeze {
+        array_nd(py, mean, [k])
+    } else {
+        array_nd(py, mean, [k, q])
+    }
+}
+
+fn predict_arrays<'py>(
+    py: Python<'py>,
+    model: &MultiGp,
+    d: &PyReadonlyArray2<'py, f64>,
+    gradients: bool,
+    squeeze: bool,
+) -> PyResult<Predicted<'py>> {
+    // Named "D" as in the Python API; the wrappers leave the NaN/inf scan to this O(k) check.
+    let (d, k, cols) = slice2("D", d)?;
+    let (q, nd) = (model.n_outputs(), model.dim());
+    check_cols("D", cols, nd)?;
+    crate::error::check_finite("D", d)?;
+    let (mean, var, dmean, dvar) = py.detach(|| {
+        let mut ws = GpWorkspace::default();
+        let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
+        if gradients {
+            let (mut dm, mut dv) = (vec![0.0; k * q * nd], vec![0.0; k * q * nd]);
+            model.predict_with_gradients_into(d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)?;
+            Ok::<_, Error>((m, v, dm, dv))
+        } else {
+            model.predict_into(d, &mut m, &mut v, &mut ws)?;
+            Ok((m, v, Vec::new(), Vec::new()))
+        }
+    })?;
+    if squeeze {
+        let grads = match gradients {
+            true => Some((array_nd(py, dmean, [k, nd])?, array_nd(py, dvar, [k, nd])?)),
+            false => None,
+        };
+        Ok((array_nd(py, mean, [k])?, array_nd(py, var, [k])?, grads))
+    } else {
+        let grads = match gradients {
+            true => Some((
+                array_nd(py, dmean, [k, q, nd])?,
+                array_nd(py, dvar, [k, q, nd])?,
+            )),
+            false => None,
+        };
+        Ok((
+            array_nd(py, mean, [k, q])?,
+            array_nd(py, var, [k, q])?,
+            grads,
+        ))
+    }
+}
+
+/// (mean, var, gradients) of the four-array prediction, as a Python tuple.
+fn with_gradients<'py>(p: Predicted<'py>) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+    match p {
+        (m, v, Some((dm, dv))) => Ok((m, v, dm, dv)),
+        _ => Err(PyRuntimeError::new_err(
+            "internal: gradients were not computed",
+        )),
+    }
+}
+
+/// One exact zero-mean GP with the SE-ARD kernel; the Cholesky factor is cached at construction.
+#[pyclass(name = "GP", module = "gpmhe._core", frozen)]
+pub(crate) struct PyGp {
+    /// The GP as a one-output MultiGp, so predictions share one code path (see `gp()`).
+    pub(crate) inner: MultiGp,
+}
+
+impl PyGp {
+    pub(crate) fn gp(&self) -> &Gp {
+        &self.inner.gps()[0]
+    }
+}
+
+#[pymethods]
+impl PyGp {
+    /// GP(x, y, theta): x (N, n_d), y (N,), theta = log([sigma_f, lengthscales.., sigma_eps]).
+    #[new]
+    fn py_new(
+        py: Python<'_>,
+        x: PyReadonlyArray2<'_, f64>,
+        y: PyReadonlyArray1<'_, f64>,
+        theta: PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<Self> {
+        let (x, _, cols) = slice2("x", &x)?;
+        let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
+        check_cols("x", cols, theta.len().saturating_sub(2))?;
+        let gp = py.detach(|| Gp::new(x, y, theta))?;
+        Ok(Self {
+            inner: MultiGp::from_gps(vec![gp])?,
+        })
+    }
+
+    #[getter]
+    fn dim(&self) -> usize {
+        self.gp().dim()
+    }
+    #[getter]
+    fn n_train(&self) -> usize {
+        self.gp().n_train()
+    }
+    #[getter]
+    fn theta<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.gp().theta())
+    }
+    #[getter]
+    fn sigma_f(&self) -> f64 {
+        self.gp().kernel().sigma_f()
+    }
+    #[getter]
+    fn lengthscales<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.gp().kernel().lengthscales())
+    }
+    #[getter]
+    fn sigma_eps(&self) -> f64 {
+        self.gp().sigma_eps()
+    }
+    #[getter]
+    fn jitter(&self) -> f64 {
+        self.gp().jitter()
+    }
+    #[getter]
+    fn alpha<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.gp().alpha())
+    }
+    #[getter]
+    fn x_train<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let g = self.gp();
+        array2(py, g.x_train().to_vec(), g.n_train(), g.dim())
+    }
+    #[getter]
+    fn y_train<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.gp().y_train())
+    }
+
+    /// (lml, grad) at this GP's theta; grad is empty unless eval_gradient.
+    #[pyo3(signature = (eval_gradient=false))]
+    fn log_marginal_likelihood<'py>(
+        &self,
+        py: Python<'py>,
+        eval_gradient: bool,
+    ) -> (f64, Bound<'py, PyArray1<f64>>) {
+        let grad = if eval_gradient {
+            py.detach(|| self.gp().log_marginal_likelihood_gradient())
+        } else {
+            Vec::new()
+        };
+        (
+            self.gp().log_marginal_likelihood(),
+            PyArray1::from_vec(py, grad),
+        )
+    }
+
+    /// (mean, var) of shapes (k,), (k,) at the points d (k, n_d).
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>)> {
+        let (m, v, _) = predict_arrays(py, &self.inner, &d, false, true)?;
+        Ok((m, v))
+    }
+
+    /// (mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d).
+    fn predict_with_gradients<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+        with_gradients(predict_arrays(py, &self.inner, &d, true, true)?)
+    }
+
+    /// Means only, shape (k,): O(N) per point (no triangular solve).
+    fn predict_mean<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Arr<'py>> {
+        mean_array(py, &self.inner, &d, true)
+    }
+}
+
+/// q independent GPs on shared inputs, each with its own hyperparameters.
+#[pyclass(name = "MultiGP", module = "gpmhe._core", frozen)]
+pub(super) struct PyMultiGp {
+    pub(crate) inner: MultiGp,
+}
+
+#[pymethods]
+impl PyMultiGp {
+    /// MultiGP(x, y, thetas): x (N, n_d), y (N, q), thetas (q, n_d + 2).
+    #[new]
+    fn py_new(
+        py: Python<'_>,
+        x: PyReadonlyArray2<'_, f64>,
+        y: PyReadonlyArray2<'_, f64>,
+        thetas: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Self> {
+        let (x, n, nd) = slice2("x", &x)?;
+        let (y, ny, q) = slice2("y", &y)?;
+        let (thetas, qt, cols) = slice2("thetas", &thetas)?;
+        if ny != n {
+            return Err(PyValueError::new_err(format!(
+                "y: expected {n} rows (one per training input), got {ny}"
+            )));
+        }
+        if qt != q || cols != nd + 2 {
+            return Err(PyValueError::new_err(format!(
+                "thetas: expected shape ({q}, {}), got ({qt}, {cols})",
+                nd + 2
+            )));
+        }
+        let inner = py.detach(|| MultiGp::new(x, y, thetas))?;
+        Ok(Self { inner })
+    }
+
+    /// Bundles fitted GPs that share their training inputs.
+    #[staticmethod]
+    fn from_gps(gps: Vec<PyRef<'_, PyGp>>) -> PyResult<Self> {
+        let inner = MultiGp::from_gps(gps.iter().map(|g| g.gp().clone()).collect())?;
+        Ok(Self { inner })
+    }
+
+    #[getter]
+    fn n_outputs(&self) -> usize {
+        self.inner.n_outputs()
+    }
+    #[getter]
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    #[getter]
+    fn n_train(&self) -> usize {
+        self.inner.gps()[0].n_train()
+    }
+    /// (q, n_d + 2) log-hyperparameters, one row per output.
+    #[getter]
+    fn thetas<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let data: Vec<f64> = self.inner.gps().iter().flat_map(|g| g.theta()).collect();
+        array2(py, data, self.inner.n_outputs(), self.inner.dim() + 2)
+    }
+    /// The diagonal jitter each output's factorisation needed (0 if none).
+    #[getter]
+    fn jitters<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.inner.gps().iter().map(|g| g.jitter()).collect())
+    }
+
+    /// The log marginal likelihood of each output, shape (q,).
+    fn log_marginal_likelihoods<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        let v = self
+            .inner
+            .gps()
+            .iter()
+            .map(|g| g.log_marginal_likelihood())
+            .collect();
+        PyArray1::from_vec(py, v)
+    }
+
+    /// (mean, var) of shapes (k, q) at the points d (k, n_d).
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>)> {
+        let (m, v, _) = predict_arrays(py, &self.inner, &d, false, false)?;
+        Ok((m, v))
+    }
+
+    /// (mean, var, dmean_dd, dvar_dd) of shapes (k, q), (k, q), (k, q, n_d), (k, q, n_d).
+    fn predict_with_gradients<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+        with_gradients(predict_arrays(py, &self.inner, &d, true, false)?)
+    }
+
+    /// Means only, shape (k, q): O(N) per point and output (no triangular solves).
+    fn predict_mean<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Arr<'py>> {
+        mean_array(py, &self.inner, &d, false)
+    }
+}
+
+/// (lml, grad): log p(y | x, theta) and, if eval_gradient, its gradient w.r.t.
+/// theta = log([sigma_f, lengthscales.., sigma_eps]) (an empty array otherwise).
+#[pyfunction]
+#[pyo3(name = "log_marginal_likelihood", signature = (x, y, theta, eval_gradient=false))]
+pub(super) fn gp_log_marginal_likelihood<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArray2<'py, f64>,
+    y: PyReadonlyArray1<'py, f64>,
+    theta: PyReadonlyArray1<'py, f64>,
+    eval_gradient: bool,
+) -> PyResult<(f64, Bound<'py, PyArray1<f64>>)> {
+    let (x, _, cols) = slice2("x", &x)?;
+    let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
+    check_cols("x", cols, theta.len().saturating_sub(2))?;
+    let (lml, grad) = py.detach(|| log_marginal_likelihood(x, y, theta, eval_gradient))?;
+    Ok((lml, PyArray1::from_vec(py, grad)))
+}
+
+/// The SE-ARD cross-kernel matrix k(a_i, b_j) (tests and diagnostics).
+#[pyfunction]
+pub(super) fn se_ard_kernel<'py>(
+    py: Python<'py>,
+    a: PyReadonlyArray2<'py, f64>,
+    b: PyReadonlyArray2<'py, f64>,
+    sigma_f: f64,
+    lengthscales: PyReadonlyArray1<'py, f64>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let kernel = SeArd::new(sigma_f, slice1("lengthscales", &lengthscales)?)?;
+    let (a, na, _) = slice2("a", &a)?;
+    let (b, nb, _) = slice2("b", &b)?;
+    kernel.count_points("a", a)?;
+    kernel.count_points("b", b)?;
+    let out = py.detach(|| {
+        let k = kernel.cross(a, b);
+        let mut out = vec![0.0; na * nb];
+        for i in 0..na {
+            for j in 0..nb {
+                out[i * nb + j] = k[(i, j)];
+            }
+        }
+        out
+    });
+    array2(py, out, na, nb)
+}

@@ -1,0 +1,29 @@
+//! The pyo3 binding, the only code that knows Python: one file per area (gp, mhe, rgp), with the
+//! array conversions (`convert`) and the error mapping (`error`) in one place each. A method
+//! converts its arguments, calls the core (without the GIL around the numerics) and maps the
+//! error; the algorithms live in the core modules.
+
+mod convert;
+mod error;
+mod gp;
+mod mhe;
+mod rgp;
+
+use pyo3::prelude::*;
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("NumericalError", m.py().get_type::<error::NumericalError>())?;
+    m.add_function(wrap_pyfunction!(gp::se_ard_kernel, m)?)?;
+    // GP
+    m.add_class::<gp::PyGp>()?;
+    m.add_class::<gp::PyMultiGp>()?;
+    m.add_function(wrap_pyfunction!(gp::gp_log_marginal_likelihood, m)?)?;
+    // MHE window
+    m.add_class::<mhe::PyMheWindow>()?;
+    // Window solver
+    m.add_class::<mhe::PyWindowSolver>()?;
+    m.add_class::<rgp::RgpCore>()?;
+    m.add_class::<rgp::RgpEkfCore>()?;
+    Ok(())
+}

@@ -1,0 +1,543 @@
+//! Recursive GP (`crate::rgp::Rgp`) and the RGP-dKF step kernels (`crate::rgp::RgpEkf`); the
+//! Python classes in gpmhe/rgp.py validate input and call these once per step.
+
+use numpy::{
+    PyArray1, PyArray2, PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyUntypedArrayMethods,
+};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use super::convert::{array2, slice1, slice2};
+// Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
+// python/gpmhe/rgp.py, which validates inputs and calls these once per step.
+
+use crate::rgp::{Rgp, RgpBasis, RgpEkf};
+use faer::MatRef;
+use pyo3::types::PyFloat;
+
+/// A (mean, variance) pair of 1-D arrays.
+type MeanVar<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
+
+fn mat_to_array2<'py>(py: Python<'py>, m: MatRef<'_, f64>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let (r, c) = (m.nrows(), m.ncols());
+    let mut out = Vec::with_capacity(r * c);
+    for i in 0..r {
+        for j in 0..c {
+            out.push(m[(i, j)]);
+        }
+    }
+    array2(py, out, r, c)
+}
+
+/// Huber's recursive GP on a unit grid of basis vectors (see gpmhe.RecursiveGP).
+#[pyclass(name = "RecursiveGPCore", module = "gpmhe._core")]
+#[derive(Clone)]
+pub struct RgpCore {
+    inner: Rgp,
+}
+
+#[pymethods]
+impl RgpCore {
+    #[new]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        lower: PyReadonlyArray1<'_, f64>,
+        upper: PyReadonlyArray1<'_, f64>,
+        n_points: Vec<usize>,
+        sigma_k: f64,
+        l: f64,
+        sigma_r: f64,
+        sigma_p: f64,
+    ) -> PyResult<Self> {
+        let basis = RgpBasis::new(
+            slice1("lower", &lower)?,
+            slice1("upper", &upper)?,
+            &n_points,
+            sigma_k,
+            l,
+            sigma_r,
+            sigma_p,
+        )?;
+        Ok(Self {
+            inner: Rgp::new(basis),
+        })
+    }
+
+    fn copy(&self) -> Self {
+        self.clone()
+    }
+
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        zeta: PyReadonlyArray1<'_, f64>,
+        y: f64,
+        var_y: f64,
+    ) -> PyResult<f64> {
+        let z = slice1("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        Ok(py.detach(|| inner.update(z, y, var_y))?)
+    }
+
+    fn update_many<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray1<'py, f64>,
+        var_y: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let (y, v) = (slice1("y", &y)?, slice1("var_y", &var_y)?);
+        let inner = &mut self.inner;
+        let out = py.detach(|| inner.update_many(z, y, v))?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    fn predict<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<MeanVar<'py>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        let (m, v) = py.detach(|| inner.predict(z))?;
+        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
+    }
+
+    fn j_row<'py>(
+        &mut self,
+        py: Python<'py>,
+        zeta: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let j = self.inner.j_row(slice1("zeta", &zeta)?)?;
+        Ok(PyArray1::from_vec(py, j))
+    }
+
+    fn set_weights(
+        &mut self,
+        mean: PyReadonlyArray1<'_, f64>,
+        cov: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<()> {
+        let (c, _, _) = slice2("cov", &cov)?;
+        Ok(self.inner.set_weights(slice1("mean", &mean)?, c)?)
+    }
+
+    #[getter]
+    fn mean<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.mean())
+    }
+
+    #[getter]
+    fn cov<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.cov())
+    }
+
+    #[getter]
+    fn basis_vectors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let b = self.inner.basis();
+        array2(py, b.basis_vectors(), b.n_basis(), b.dim())
+    }
+
+    #[getter]
+    fn kernel_matrix<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.basis().kernel_matrix())
+    }
+
+    #[getter]
+    fn jitter(&self) -> f64 {
+        self.inner.basis().jitter()
+    }
+}
+
+/// Dimension n + Σ n_b (N in augmented mode) from which the per-step calls of `RGPEKFCore` release the GIL.
+/// Below it a step's kernels take a few µs, less than a release and re-acquisition of the GIL costs
+/// when other threads contend for it (numpy likewise keeps the GIL for small arrays).
+const RGP_STEP_GIL_RELEASE_MIN_DIM: usize = 200;
+
+/// Runs `f` with the GIL released if `release`, else holding it.
+fn detach_if<T: Send>(py: Python<'_>, release: bool, f: impl FnOnce() -> T + Send) -> T {
+    if release {
+        py.detach(f)
+    } else {
+        f()
+    }
+}
+
+/// The RGP-dKF state and per-step kernels (see gpmhe.RGPEKF). Constant Jacobians A, e, H are
+/// stored once (`set_constant_jacobians`) so that a step passes only what changes.
+#[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
+pub struct RgpEkfCore {
+    inner: RgpEkf,
+    a_const: Option<Vec<f64>>,
+    e_const: Option<Vec<f64>>,
+    h_const: Option<Vec<f64>>,
+    /// Per-step copies of the inputs and of the user functions' results (a few values each).
+    buf: StepBuffers,
+}
+
+#[derive(Default)]
+struct StepBuffers {
+    zeta: Vec<f64>,
+    x_pred: Vec<f64>,
+    a: Vec<f64>,
+    e: Vec<f64>,
+    q: Vec<f64>,
+    y: Vec<f64>,
+    hx: Vec<f64>,
+    h: Vec<f64>,
+    r: Vec<f64>,
+}
+
+/// The shape of a value read by [`read_f64`] (up to four dimensions kept; more only appear in
+/// error messages, as "…").
+#[derive(PartialEq)]
+struct Shape {
+    ndim: usize,
+    dims: [usize; 4],
+}
+
+impl Shape {
+    fn of(dims: &[usize]) -> Self {
+        let mut d = [0; 4];
+        for (o, v) in d.iter_mut().zip(dims) {
+            *o = *v;
+        }
+        Self {
+            ndim: dims.len(),
+            dims: d,
+        }
+    }
+
+    fn is(&self, dims: &[usize]) -> bool {
+        self.ndim == dims.len() && self.dims[..self.ndim.min(4)] == *dims
+    }
+
+    /// Python's repr of the shape tuple: (), (3,), (2, 2).
+    fn repr(&self) -> String {
+        let mut parts: Vec<String> = self.dims[..self.ndim.min(4)]
+            .iter()
+            .map(|d| d.to_string())
+            .collect();
+        if self.ndim > 4 {
+            parts.push("…".into());
+        }
+        match parts.len() {
+            1 => format!("({},)", parts[0]),
+            _ => format!("({})", parts.join(", ")),
+        }
+    }
+}
+
+/// Copies the values of `obj` as float64 into `out` and returns its shape. Python floats and
+/// C-contiguous float64 arrays are read directly; anything else goes through
+/// `numpy.ascontiguousarray(obj, dtype=float64)` (lists, ints, other dtypes, column vectors
+/// from views). A `ValueError` naming `arg` if that fails.
+fn read_f64(arg: &str, obj: &Bound<'_, PyAny>, out: &mut Vec<f64>) -> PyResult<Shape> {
+    if let Ok(v) = obj.cast::<PyFloat>() {
+        out.clear();
+        out.push(v.value());
+        return Ok(Shape::of(&[]));
+    }
+    let read = |a: &Bound<'_, PyArrayDyn<f64>>, out: &mut Vec<f64>| -> Option<Shape> {
+        // SAFETY: the data are copied at once, with the GIL held and no Python code running in
+        // between (as `PyArrayMethods::to_vec` does), into a buffer that is reused every step.
+        let data = unsafe { a.as_slice() }
+            .ok()
+            .filter(|_| a.is_c_contiguous())?;
+        out.clear();
+        out.extend_from_slice(data);
+        Some(Shape::of(a.shape()))
+    };
+    if let Ok(a) = obj.cast::<PyArrayDyn<f64>>() {
+        if let Some(shape) = read(a, out) {
+            return Ok(shape);
+        }
+    }
+    let py = obj.py();
+    let kwargs = pyo3::types::PyDict::new(py);
+    kwargs.set_item("dtype", "float64")?;
+    let conv = py
+        .import("numpy")?
+        .getattr("ascontiguousarray")?
+        .call((obj,), Some(&kwargs))
+        .map_err(|e| PyValueError::new_err(format!("{arg}: must be numeric ({e})")))?;
+    conv.cast::<PyArrayDyn<f64>>()
+        .ok()
+        .and_then(|a| read(a, out))
+        .ok_or_else(|| PyValueError::new_err(format!("{arg}: must be numeric")))
+}
+
+impl RgpEkfCore {
+    /// Whether a step's kernels run with the GIL released (see RGP_STEP_GIL_RELEASE_MIN_DIM).
+    fn release_gil(&self) -> bool {
+        self.inner.dim_x() + self.inner.n_basis_total() >= RGP_STEP_GIL_RELEASE_MIN_DIM
+    }
+
+    /// A fresh array of the current state x (the user's functions may keep it).
+    fn x_array<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.x())
+    }
+}
+
+#[pymethods]
+impl RgpEkfCore {
+    #[new]
+    fn new(
+        x0: PyReadonlyArray1<'_, f64>,
+        p0: PyReadonlyArray2<'_, f64>,
+        gps: Vec<PyRef<'_, RgpCore>>,
+        augmented: bool,
+    ) -> PyResult<Self> {
+        let (p, _, _) = slice2("P0", &p0)?;
+        let gps = gps.iter().map(|g| g.inner.clone()).collect();
+        Ok(Self {
+            inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
+            a_const: None,
+            e_const: None,
+            h_const: None,
+            buf: StepBuffers::default(),
+        })
+    }
+
+    /// Stores constant A (n × n), e (n × q), H (p × n) (None: given at every step).
+    #[pyo3(signature = (a=None, e=None, h=None))]
+    fn set_constant_jacobians(
+        &mut self,
+        a: Option<PyReadonlyArray2<'_, f64>>,
+        e: Option<PyReadonlyArray2<'_, f64>>,
+        h: Option<PyReadonlyArray2<'_, f64>>,
+    ) -> PyResult<()> {
+        let copy = |arg: &str, m: &Option<PyReadonlyArray2<'_, f64>>| -> PyResult<_> {
+            m.as_ref()
+                .map(|m| slice2(arg, m).map(|s| s.0.to_vec()))
+                .transpose()
+        };
+        let (a, e, h) = (copy("A", &a)?, copy("e", &e)?, copy("H", &h)?);
+        (self.a_const, self.e_const, self.h_const) = (a, e, h);
+        Ok(())
+    }
+
+    /// One prediction step (paper §3.4, steps 1–3) in one call: J_k and μ_z^p at the GP inputs
+    /// `zeta` (a float for one 1-D GP, else the inputs of all GPs concatenated), then
+    /// x⁻ = f(x, u, z), A(x, u, z) and e(x, u, z) (None: the stored constants) called here with
+    /// z = μ_z^p (a float for one GP, else an array), then the structured covariance prediction
+    /// with Q_x. Bad input or results raise ValueError naming them; C and μ stay unchanged.
+    #[pyo3(signature = (f, u, zeta, a_fn, e_fn, q_x))]
+    #[allow(clippy::too_many_arguments)]
+    fn predict_step(
+        &mut self,
+        py: Python<'_>,
+        f: &Bound<'_, PyAny>,
+        u: &Bound<'_, PyAny>,
+        zeta: &Bound<'_, PyAny>,
+        a_fn: Option<&Bound<'_, PyAny>>,
+        e_fn: Option<&Bound<'_, PyAny>>,
+        q_x: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let release = self.release_gil();
+        read_f64("zeta", zeta, &mut self.buf.zeta)?;
+        {
+            let (inner, z) = (&mut self.inner, &self.buf.zeta);
+            detach_if(py, release, || inner.infer(z).map(|_| ()))?;
+        }
+        let (n, q) = (self.inner.dim_x(), self.inner.n_gps());
+        let x = self.x_array(py);
+        let zp = self.inner.z_pred();
+        let z = if q == 1 {
+            PyFloat::new(py, zp[0]).into_any()
+        } else {
+            PyArray1::from_slice(py, zp).into_any()
+        };
+        let xp = f.call1((&x, u, &z))?;
+        let shape = read_f64("f", &xp, &mut self.buf.x_pred)?;
+        if self.buf.x_pred.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "f: returned {} values (shape {}), expected {n}",
+                self.buf.x_pred.len(),
+                shape.repr()
+            )));
+        }
+        if let Some(a_fn) = a_fn {
+            let shape = read_f64("A", &a_fn.call1((&x, u, &z))?, &mut self.buf.a)?;
+            if !shape.is(&[n, n]) {
+                return Err(PyValueError::new_err(format!(
+                    "A: returned shape {}, expected ({n}, {n})",
+                    shape.repr()
+                )));
+            }
+        }
+        if let Some(e_fn) = e_fn {
+            let shape = read_f64("e", &e_fn.call1((&x, u, &z))?, &mut self.buf.e)?;
+            if self.buf.e.len() != n * q {
+                return Err(PyValueError::new_err(format!(
+                    "e: returned shape {}, expected ({n}, {q})",
+                    shape.repr()
+                )));
+            }
+        }
+        read_f64("Q_x", q_x, &mut self.buf.q)?;
+        let missing = |arg: &str| {
+            PyValueError::new_err(format!("{arg}: not given and no constant {arg} was stored"))
+        };
+        let a = match (a_fn, &self.a_const) {
+            (Some(_), _) => &self.buf.a,
+            (None, Some(c)) => c,
+            (None, None) => return Err(missing("A")),
+        };
+        let e = match (e_fn, &self.e_const) {
+            (Some(_), _) => &self.buf.e,
+            (None, Some(c)) => c,
+            (None, None) => return Err(missing("e")),
+        };
+        let (inner, xp, qb) = (&mut self.inner, &self.buf.x_pred, &self.buf.q);
+        Ok(detach_if(py, release, || inner.predict(xp, a, e, qb))?)
+    }
+
+    /// One EKF update (paper §3.4, step 4) in one call: h(x⁻) and H(x⁻) (None: the stored
+    /// constant) called here, ν = y − h(x⁻), then the update with R_x (a (p, p) array, or a
+    /// scalar meaning R_x I). `dim_y`, if known, is the required number of outputs. Returns the
+    /// log-likelihood. Bad input raises ValueError naming it, an indefinite innovation
+    /// covariance gpmhe.NumericalError; C and μ stay unchanged.
+    #[pyo3(signature = (y, h, h_fn, r, dim_y, learning))]
+    #[allow(clippy::too_many_arguments)]
+    fn update_step(
+        &mut self,
+        py: Python<'_>,
+        y: &Bound<'_, PyAny>,
+        h: &Bound<'_, PyAny>,
+        h_fn: Option<&Bound<'_, PyAny>>,
+        r: &Bound<'_, PyAny>,
+        dim_y: Option<usize>,
+        learning: bool,
+    ) -> PyResult<f64> {
+        read_f64("y", y, &mut self.buf.y)?;
+        let (n, p) = (self.inner.dim_x(), self.buf.y.len());
+        if let Some(d) = dim_y {
+            if p != d {
+                return Err(PyValueError::new_err(format!(
+                    "y: expected {d} value(s), got {p}"
+                )));
+            }
+        }
+        let x = self.x_array(py);
+        read_f64("h", &h.call1((&x,))?, &mut self.buf.hx)?;
+        if self.buf.hx.len() != p {
+            return Err(PyValueError::new_err(format!(
+                "h: returned {} values but y has {p}",
+                self.buf.hx.len()
+            )));
+        }
+        if let Some(h_fn) = h_fn {
+            let shape = read_f64("H", &h_fn.call1((&x,))?, &mut self.buf.h)?;
+            if self.buf.h.len() != p * n {
+                return Err(PyValueError::new_err(format!(
+                    "H: shape {} does not match ({p}, {n})",
+                    shape.repr()
+                )));
+            }
+        }
+        let h = match (h_fn, &self.h_const) {
+            (Some(_), _) => &self.buf.h,
+            (None, Some(c)) => c,
+            (None, None) => {
+                return Err(PyValueError::new_err(
+                    "H: not given and no constant H was stored",
+                ))
+            }
+        };
+        // ν = y − h(x⁻), in place of h(x⁻)
+        for (v, yi) in self.buf.hx.iter_mut().zip(&self.buf.y) {
+            *v = yi - *v;
+        }
+        if read_f64("R_x", r, &mut self.buf.r)?.ndim == 0 {
+            // a scalar: R_x I
+            let rv = self.buf.r[0];
+            self.buf.r.clear();
+            self.buf.r.resize(p * p, 0.0);
+            for i in 0..p {
+                self.buf.r[i * p + i] = rv;
+            }
+        }
+        let release = self.release_gil();
+        let (inner, nu, rb) = (&mut self.inner, &self.buf.hx, &self.buf.r);
+        Ok(detach_if(py, release, || {
+            inner.update(nu, h, rb, learning)
+        })?)
+    }
+
+    #[getter]
+    fn z_pred<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.z_pred())
+    }
+
+    fn set_x(&mut self, x: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
+        Ok(self.inner.set_x(slice1("x", &x)?)?)
+    }
+
+    fn set_p(&mut self, p: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
+        Ok(self.inner.set_p(slice2("P", &p)?.0)?)
+    }
+    fn gp_predict<'py>(
+        &mut self,
+        py: Python<'py>,
+        index: usize,
+        zeta: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<MeanVar<'py>> {
+        let (z, _, _) = slice2("zeta", &zeta)?;
+        let inner = &mut self.inner;
+        let (m, v) = py.detach(|| inner.gp_predict(index, z))?;
+        Ok((PyArray1::from_vec(py, m), PyArray1::from_vec(py, v)))
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn gp_weights<'py>(
+        &self,
+        py: Python<'py>,
+        index: usize,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray2<f64>>)> {
+        if index >= self.inner.n_gps() {
+            return Err(PyValueError::new_err(format!(
+                "index: there are {} GPs, got {index}",
+                self.inner.n_gps()
+            )));
+        }
+        let (m, c) = self.inner.gp_weights(index);
+        Ok((PyArray1::from_vec(py, m), mat_to_array2(py, c.as_ref())?))
+    }
+
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.x())
+    }
+
+    #[getter(P)]
+    fn p<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.p())
+    }
+
+    #[getter]
+    fn mu<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.inner.mu())
+    }
+
+    #[getter(C)]
+    fn c<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.cov().as_ref())
+    }
+
+    #[getter]
+    fn innovation<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_slice(py, self.inner.innovation())
+    }
+
+    #[getter(S)]
+    fn s<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        mat_to_array2(py, self.inner.innovation_cov())
+    }
+
+    #[getter]
+    fn log_likelihood(&self) -> f64 {
+        self.inner.log_likelihood()
+    }
+}
