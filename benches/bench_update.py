@@ -91,17 +91,20 @@ def row(name, ts, ekf_median, extra=""):
     print(f"| {name:<46} | {med:9.3f} | {p95:9.3f} | {med / (ekf_median * 1e3):8.1f} |{extra}")
 
 
-class _TimedSolver:
-    """Wraps an estimator's Rust solver to time its one call per update (`step`)."""
+class _TimedCore:
+    """Wraps an estimator's Rust core to time its one call per update (`update`)."""
 
-    def __init__(self, solver):
-        self.solver, self.times = solver, []
+    def __init__(self, core):
+        self.core, self.times = core, []
 
-    def step(self, *args):
+    def update(self, *args):
         t0 = time.perf_counter()
-        out = self.solver.step(*args)
+        out = self.core.update(*args)
         self.times.append(time.perf_counter() - t0)
         return out
+
+    def __getattr__(self, name):
+        return getattr(self.core, name)
 
 
 def time_split(model, kw, y, steps):
@@ -109,8 +112,8 @@ def time_split(model, kw, y, steps):
     one full window evaluation (all M+1 points new: the window states moved by 1e-9)."""
     est = GPMHE(model, br.X_PRIOR0, **kw)
     est.update(None, y[0])
-    timed = _TimedSolver(est._core.solver)
-    est._core.solver = timed
+    timed = _TimedCore(est._core.window)
+    est._core.window = timed
     total, evals = [], []
     for t in range(1, steps):
         t0 = time.perf_counter()
@@ -118,7 +121,7 @@ def time_split(model, kw, y, steps):
         total.append(time.perf_counter() - t0)
         evals.append(est.nfev)
     total, rust = np.array(total), np.array(timed.times)
-    win, z = est._core.window, est.x_window.reshape(-1).copy()
+    win, z = timed.core, est.x_window.reshape(-1).copy()
     ev = []
     for i in range(200):
         z += 1e-9 if i % 2 else -1e-9  # every stage point changes: no reuse of GP values
@@ -126,7 +129,7 @@ def time_split(model, kw, y, steps):
         win.cost_grad(z)
         ev.append(time.perf_counter() - t0)
     print(f"Time split of the default Rust solver (same GPs, {steps - 1} updates): median update "
-          f"{np.median(total) * 1e3:.3f} ms, of which the one Rust call (WindowSolver.step) "
+          f"{np.median(total) * 1e3:.3f} ms, of which the one Rust call (MovingHorizon.update) "
           f"{np.median(rust) * 1e3:.3f} ms and Python {np.median(total - rust) * 1e6:.0f} µs; "
           f"median {np.median(evals):.0f} window evaluations (the first, of the warm start, "
           f"recomputes one point); one full window evaluation ({len(z) // 2} nodes, i.e. "

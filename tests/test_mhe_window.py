@@ -1,4 +1,4 @@
-"""The MHE window problem assembled in Rust (gpmhe._core.MheWindow) against a plain numpy
+"""The MHE window problem assembled in Rust (gpmhe._core.MovingHorizon) against a plain numpy
 implementation of the window cost (docs/user_guide/window.rst) and finite differences, and the two SciPy solver paths against each
 other on single windows (with and without active bounds)."""
 
@@ -123,92 +123,134 @@ def test_callback_errors_propagate():
         win.cost(np.zeros(4))
 
 
+@pytest.mark.parametrize("form", ["prediction", "filtering"])
 @pytest.mark.parametrize("kind", ["known", "known-stage-eval", "learned", "learned-residual"])
-def test_prepare_warm_start_shifts_predicts_and_clips(kind):
-    """The Rust warm start (MheWindow.prepare, used by every solver path): the previous window's
-    rows from `first` on, then each new node predicted from the one before with the model's
-    one-step prediction, all clipped into the inner box; rows already inside stay bit-identical
-    (the learned model's reuse of GP values depends on it)."""
+def test_prepare_warm_start_shifts_predicts_and_clips(kind, form):
+    """The Rust warm start (MovingHorizon.prepare, used by every solver path): the previous
+    window's nodes that overlap the new window, then each new node predicted from the one before
+    with the model's one-step prediction, all clipped into the inner box (the state box shrunk by
+    1e-6 of its width); nodes already inside stay bit-identical (the learned model's reuse of GP
+    values depends on it). Driven through the history: random windows are committed, and each
+    next warm start is checked against this rule."""
+    from gpmhe import _core
     model = known3() if kind.startswith("known") else synthetic_learned(kind == "learned-residual")
-    if kind == "known-stage-eval":  # no predict callable: the window uses stage_eval's means
-        from gpmhe import _core
-        win = _core.MheWindow.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2),
-                                            np.ones(2), np.eye(2), False)
-    else:
-        win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False)
-    rng = np.random.default_rng(5)
-    prev = rng.uniform(-1, 1, (4, 2))
-    prev[1, 0] = 0.37123456789
-    u = rng.uniform(-1, 1, (5, 1))
     lo, hi = np.array([-0.9, -2.0]), np.array([0.9, 2.0])
-    args = (u, np.zeros((5, 2)), [True] * 5, np.zeros(2))
-    for first in (1, 3, -1):
-        z0 = win.prepare(*args, prev, first, lo, hi).reshape(5, 2)
-        expect = np.empty((5, 2))
-        kept = 0 if first < 0 else min(5, 4 - first)
+    settings = dict(horizon=3, x0=np.zeros(2), lower=lo, upper=hi)
+    filtering = form == "filtering"
+    if kind == "known-stage-eval":  # no predict callable: the window uses stage_eval's means
+        win = _core.MovingHorizon.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2),
+                                                np.ones(2), np.eye(2), filtering, **settings)
+    else:
+        win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), filtering, **settings)
+    inner = (lo + 1e-6 * (hi - lo), hi - 1e-6 * (hi - lo))
+    rng = np.random.default_rng(5)
+    prev, prev_s0, inputs = np.zeros((1, 2)), 0, []
+    for t in range(6):
+        u = rng.uniform(-1, 1, 1)
+        inputs.append(u)
+        z0, LB, UB = win.prepare(u, rng.uniform(-1, 1, 2))
+        nodes = len(z0) // 2
+        end = t + 1 if form == "prediction" else t
+        s0 = max(0, end - 3)
+        assert nodes == end - s0 + 1 and win.n_nodes == nodes
+        np.testing.assert_array_equal(LB, np.tile(lo, nodes))
+        np.testing.assert_array_equal(UB, np.tile(hi, nodes))
+        first = s0 - prev_s0
+        kept = min(nodes, len(prev) - first)
+        assert kept >= 1
+        expect = np.empty((nodes, 2))
         expect[:kept] = prev[first:first + kept]
-        for i in range(kept, 5):
-            expect[i] = prev[-1] if i == 0 else model.predict(expect[i - 1], u[i - 1])
-        np.testing.assert_allclose(z0, np.clip(expect, lo, hi), rtol=1e-13, atol=1e-14)
-        np.testing.assert_allclose(win.predict_next(expect[0], u[0]),
-                                   model.predict(expect[0], u[0]), rtol=1e-13, atol=1e-15)
-    z0 = win.prepare(*args, prev, 1, lo, hi).reshape(5, 2)
-    assert z0[0, 0] == prev[1, 0]  # bit-identical inside the box
-    assert win.n_nodes == 5
+        for i in range(kept, nodes):  # node i is time s0 + i, predicted with u(s0 + i − 1)
+            expect[i] = model.predict(expect[i - 1], inputs[s0 + i - 1])
+        z0 = z0.reshape(nodes, 2)
+        np.testing.assert_allclose(z0, np.clip(expect, *inner), rtol=1e-13, atol=1e-14)
+        inside = np.all((expect[:kept] >= inner[0]) & (expect[:kept] <= inner[1]), axis=1)
+        assert np.array_equal(z0[:kept][inside], expect[:kept][inside])  # bit-identical
+        np.testing.assert_allclose(win.predict_next(expect[0], u), model.predict(expect[0], u),
+                                   rtol=1e-13, atol=1e-15)
+        z = rng.uniform(-0.8, 0.8, (nodes, 2))
+        z[0, 0] = 0.37123456789
+        x_window, x_prior = win.commit(z.reshape(-1))
+        np.testing.assert_array_equal(x_window, z)
+        prev, prev_s0 = z, s0
+    assert win.t == 6
 
 
 def test_prepare_rejects_bad_arguments_naming_them():
+    """Bad input to prepare/update/commit raises ValueError naming it and leaves the estimator
+    (its history and window) as it was."""
+    from gpmhe import _core
     model = known3()
-    win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False)
+    win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False, horizon=4,
+                             x0=np.zeros(2))
     win.set_data(np.zeros((3, 1)), np.zeros((3, 2)), [True] * 3, np.zeros(2))
-    args = (np.zeros((4, 1)), np.zeros((4, 2)), [True] * 4, np.zeros(2))
-    box = (np.full(2, -1.0), np.full(2, 1.0))
-    with pytest.raises(ValueError, match="prev_window"):
-        win.prepare(*args, np.zeros((3, 3)), 1, *box)
-    with pytest.raises(ValueError, match="prev_window"):
-        win.prepare(*args, np.full((3, 2), np.nan), 1, *box)
-    with pytest.raises(ValueError, match="lower_inner"):
-        win.prepare(*args, np.zeros((3, 2)), 1, np.full(2, 1.0), np.full(2, -1.0))
-    assert win.n_nodes == 3  # the window's data were left as they were
+    for u, y, name in ((np.zeros(2), np.zeros(2), "u"), (np.zeros(1), np.zeros(3), "y"),
+                       (np.full(1, np.nan), np.zeros(2), "u"), (np.zeros(1), np.full(2, np.inf), "y")):
+        for call in (win.prepare, win.update):
+            with pytest.raises(ValueError, match=name):
+                call(u, y)
+    assert win.n_nodes == 3 and win.t == 0  # the window's data were left as they were
+    with pytest.raises(ValueError, match="z"):
+        win.commit(np.zeros(4))  # nothing staged
+    win.prepare(np.zeros(1), np.zeros(2))
+    with pytest.raises(ValueError, match="z"):
+        win.commit(np.zeros(3))
+    with pytest.raises(ValueError, match="z"):
+        win.commit(np.full(4, np.nan))
+    assert win.t == 0
     with pytest.raises(ValueError, match="x"):
         win.predict_next(np.zeros(3), np.zeros(1))
 
     def bad_predict(x, u):
         return np.zeros(3)
 
-    from gpmhe import _core
-    win2 = _core.MheWindow.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2), np.ones(2),
-                                         np.eye(2), False, predict=bad_predict)
+    win2 = _core.MovingHorizon.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2),
+                                             np.ones(2), np.eye(2), False, predict=bad_predict,
+                                             horizon=3, x0=np.zeros(2))
     with pytest.raises(ValueError, match="predict"):
-        win2.prepare(*args, np.zeros((3, 2)), 1, *box)
+        win2.prepare(np.zeros(1), np.zeros(2))
     with pytest.raises(ValueError, match="predict"):
-        _core.MheWindow.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2), np.ones(2),
-                                      np.eye(2), False, predict=3.0)
+        win2.update(np.zeros(1), np.zeros(2))
+    assert win2.t == 0
+    with pytest.raises(ValueError, match="predict"):
+        _core.MovingHorizon.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2), np.ones(2),
+                                          np.eye(2), False, predict=3.0)
 
 
-def test_solver_step_is_prepare_then_solve():
-    """WindowSolver.step (GPMHE's one Rust call per update) gives exactly prepare + solve, and in
-    the filtering form the model's prediction from the last node."""
+def test_update_is_prepare_then_solve_then_commit():
+    """MovingHorizon.update (GPMHE's one Rust call per update) gives exactly prepare, solve and
+    commit, and in the filtering form the next arrival prior is the model's prediction from the
+    last node."""
     from gpmhe import _core
     model = synthetic_learned(False)
     rng = np.random.default_rng(9)
-    prev = rng.uniform(-1, 1, (4, 2))
-    u, y = rng.uniform(-1, 1, (5, 1)), rng.uniform(-1, 1, (5, 2))
-    lo, hi = np.full(2, -1.4), np.full(2, 1.4)
-    LB, UB = np.full(10, -1.5), np.full(10, 1.5)
+    lo, hi = np.full(2, -1.5), np.full(2, 1.5)
     for filtering in (False, True):
-        args = (u, y, [True] * 5, np.zeros(2), prev, 1, lo, hi)
-        w1 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering)
-        w2 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering)
-        out, x_next = _core.WindowSolver().step(w1, *args, LB, UB)
-        ref = _core.WindowSolver().solve(w2, w2.prepare(*args), LB, UB)
-        np.testing.assert_array_equal(out[0], ref[0])
-        assert out[1:8] == ref[1:8]
-        np.testing.assert_array_equal(out[8], ref[8])
-        if filtering:
-            np.testing.assert_array_equal(x_next, w2.predict_next(out[0][-2:], u[-1]))
-        else:
-            assert x_next is None
+        settings = dict(horizon=3, x0=np.zeros(2), lower=lo, upper=hi)
+        w1 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering,
+                                solver=_core.WindowSolver(), **settings)
+        w2 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering,
+                                **settings)
+        priors, next_priors, estimates = [], [], []
+        for t in range(6):
+            u, y = rng.uniform(-1, 1, 1), rng.uniform(-1, 1, 2)
+            rep = w1.update(u, y)
+            z0, LB, UB = w2.prepare(u, y)
+            ref = _core.WindowSolver().solve(w2, z0, LB, UB)
+            x_window, x_prior = w2.commit(ref[0])
+            np.testing.assert_array_equal(rep.x_window, x_window)
+            np.testing.assert_array_equal(rep.x_prior, x_prior)
+            assert (rep.cost, rep.status, rep.success, rep.nit, rep.nfev, rep.projected_gradient,
+                    rep.interior_iterations) == ref[1:8]
+            np.testing.assert_array_equal(rep.P, ref[8])
+            assert rep.error is None
+            # The prior of the first node, time s0: x̂(s0) from update s0 − 1 (prediction
+            # form), or m_x(x̂(s0 − 1), u(s0 − 1)) from update s0 − 1 (filtering form).
+            s0 = max(0, t - 3) if filtering else max(0, t - 2)
+            expect = np.zeros(2) if s0 == 0 else (next_priors if filtering else estimates)[s0 - 1]
+            np.testing.assert_array_equal(x_prior, expect)
+            next_priors.append(w1.predict_next(x_window[-1], u))
+            estimates.append(x_window[-1])
 
 
 @pytest.fixture(scope="module")

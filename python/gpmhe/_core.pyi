@@ -206,15 +206,33 @@ class RGPEKFCore:
     @property
     def log_likelihood(self) -> float: ...
 
-# ===== MHE window =====
+# ===== Moving horizon estimator =====
 
 from typing import Callable
 
 _F = npt.NDArray[np.float64]
 
-class MheWindow:
-    """One GP-MHE window problem (docs/user_guide/window.rst): residuals, banded Jacobian, cost, gradient and
-    Gauss-Newton Hessian in the stacked window states z; evaluations at the same z are cached."""
+class UpdateReport:
+    """What one `MovingHorizon.update` did. `error` is the message of a solver failure (the
+    window then keeps its warm start, `status` is None and `success` False)."""
+
+    x_window: _F
+    x_prior: _F
+    P: _F | None
+    cost: float
+    status: str | None
+    success: bool
+    nit: int
+    nfev: int
+    projected_gradient: float
+    interior_iterations: int
+    error: str | None
+
+class MovingHorizon:
+    """The moving-horizon estimator's core (rust/src/mhe/): built once with the model, the
+    window weights and form, the horizon, x̂(0), the state box and the solver settings; owns the
+    sliding history and the warm start. `update(u, y)` is one whole update; `prepare`, the
+    window methods (`cost`, ...) and `commit` are its steps for other solvers."""
 
     @staticmethod
     def with_callback(
@@ -228,9 +246,14 @@ class MheWindow:
         p2_sqrt: _F,
         filtering: bool,
         predict: Callable[[_F, _F], _F] | None = None,
-    ) -> MheWindow:
-        """`predict(x, u)`: the one-step prediction used for warm starts (None: the means of
-        `stage_eval` at one point)."""
+        horizon: int = 1,
+        x0: _F | None = None,
+        lower: _F | None = None,
+        upper: _F | None = None,
+        solver: WindowSolver | None = None,
+    ) -> MovingHorizon:
+        """`predict(x, u)`: the one-step prediction used for warm starts and the filtering
+        form's arrival prior (None: the means of `stage_eval` at one point)."""
         ...
     @staticmethod
     def with_gp(
@@ -243,25 +266,30 @@ class MheWindow:
         r0: _F,
         p2_sqrt: _F,
         filtering: bool,
-    ) -> MheWindow: ...
-    def set_data(self, u: _F, y: _F, y_present: list[bool], x_prior: _F) -> None: ...
-    def prepare(
-        self,
-        u: _F,
-        y: _F,
-        y_present: list[bool],
-        x_prior: _F,
-        prev_window: _F,
-        first: int,
-        lower_inner: _F,
-        upper_inner: _F,
-    ) -> _F:
-        """`set_data`, then the warm start z0: `prev_window`'s rows from `first` on (first < 0:
-        none), further nodes predicted with the model, clipped into [lower_inner, upper_inner]."""
+        horizon: int = 1,
+        x0: _F | None = None,
+        lower: _F | None = None,
+        upper: _F | None = None,
+        solver: WindowSolver | None = None,
+    ) -> MovingHorizon: ...
+    def reset(self, x0: _F) -> None: ...
+    def update(self, u: _F, y: _F | None = None) -> UpdateReport:
+        """One whole update; on error the estimator is unchanged."""
+        ...
+    def prepare(self, u: _F, y: _F | None = None) -> tuple[_F, _F, _F]:
+        """Stage the next window without recording it: (z0, lower, upper)."""
+        ...
+    def commit(self, z: _F) -> tuple[_F, _F]:
+        """Record the staged window's solution: (x_window, x_prior)."""
+        ...
+    def set_data(self, u: _F, y: _F, y_present: list[bool], x_prior: _F) -> None:
+        """Set a window directly (tests, diagnostics; it cannot be committed)."""
         ...
     def predict_next(self, x: _F, u: _F) -> _F:
         """The model's one-step prediction m_x(x, u)."""
         ...
+    @property
+    def t(self) -> int: ...
     @property
     def n_nodes(self) -> int: ...
     @property
@@ -275,11 +303,9 @@ class MheWindow:
     def residuals(self, z: _F) -> _F: ...
     def jacobian(self, z: _F) -> _F: ...
 
-# ===== Window solver =====
-
 class WindowSolver:
-    """The real-time bounded Gauss-Newton window solver (rust/src/solver.rs): settings and work
-    buffers reused across updates. Used by GPMHE(solver="gauss-newton")."""
+    """The real-time bounded Gauss-Newton window solver (rust/src/solver/): settings (given to
+    `MovingHorizon`) and work buffers for solving a set window directly."""
 
     def __init__(
         self,
@@ -295,7 +321,7 @@ class WindowSolver:
     ) -> None: ...
     def solve(
         self,
-        window: MheWindow,
+        window: MovingHorizon,
         z0: npt.NDArray[np.float64],
         lower: npt.NDArray[np.float64],
         upper: npt.NDArray[np.float64],
@@ -305,23 +331,4 @@ class WindowSolver:
         status is one of gradient-tolerance, decrement-tolerance, step-tolerance,
         cost-tolerance, noise-floor (successes), max-iterations, no-progress. P: the last n×n
         block of 4(2JᵀJ)⁻¹ at z, symmetrised (None if singular)."""
-        ...
-    def step(
-        self,
-        window: MheWindow,
-        u: _F,
-        y: _F,
-        y_present: list[bool],
-        x_prior: _F,
-        prev_window: _F,
-        first: int,
-        lower_inner: _F,
-        upper_inner: _F,
-        lower: _F,
-        upper: _F,
-    ) -> tuple[
-        tuple[_F, float, str, bool, int, int, float, int, _F | None], _F | None
-    ]:
-        """One GPMHE update in one call: `window.prepare(...)`, then `solve` on [lower, upper].
-        Returns (solve's tuple, the filtering form's next prior m_x(x̄_t, u_t) or None)."""
         ...

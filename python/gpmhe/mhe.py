@@ -1,16 +1,16 @@
 """GPMHE: the GP-based moving horizon estimator of Wolff, Lopez & Müller, in filterpy's style.
 
-The window problem (see the user guide, *The window problem*) is assembled in Rust
-(`gpmhe._core.MheWindow`: residuals, banded Jacobian, cost, gradient, Gauss-Newton Hessian, the
-warm start); this module keeps the history, builds each window's data and calls a solver: the
-default Rust solver does data, warm start, solve and covariance in one call per update
-(`WindowSolver.step`, see the user guide, *The window solver*).
+This module validates the settings and every step's input, holds the public attributes and runs
+SciPy's solvers. The estimator itself is one Rust object (`gpmhe._core.MovingHorizon`, built once
+with the model, horizon, weights, form, state box and solver settings): it owns the sliding
+history and the warm start, and with the default solver one ``update(u, y)`` is one Rust call
+(window, warm start, solve, covariance, next arrival prior). SciPy's solvers evaluate the same
+Rust window between ``prepare`` and ``commit``. See the user guide, *Architecture*.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections import deque
 
 import numpy as np
 from scipy.optimize import Bounds, least_squares, minimize
@@ -46,13 +46,11 @@ def _square(name, a, dim, allow_full):
 
 
 class _Unsaved:
-    """Holds the Rust window object and the estimator's history; `copy.deepcopy` (filterpy's
-    Saver) shares it instead of copying."""
+    """Holds the Rust estimator core (with the history); `copy.deepcopy` (filterpy's Saver)
+    shares it instead of copying."""
 
     def __init__(self, window):
         self.window = window
-        self.U = self.Y = self.present = self.priors = None
-        self.window_t0 = 0
 
     def __deepcopy__(self, memo):
         return self
@@ -274,11 +272,11 @@ class GPMHE:
         self.solver_options = dict(solver_options or {})
         self.P2, self.Q0, self.R0 = P2.copy(), np.diag(q0), np.diag(r0)
         self.x_bounds = (lb, ub)
-        self._core = _Unsaved(
-            model._make_window(self.eta, q0, r0, p2_sqrt, form == "filtering")
-        )
-        if solver == "gauss-newton":
-            self._core.solver = self._rust_solver()
+        x0 = self._check_x0(x0)
+        rust_solver = self._rust_solver() if solver == "gauss-newton" else None
+        self._core = _Unsaved(model._make_window(
+            self.eta, q0, r0, p2_sqrt, form == "filtering", horizon=self.horizon, x0=x0,
+            lower=lb, upper=ub, solver=rust_solver))
         self.reset(x0)
 
     # ----------------------------------------------------------------------------------------
@@ -319,7 +317,7 @@ class GPMHE:
         (0, array([2.]))
         """
         x0 = self._check_x0(x0)
-        M = self.horizon
+        self._core.window.reset(x0)
         self.t = 0
         self.x = x0.copy()
         self.x_prior = x0.copy()
@@ -327,14 +325,6 @@ class GPMHE:
         self.P = np.linalg.inv(self.P2)
         self.cost, self.success, self.nit, self.message = 0.0, True, 0, ""
         self.nfev, self.projected_gradient = 0, 0.0
-        # Histories (time stamps implicit): inputs/outputs of the last M+1 steps and the arrival
-        # priors for the last M+2 times (priors[-1] belongs to the newest time).
-        h = self._core
-        h.U = np.zeros((0, self.dim_u))  # rows: u of the last ≤ M+1 steps, oldest first
-        h.Y = np.zeros((0, self.dim_y))  # rows: y of the same steps (zeros where missing)
-        h.present = []                   # whether each of those y was measured
-        h.priors = deque([x0.copy()], maxlen=M + 2)
-        h.window_t0 = 0  # time of x_window[0]
 
     def _check_step(self, u, y):
         m, p = self.dim_u, self.dim_y
@@ -459,87 +449,40 @@ class GPMHE:
 
     # ----------------------------------------------------------------------------------------
     def _step(self, u, y, present):
-        n, m, p = self.dim_x, self.dim_u, self.dim_y
-        t = self.t
-        hist = self._core
-        keep = self.horizon + 1
-        U = np.concatenate((hist.U, u.reshape(1, m)))[-keep:]
-        Y = np.concatenate((hist.Y, y.reshape(1, p)))[-keep:]
-        pr = (hist.present + [present])[-keep:]
-        if self.form == "prediction":
-            end = t + 1                      # window ends at x̄(t+1)
-            s0 = max(0, end - self.horizon)
-            k = end - s0                     # stages (inputs/outputs used): times s0 .. t
-            u_win = np.zeros((k + 1, m))
-            y_win = np.zeros((k + 1, p))
-            u_win[:k] = U[-k:]
-            y_win[:k] = Y[-k:]
-            present_win = pr[-k:] + [False]
-        else:
-            end = t
-            s0 = max(0, end - self.horizon)
-            k = end - s0 + 1                 # nodes s0 .. t all carry data
-            u_win = U[-k:]
-            y_win = Y[-k:]
-            present_win = pr[-k:]
-        # priors deque holds the arrival priors for times (t+1-len+1) .. t (+ the new one later);
-        # its last entry is for time t (prediction: x̂(t); filtering: m_x(x̂(t-1))).
-        x_prior = hist.priors[len(hist.priors) - 1 - (t - s0)]
-        nodes = end - s0 + 1
-        window = self._core.window
-        lb, ub = self._window_bounds(nodes)
-        # Window data and warm start (MheWindow.prepare): the previous solution shifted to the
-        # new window, new nodes predicted with the model, clipped strictly inside the bounds.
-        data = (np.ascontiguousarray(u_win), np.ascontiguousarray(y_win), present_win,
-                np.ascontiguousarray(x_prior), self.x_window, s0 - hist.window_t0,
-                *self._inner_box())
+        """One update with validated input: the Rust core does it in one call ("gauss-newton"),
+        or stages the window for a SciPy solver and records its solution. Nothing changes
+        before the core has recorded the step."""
+        core = self._core.window
+        y = y if present else None
         if self.solver == "gauss-newton":
-            # One Rust call: data, warm start, solve, covariance (and the filtering form's
-            # next prior).
-            z, cost, success, nit, message, P, x_next = self._solve_rust(window, data, lb, ub)
+            rep = core.update(u, y)
+            if rep.error is None:
+                message = (f"{rep.status} (projected gradient {rep.projected_gradient:.2e}, "
+                           f"{rep.interior_iterations} interior its)")
+            else:
+                message = f"solver raised: {rep.error}"
+            x_window, x_prior, P = rep.x_window, rep.x_prior, rep.P
+            cost, success, nit = rep.cost, rep.success, rep.nit
+            self.projected_gradient, self.nfev = float(rep.projected_gradient), int(rep.nfev)
+            if not success:
+                self._warn(message, stacklevel=4)
         else:
-            z0 = window.prepare(*data)
-            z, cost, success, nit, message = self._solve(window, z0, lb, ub)
-            P, x_next = self._covariance(window, z), None
-
-        # Commit (everything above may raise without changing the estimator).
-        x_window = z.reshape(nodes, n)
-        x_new = x_window[-1].copy()
-        if P is None:
-            P = self.P.copy()
-        if self.form == "prediction":
-            new_prior = x_new.copy()         # x̂(t+1)
-        elif x_next is not None:
-            new_prior = x_next               # m_x(x̂(t), u(t)) for time t+1
-        else:
-            new_prior = window.predict_next(x_new, u)
-        hist.U, hist.Y, hist.present = U, Y, pr
-        hist.priors.append(np.asarray(new_prior, dtype=np.float64))
-        hist.window_t0 = s0
+            z0, lb, ub = core.prepare(u, y)
+            z, cost, success, nit, message = self._solve(core, z0, lb, ub)
+            P = self._covariance(core, z)
+            x_window, x_prior = core.commit(z)
         self.x_window = x_window
-        self.x, self.x_prior, self.P = x_new, np.asarray(x_prior, dtype=np.float64).copy(), P
-        self.cost, self.success, self.nit, self.message = cost, success, nit, message
-        self.t = t + 1
+        self.x, self.x_prior = x_window[-1].copy(), x_prior
+        self.P = self.P.copy() if P is None else P
+        self.cost, self.success, self.nit, self.message = float(cost), bool(success), int(nit), str(message)
+        self.t += 1
 
-    def _window_bounds(self, nodes):
-        """(lower, upper) of the stacked window states for `nodes` nodes (cached: constant
-        once the window is full)."""
-        cached = getattr(self._core, "bounds", None)
-        if cached is None or cached[0] is not self.x_bounds or len(cached[1]) != nodes * self.dim_x:
-            cached = (self.x_bounds, np.tile(self.x_bounds[0], nodes),
-                      np.tile(self.x_bounds[1], nodes))
-            self._core.bounds = cached
-        return cached[1], cached[2]
-
-    def _inner_box(self):
-        """x_bounds shrunk by 1e-6 of their width (1e-6 for infinite widths), cached."""
-        cached = getattr(self._core, "inner_box", None)
-        if cached is None or cached[0] is not self.x_bounds:
-            lb, ub = self.x_bounds
-            width = np.where(np.isfinite(ub - lb), ub - lb, 1.0)
-            cached = (self.x_bounds, (lb + 1e-6 * width, ub - 1e-6 * width))
-            self._core.inner_box = cached
-        return cached[1]
+    def _warn(self, message, stacklevel):
+        """The RuntimeWarning of a window whose solver did not converge (`stacklevel` points at
+        the caller of `update` or `batch_filter`)."""
+        warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={self.t}: "
+                      f"{message}; keeping the better of its last iterate and the warm start",
+                      RuntimeWarning, stacklevel=stacklevel)
 
     def _covariance(self, window, z):
         """The last block of 4 H⁻¹ at z for the SciPy paths (the Rust solve returns the same
@@ -569,9 +512,7 @@ class GPMHE:
                 message = f"solver returned a point costlier than its start ({message})"
             z, cost, ok = z0.copy(), cost0, False
         if not ok:
-            warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={self.t}: "
-                          f"{message}; keeping the better of its last iterate and the warm start",
-                          RuntimeWarning, stacklevel=4)
+            self._warn(message, stacklevel=5)
         return z, float(cost), bool(ok), int(nit), str(message)
 
     def _solve_trust_constr(self, window, z0, lb, ub):
@@ -594,38 +535,14 @@ class GPMHE:
         return res.x, res.nfev, res.status > 0, res.message
 
     def _rust_solver(self):
-        """The Rust solver object (settings + reused work buffers), validating solver_options."""
+        """The Rust solver settings, validating solver_options."""
         try:
             return _core.WindowSolver(**self.solver_options)
         except (TypeError, ValueError) as e:
             raise ValueError(f"solver_options: {e}") from None
 
-    def _solve_rust(self, window, data, lb, ub):
-        """The Rust path: one `WindowSolver.step` call (window data, warm start, solve,
-        covariance, the filtering form's next prior). The solver returns a finite z inside the
-        bounds whose cost is never above the warm start's, with the window's evaluation left at
-        z; a solver error after the data were accepted keeps the warm start.
-        Returns (z, cost, success, nit, message, P, x_next)."""
-        core = self._core
-        if getattr(core, "solver", None) is None:
-            core.solver = self._rust_solver()
-        try:
-            (z, cost, status, ok, nit, nfev, pg, n_interior, P), x_next = core.solver.step(
-                window, *data, lb, ub)
-            message = f"{status} (projected gradient {pg:.2e}, {n_interior} interior its)"
-        except (ArithmeticError, RuntimeError) as e:
-            z = window.prepare(*data)
-            cost, ok, nit, nfev, pg, P, x_next = window.cost(z), False, 0, 1, np.nan, None, None
-            message = f"solver raised: {e}"
-        self.projected_gradient, self.nfev = float(pg), int(nfev)
-        if not ok:
-            warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={self.t}: "
-                          f"{message}; keeping the better of its last iterate and the warm start",
-                          RuntimeWarning, stacklevel=4)
-        return z, float(cost), bool(ok), int(nit), str(message), P, x_next
-
     _SOLVERS = {
-        "gauss-newton": "_solve_rust",  # (called directly by _step: one Rust call per update)
+        "gauss-newton": None,  # the Rust core's own solver: `_core.MovingHorizon.update`
         "trust-constr": "_solve_trust_constr",
         "least-squares": "_solve_least_squares",
     }

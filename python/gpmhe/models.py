@@ -335,10 +335,12 @@ class KnownModel(_SharedOnCopy):
         return (np.ascontiguousarray(mx), np.zeros((k, n)), dmx, np.zeros((k, n, nd)),
                 np.ascontiguousarray(my), np.zeros((k, p)), dmy, np.zeros((k, p, nd)))
 
-    def _make_window(self, eta, q0, r0, p2_sqrt, filtering):
-        return _core.MheWindow.with_callback(
+    def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
+        """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`)."""
+        return _core.MovingHorizon.with_callback(
             self.stage_eval, self.dim_x, self.dim_u, self.dim_y, eta, q0, r0, p2_sqrt, filtering,
             predict=lambda x, u: np.ascontiguousarray(self.predict(x, u), dtype=np.float64),
+            **settings,
         )
 
 
@@ -641,10 +643,11 @@ class LearnedModel(_SharedOnCopy):
             my, vy, dmy, dvy = np.zeros((k, 0)), np.zeros((k, 0)), np.zeros((k, 0, nd)), np.zeros((k, 0, nd))
         return mx, vx, dmx, dvx, my, vy, dmy, dvy
 
-    def _make_window(self, eta, q0, r0, p2_sqrt, filtering):
+    def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
+        """The Rust estimator core on the GPs (see `gpmhe._core.MovingHorizon`)."""
         h = None if self.h_gp is None else self.h_gp._core_model
-        return _core.MheWindow.with_gp(self.f_gp._core_model, h, self.dim_u, self.f_residual,
-                                       eta, q0, r0, p2_sqrt, filtering)
+        return _core.MovingHorizon.with_gp(self.f_gp._core_model, h, self.dim_u, self.f_residual,
+                                           eta, q0, r0, p2_sqrt, filtering, **settings)
 
     def save(self, path):
         """Save both GPs and the settings to one ``.npz`` file (no pickle).

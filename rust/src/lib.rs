@@ -5,9 +5,9 @@
 pub mod error;
 pub mod gp;
 pub mod kernel;
+pub mod mhe;
 pub mod rgp;
 pub mod solver;
-pub mod window;
 
 #[cfg(feature = "python")]
 mod python;

@@ -29,7 +29,7 @@
 use nalgebra::{Cholesky, DMatrix, DVectorView, DVectorViewMut};
 
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::window::{StageModel, WindowEval, WindowProblem};
+use crate::mhe::{StageModel, WindowEval, WindowProblem};
 
 /// A least-squares problem J(z) = ‖r(z)‖² over `n_nodes` nodes of `node_dim` variables each whose
 /// Gauss-Newton Hessian 2JᵀJ is block-tridiagonal.
@@ -1920,7 +1920,7 @@ mod tests {
 mod window_tests {
     use super::tests::strict;
     use super::*;
-    use crate::window::{Form, StageEval};
+    use crate::mhe::{Form, StageEval};
 
     /// The batch reactor (docs/user_guide/systems.rst) as an exact stage model (zero variances).
     struct Reactor;

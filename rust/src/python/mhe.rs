@@ -1,34 +1,55 @@
-//! The MHE window and its solver.
+//! The moving-horizon estimator (`crate::mhe::MovingHorizon`) as `MovingHorizon`, its update
+//! report, and `WindowSolver` (solver settings for `MovingHorizon` and for solving a set window
+//! directly). The model is either the learned GPs (run without the GIL) or a Python callback
+//! (`gpmhe.KnownModel.stage_eval`, run with the GIL), adapted to `StageModel` here.
 
-use numpy::{PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
-use pyo3::exceptions::PyValueError;
+use numpy::{
+    PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn,
+};
+use pyo3::exceptions::{PyArithmeticError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
 use super::convert::{array2, slice1, slice2};
 use super::gp::PyMultiGp;
 use crate::error::{check_finite, check_len, Error};
+use crate::mhe::{
+    Form, GpStageModel, MovingHorizon, StageEval, StageModel, UpdateReport, WindowProblem,
+};
+use crate::solver::{BoxLsqSolver, InteriorMode, SolverOptions};
 
-use crate::window::{Form, GpStageModel, StageEval, StageModel, WindowEval, WindowProblem};
-use numpy::PyReadonlyArrayDyn;
+type Arr1<'py> = Bound<'py, PyArray1<f64>>;
+type Arr2<'py> = Bound<'py, PyArray2<f64>>;
 
-/// A [`StageModel`] backed by a Python callable `stage_eval(d) -> (mean_x, var_x, dmean_x,
-/// dvar_x, mean_y, var_y, dmean_y, dvar_y)` (the layout of [`StageEval`]); used for
-/// `gpmhe.KnownModel`. Runs with the GIL held; a Python exception is kept and re-raised.
+/// A [`StageModel`] backed by the Python callable `stage_eval(d) -> (mean_x, var_x, dmean_x,
+/// dvar_x, mean_y, var_y, dmean_y, dvar_y)` (the layout of [`StageEval`]) and, if given,
+/// `predict(x, u) -> x_next`. A Python exception is kept (the binding re-raises it) and reported
+/// to the core as a numerical failure if it is an `ArithmeticError` or `RuntimeError` (the
+/// estimator then keeps its warm start), else as bad model output.
 struct CallbackModel<'a, 'py> {
     func: &'a Bound<'py, PyAny>,
+    predict: Option<&'a Bound<'py, PyAny>>,
     dims: (usize, usize, usize),
     err: Option<PyErr>,
 }
 
 impl CallbackModel<'_, '_> {
-    fn call(&self, d: &[f64], out: &mut StageEval) -> PyResult<()> {
+    fn keep(&mut self, e: PyErr) -> Error {
         let py = self.func.py();
+        let msg = e.value(py).str().map(|s| s.to_string()).unwrap_or_default();
+        let recoverable =
+            e.is_instance_of::<PyArithmeticError>(py) || e.is_instance_of::<PyRuntimeError>(py);
+        self.err = Some(e);
+        match recoverable {
+            true => Error::numerical(msg),
+            false => Error::invalid("model", msg),
+        }
+    }
+
+    fn call(&self, d: &[f64], out: &mut StageEval) -> PyResult<()> {
         let (n, m, p) = self.dims;
-        let nd = n + m;
-        let k = d.len() / nd.max(1);
-        let arr = numpy::PyArray1::from_slice(py, d).reshape([k, nd])?;
-        let res = self.func.call1((arr,))?;
-        let parts: Vec<PyReadonlyArrayDyn<'_, f64>> = res.extract()?;
+        let k = d.len() / (n + m).max(1);
+        let arr = PyArray1::from_slice(self.func.py(), d).reshape([k, n + m])?;
+        let parts: Vec<PyReadonlyArrayDyn<'_, f64>> = self.func.call1((arr,))?.extract()?;
         if parts.len() != 8 {
             return Err(PyValueError::new_err(
                 "model: stage_eval must return 8 arrays",
@@ -60,6 +81,30 @@ impl CallbackModel<'_, '_> {
         }
         Ok(())
     }
+
+    fn call_predict(
+        predict: &Bound<'_, PyAny>,
+        x: &[f64],
+        u: &[f64],
+        out: &mut [f64],
+    ) -> PyResult<()> {
+        let py = predict.py();
+        let res = predict.call1((PyArray1::from_slice(py, x), PyArray1::from_slice(py, u)))?;
+        let arr: PyReadonlyArray1<'_, f64> = res
+            .extract()
+            .map_err(|_| PyValueError::new_err("model: predict must return a float64 array"))?;
+        let v = arr
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("model: predict must return a contiguous array"))?;
+        if v.len() != out.len() || !v.iter().all(|a| a.is_finite()) {
+            return Err(PyValueError::new_err(format!(
+                "model: predict must return {} finite values",
+                out.len()
+            )));
+        }
+        out.copy_from_slice(v);
+        Ok(())
+    }
 }
 
 impl StageModel for CallbackModel<'_, '_> {
@@ -73,206 +118,122 @@ impl StageModel for CallbackModel<'_, '_> {
         self.dims.2
     }
     fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> crate::Result<()> {
-        match self.call(d, out) {
-            Ok(()) => Ok(()),
-            Err(e) => {
-                self.err = Some(e);
-                Err(Error::numerical("model callback failed"))
-            }
-        }
+        self.call(d, out).map_err(|e| self.keep(e))
     }
-}
-
-/// The model behind a window: a Python callback (known model) or the learned GPs.
-enum WindowModel {
-    Callback(Py<PyAny>),
-    Gp(Box<GpStageModel>),
-}
-
-/// One MHE window problem with its model and evaluation buffers (docs/user_guide/window.rst). The Python
-/// estimator `gpmhe.GPMHE` sets the data each step and hands `cost_grad`, `gn_hessian`,
-/// `residuals`, `jacobian` to SciPy; evaluations at the same z are cached.
-#[pyclass(name = "MheWindow", module = "gpmhe._core")]
-pub(crate) struct PyMheWindow {
-    pub(crate) problem: WindowProblem,
-    model: WindowModel,
-    pub(crate) eval: WindowEval,
-    /// z of the cached evaluation (empty when none).
-    last_z: Vec<f64>,
-    /// For a callback model: the Python one-step prediction `predict(x, u)` used for warm
-    /// starts (None: the means of `stage_eval` at one point).
-    predict: Option<Py<PyAny>>,
-}
-
-impl PyMheWindow {
-    /// Evaluates at z unless the cache already holds it (with a Jacobian if wanted).
-    pub(crate) fn ensure(
-        &mut self,
-        py: Python<'_>,
-        z: &[f64],
-        want_jacobian: bool,
-    ) -> PyResult<()> {
-        if self.last_z.as_slice() == z && (self.eval.has_jacobian() || !want_jacobian) {
-            return Ok(());
-        }
-        self.last_z.clear();
-        let dims = (
-            self.problem.dim_x(),
-            self.problem.dim_u(),
-            self.problem.dim_y(),
-        );
-        let result = match &mut self.model {
-            WindowModel::Gp(model) => {
-                let (problem, eval) = (&self.problem, &mut self.eval);
-                py.detach(|| problem.evaluate(&mut **model, z, want_jacobian, eval))
-            }
-            WindowModel::Callback(func) => {
-                let func = func.bind(py);
-                let mut model = CallbackModel {
-                    func,
-                    dims,
-                    err: None,
-                };
-                let r = self
-                    .problem
-                    .evaluate(&mut model, z, want_jacobian, &mut self.eval);
-                if let Some(e) = model.err {
-                    return Err(e);
-                }
-                r
-            }
-        };
-        result?;
-        self.last_z.extend_from_slice(z);
-        Ok(())
-    }
-
-    /// The model's one-step prediction m_x(x, u) into `out` (n).
-    fn predict_state(
-        &mut self,
-        py: Python<'_>,
-        x: &[f64],
-        u: &[f64],
-        out: &mut [f64],
-    ) -> PyResult<()> {
-        let dims = (
-            self.problem.dim_x(),
-            self.problem.dim_u(),
-            self.problem.dim_y(),
-        );
-        match (&mut self.model, &self.predict) {
-            (WindowModel::Gp(model), _) => Ok(model.predict_state(x, u, out)?),
-            (WindowModel::Callback(_), Some(predict)) => {
-                let xa = numpy::PyArray1::from_slice(py, x);
-                let ua = numpy::PyArray1::from_slice(py, u);
-                let res = predict.bind(py).call1((xa, ua))?;
-                let arr: PyReadonlyArray1<'_, f64> = res.extract().map_err(|_| {
-                    PyValueError::new_err("model: predict must return a float64 array")
-                })?;
-                let v = arr.as_slice().map_err(|_| {
-                    PyValueError::new_err("model: predict must return a contiguous array")
-                })?;
-                if v.len() != out.len() || !v.iter().all(|a| a.is_finite()) {
-                    return Err(PyValueError::new_err(format!(
-                        "model: predict must return {} finite values",
-                        out.len()
-                    )));
-                }
-                out.copy_from_slice(v);
-                Ok(())
-            }
-            (WindowModel::Callback(func), None) => {
-                let model = CallbackModel {
-                    func: func.bind(py),
-                    dims,
-                    err: None,
-                };
+    fn predict_state(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> crate::Result<()> {
+        let r = match self.predict {
+            Some(predict) => Self::call_predict(predict, x, u, out),
+            None => {
                 let mut d = x.to_vec();
                 d.extend_from_slice(u);
                 let mut ev = StageEval::default();
-                model.call(&d, &mut ev)?;
-                out.copy_from_slice(&ev.mean_x);
-                Ok(())
+                self.call(&d, &mut ev)
+                    .map(|()| out.copy_from_slice(&ev.mean_x))
             }
-        }
+        };
+        r.map_err(|e| self.keep(e))
     }
+}
 
-    /// `set_data`, then the warm start: the previous window's rows from `first` on (`first` < 0:
-    /// none), each further node predicted from the one before with the model (node 0 without
-    /// any overlap: the previous last row), all clipped into [lo, hi] (rows already inside stay
-    /// bit-identical, so the learned model reuses their GP values). On error nothing changed
-    /// but possibly the window data.
-    #[allow(clippy::too_many_arguments)]
-    fn prepare_impl(
+/// The model behind an estimator: a Python callback (known model) or the learned GPs.
+enum Model {
+    Callback {
+        stage_eval: Py<PyAny>,
+        predict: Option<Py<PyAny>>,
+    },
+    Gp(Box<GpStageModel>),
+}
+
+/// A moving-horizon estimator (see `gpmhe.GPMHE`, which validates its settings and input and
+/// holds the public attributes): `update(u, y)` is one whole update in one call.
+#[pyclass(name = "MovingHorizon", module = "gpmhe._core")]
+pub(super) struct PyMovingHorizon {
+    core: MovingHorizon,
+    model: Model,
+}
+
+impl PyMovingHorizon {
+    /// Runs `f` on the core with the model: the learned model without the GIL, a callback with
+    /// it (a Python exception it raised is re-raised when `f` fails).
+    fn run<T: Send>(
         &mut self,
         py: Python<'_>,
-        u: &PyReadonlyArray2<'_, f64>,
-        y: &PyReadonlyArray2<'_, f64>,
-        y_present: &[bool],
-        x_prior: &PyReadonlyArray1<'_, f64>,
-        prev: &PyReadonlyArray2<'_, f64>,
-        first: isize,
-        lo: &PyReadonlyArray1<'_, f64>,
-        hi: &PyReadonlyArray1<'_, f64>,
-    ) -> PyResult<Vec<f64>> {
-        let n = self.problem.dim_x();
-        let m = self.problem.dim_u();
-        let (prev, rows, cols) = slice2("prev_window", prev)?;
-        let (lo, hi) = (slice1("lower_inner", lo)?, slice1("upper_inner", hi)?);
-        if cols != n || rows == 0 {
-            return Err(PyValueError::new_err(format!(
-                "prev_window: expected shape (rows >= 1, {n}), got ({rows}, {cols})"
-            )));
-        }
-        check_finite("prev_window", prev)?;
-        check_len("lower_inner", lo, n)?;
-        check_len("upper_inner", hi, n)?;
-        if (0..n).any(|a| lo[a].is_nan() || hi[a].is_nan() || lo[a] > hi[a]) {
-            return Err(PyValueError::new_err(
-                "lower_inner, upper_inner: need lower <= upper",
-            ));
-        }
-        let (u, _, _) = slice2("u", u)?;
-        let (y, _, _) = slice2("y", y)?;
-        self.problem
-            .set_data(u, y, y_present, slice1("x_prior", x_prior)?)?;
-        self.last_z.clear();
-        let nodes = self.problem.n_nodes();
-        let kept = if first < 0 {
-            0
-        } else {
-            (rows.saturating_sub(first as usize)).min(nodes)
-        };
-        let mut z = vec![0.0; nodes * n];
-        if kept > 0 {
-            let f = first as usize;
-            z[..kept * n].copy_from_slice(&prev[f * n..(f + kept) * n]);
-        }
-        let mut next = vec![0.0; n];
-        for i in kept..nodes {
-            if i == 0 {
-                z[..n].copy_from_slice(&prev[(rows - 1) * n..rows * n]);
-            } else {
-                let (done, rest) = z.split_at_mut(i * n);
-                self.predict_state(py, &done[(i - 1) * n..], &u[(i - 1) * m..i * m], &mut next)?;
-                rest[..n].copy_from_slice(&next);
+        f: impl FnOnce(&mut MovingHorizon, &mut dyn StageModel) -> crate::Result<T> + Send,
+    ) -> PyResult<T> {
+        let core = &mut self.core;
+        match &mut self.model {
+            Model::Gp(model) => Ok(py.detach(|| f(core, &mut **model))?),
+            Model::Callback {
+                stage_eval,
+                predict,
+            } => {
+                let p = core.problem();
+                let mut cb = CallbackModel {
+                    func: stage_eval.bind(py),
+                    predict: predict.as_ref().map(|f| f.bind(py)),
+                    dims: (p.dim_x(), p.dim_u(), p.dim_y()),
+                    err: None,
+                };
+                match f(core, &mut cb) {
+                    Ok(v) => Ok(v),
+                    Err(e) => Err(cb.err.take().unwrap_or_else(|| e.into())),
+                }
             }
         }
-        for (k, v) in z.iter_mut().enumerate() {
-            *v = v.clamp(lo[k % n], hi[k % n]);
-        }
-        Ok(z)
     }
 
-    /// The block-tridiagonal 2JᵀJ as a dense (n_nodes·n)² matrix.
-    fn dense_gn(&self) -> Vec<f64> {
-        let n = self.eval.dim_x();
-        let nodes = self.eval.n_nodes();
-        let nn = n * n;
-        let nv = nodes * n;
+    /// The core for `model` with the settings shared by both constructors.
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        model: Model,
+        dims: (usize, usize, usize),
+        eta: f64,
+        q0: &PyReadonlyArray1<'_, f64>,
+        r0: &PyReadonlyArray1<'_, f64>,
+        p2_sqrt: &PyReadonlyArray2<'_, f64>,
+        filtering: bool,
+        horizon: usize,
+        x0: Option<PyReadonlyArray1<'_, f64>>,
+        lower: Option<PyReadonlyArray1<'_, f64>>,
+        upper: Option<PyReadonlyArray1<'_, f64>>,
+        solver: Option<PyRef<'_, PyWindowSolver>>,
+    ) -> PyResult<Self> {
+        let (n, m, p) = dims;
+        let form = if filtering {
+            Form::Filtering
+        } else {
+            Form::Prediction
+        };
+        let (p2, _, _) = slice2("P2", p2_sqrt)?;
+        let problem =
+            WindowProblem::new(n, m, p, eta, slice1("Q0", q0)?, slice1("R0", r0)?, p2, form)?;
+        let or =
+            |a: &Option<PyReadonlyArray1<'_, f64>>, name: &str, fill: f64| -> PyResult<Vec<f64>> {
+                a.as_ref()
+                    .map_or(Ok(vec![fill; n]), |a| Ok(slice1(name, a)?.to_vec()))
+            };
+        let opts = solver.map_or_else(SolverOptions::default, |s| s.opts.clone());
+        let core = MovingHorizon::new(
+            problem,
+            horizon,
+            &or(&x0, "x0", 0.0)?,
+            &or(&lower, "x_bounds", f64::NEG_INFINITY)?,
+            &or(&upper, "x_bounds", f64::INFINITY)?,
+            opts,
+        )?;
+        Ok(Self { core, model })
+    }
+
+    fn n_vars(&self) -> usize {
+        self.core.problem().n_nodes() * self.core.problem().dim_x()
+    }
+
+    fn dense_gn(eval: &crate::mhe::WindowEval) -> Vec<f64> {
+        let (n, nodes) = (eval.dim_x(), eval.n_nodes());
+        let (nn, nv) = (n * n, nodes * n);
         let mut diag = vec![0.0; nodes * nn];
         let mut off = vec![0.0; nodes.saturating_sub(1) * nn];
-        self.eval.gauss_newton_blocks_into(&mut diag, &mut off);
+        eval.gauss_newton_blocks_into(&mut diag, &mut off);
         let mut h = vec![0.0; nv * nv];
         for i in 0..nodes {
             for a in 0..n {
@@ -291,13 +252,15 @@ impl PyMheWindow {
 }
 
 #[pymethods]
-impl PyMheWindow {
-    /// A window whose model is the Python callable `stage_eval` (see `gpmhe.KnownModel`).
-    /// `q0`, `r0`: diagonals of Q0, R0; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form.
+impl PyMovingHorizon {
+    /// An estimator whose model is the Python callable `stage_eval` (see `gpmhe.KnownModel`),
+    /// with `predict(x, u)` for one-step predictions if given. `q0`, `r0`: diagonals of Q0,
+    /// R0; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros
+    /// if None); `lower`, `upper`: the state box (±inf if None); `solver`: the settings.
     #[staticmethod]
     #[allow(clippy::too_many_arguments)]
     #[pyo3(signature = (stage_eval, dim_x, dim_u, dim_y, eta, q0, r0, p2_sqrt, filtering,
-                        predict=None))]
+                        predict=None, horizon=1, x0=None, lower=None, upper=None, solver=None))]
     fn with_callback(
         stage_eval: Bound<'_, PyAny>,
         dim_x: usize,
@@ -309,6 +272,11 @@ impl PyMheWindow {
         p2_sqrt: PyReadonlyArray2<'_, f64>,
         filtering: bool,
         predict: Option<Bound<'_, PyAny>>,
+        horizon: usize,
+        x0: Option<PyReadonlyArray1<'_, f64>>,
+        lower: Option<PyReadonlyArray1<'_, f64>>,
+        upper: Option<PyReadonlyArray1<'_, f64>>,
+        solver: Option<PyRef<'_, PyWindowSolver>>,
     ) -> PyResult<Self> {
         if !stage_eval.is_callable() {
             return Err(PyValueError::new_err("stage_eval: must be callable"));
@@ -316,21 +284,23 @@ impl PyMheWindow {
         if predict.as_ref().is_some_and(|f| !f.is_callable()) {
             return Err(PyValueError::new_err("predict: must be callable or None"));
         }
-        let problem = window_problem(dim_x, dim_u, dim_y, eta, &q0, &r0, &p2_sqrt, filtering)?;
-        Ok(Self {
-            problem,
-            model: WindowModel::Callback(stage_eval.unbind()),
-            eval: WindowEval::default(),
-            last_z: Vec::new(),
+        let model = Model::Callback {
+            stage_eval: stage_eval.unbind(),
             predict: predict.map(Bound::unbind),
-        })
+        };
+        let dims = (dim_x, dim_u, dim_y);
+        Self::build(
+            model, dims, eta, &q0, &r0, &p2_sqrt, filtering, horizon, x0, lower, upper, solver,
+        )
     }
 
-    /// A window on the learned model: `f_gp` (dim_x outputs) and `h_gp` (dim_y outputs, None when
-    /// dim_y = 0) on inputs [x; u]; `f_residual`: f's GPs model x(t+1) − x(t).
+    /// An estimator on the learned model: `f_gp` (dim_x outputs) and `h_gp` (dim_y outputs,
+    /// None when dim_y = 0) on inputs [x; u]; `f_residual`: f's GPs model x(t+1) − x(t). The
+    /// other settings as for `with_callback`.
     #[staticmethod]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (f_gp, h_gp, dim_u, f_residual, eta, q0, r0, p2_sqrt, filtering))]
+    #[pyo3(signature = (f_gp, h_gp, dim_u, f_residual, eta, q0, r0, p2_sqrt, filtering,
+                        horizon=1, x0=None, lower=None, upper=None, solver=None))]
     fn with_gp(
         f_gp: PyRef<'_, PyMultiGp>,
         h_gp: Option<PyRef<'_, PyMultiGp>>,
@@ -341,34 +311,85 @@ impl PyMheWindow {
         r0: PyReadonlyArray1<'_, f64>,
         p2_sqrt: PyReadonlyArray2<'_, f64>,
         filtering: bool,
+        horizon: usize,
+        x0: Option<PyReadonlyArray1<'_, f64>>,
+        lower: Option<PyReadonlyArray1<'_, f64>>,
+        upper: Option<PyReadonlyArray1<'_, f64>>,
+        solver: Option<PyRef<'_, PyWindowSolver>>,
     ) -> PyResult<Self> {
-        let model = GpStageModel::new(
+        let gp = GpStageModel::new(
             f_gp.inner.clone(),
             h_gp.map(|h| h.inner.clone()),
             dim_u,
             f_residual,
         )?;
-        let problem = window_problem(
-            model.dim_x(),
-            dim_u,
-            model.dim_y(),
-            eta,
-            &q0,
-            &r0,
-            &p2_sqrt,
-            filtering,
-        )?;
-        Ok(Self {
-            problem,
-            model: WindowModel::Gp(Box::new(model)),
-            eval: WindowEval::default(),
-            last_z: Vec::new(),
-            predict: None,
-        })
+        let dims = (gp.dim_x(), dim_u, gp.dim_y());
+        let model = Model::Gp(Box::new(gp));
+        Self::build(
+            model, dims, eta, &q0, &r0, &p2_sqrt, filtering, horizon, x0, lower, upper, solver,
+        )
     }
 
-    /// Sets the window data: `u` (nodes, m), `y` (nodes, p), `y_present` (nodes,) bools,
-    /// `x_prior` (n,). On error the previous window is kept.
+    /// Forgets every step: t = 0, x̂(0) = x0.
+    fn reset(&mut self, x0: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
+        Ok(self.core.reset(slice1("x0", &x0)?)?)
+    }
+
+    /// One whole update with u(t) and y(t) (None: not measured); returns an `UpdateReport`.
+    /// On error the estimator is unchanged.
+    #[pyo3(signature = (u, y=None))]
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        u: PyReadonlyArray1<'_, f64>,
+        y: Option<PyReadonlyArray1<'_, f64>>,
+    ) -> PyResult<PyUpdateReport> {
+        let u = slice1("u", &u)?;
+        let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
+        let n = self.core.problem().dim_x();
+        let report = self.run(py, |core, model| core.update(model, u, y))?;
+        PyUpdateReport::new(py, report, n)
+    }
+
+    /// Stages the next window with u(t), y(t) without recording it; returns (z0, lower,
+    /// upper): the warm start and the box of the stacked window states. The window methods
+    /// (`cost`, ...) then evaluate it; `commit` records a solution.
+    #[pyo3(signature = (u, y=None))]
+    fn prepare<'py>(
+        &mut self,
+        py: Python<'py>,
+        u: PyReadonlyArray1<'py, f64>,
+        y: Option<PyReadonlyArray1<'py, f64>>,
+    ) -> PyResult<(Arr1<'py>, Arr1<'py>, Arr1<'py>)> {
+        let u = slice1("u", &u)?;
+        let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
+        let z0 = self.run(py, |core, model| core.prepare(model, u, y))?;
+        let (lo, hi) = self.core.bounds();
+        Ok((
+            PyArray1::from_vec(py, z0),
+            PyArray1::from_slice(py, lo),
+            PyArray1::from_slice(py, hi),
+        ))
+    }
+
+    /// Records the staged window's solution z; returns (x_window (nodes, n), x_prior).
+    fn commit<'py>(
+        &mut self,
+        py: Python<'py>,
+        z: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<(Arr2<'py>, Arr1<'py>)> {
+        let z = slice1("z", &z)?.to_vec();
+        let n = self.core.problem().dim_x();
+        let (x_window, x_prior) = self.run(py, |core, model| core.commit(model, z))?;
+        let rows = x_window.len() / n;
+        Ok((
+            array2(py, x_window, rows, n)?,
+            PyArray1::from_vec(py, x_prior),
+        ))
+    }
+
+    /// Sets a window directly (tests, diagnostics; it cannot be committed): `u` (nodes, m),
+    /// `y` (nodes, p), `y_present` (nodes,), `x_prior` (n,). On error the window is kept.
     fn set_data(
         &mut self,
         u: PyReadonlyArray2<'_, f64>,
@@ -378,41 +399,9 @@ impl PyMheWindow {
     ) -> PyResult<()> {
         let (u, _, _) = slice2("u", &u)?;
         let (y, _, _) = slice2("y", &y)?;
-        self.problem
-            .set_data(u, y, &y_present, slice1("x_prior", &x_prior)?)?;
-        self.last_z.clear();
-        Ok(())
-    }
-
-    /// `set_data` and the warm start for one update: returns z0 (see GPMHE's update).
-    /// `prev_window` (rows, n): the previous window's states; `first`: the index of the new
-    /// window's first node in it (< 0: no overlap); `lower_inner`, `upper_inner` (n,): the box
-    /// the warm start is clipped into.
-    #[allow(clippy::too_many_arguments)]
-    fn prepare<'py>(
-        &mut self,
-        py: Python<'py>,
-        u: PyReadonlyArray2<'py, f64>,
-        y: PyReadonlyArray2<'py, f64>,
-        y_present: Vec<bool>,
-        x_prior: PyReadonlyArray1<'py, f64>,
-        prev_window: PyReadonlyArray2<'py, f64>,
-        first: isize,
-        lower_inner: PyReadonlyArray1<'py, f64>,
-        upper_inner: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<Bound<'py, numpy::PyArray1<f64>>> {
-        let z = self.prepare_impl(
-            py,
-            &u,
-            &y,
-            &y_present,
-            &x_prior,
-            &prev_window,
-            first,
-            &lower_inner,
-            &upper_inner,
-        )?;
-        Ok(numpy::PyArray1::from_vec(py, z))
+        Ok(self
+            .core
+            .set_window(u, y, &y_present, slice1("x_prior", &x_prior)?)?)
     }
 
     /// The model's one-step prediction m_x(x, u) (n,).
@@ -421,31 +410,38 @@ impl PyMheWindow {
         py: Python<'py>,
         x: PyReadonlyArray1<'py, f64>,
         u: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<Bound<'py, numpy::PyArray1<f64>>> {
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let (x, u) = (slice1("x", &x)?, slice1("u", &u)?);
-        check_len("x", x, self.problem.dim_x())?;
-        check_len("u", u, self.problem.dim_u())?;
+        let p = self.core.problem();
+        check_len("x", x, p.dim_x())?;
+        check_len("u", u, p.dim_u())?;
         check_finite("x", x)?;
         check_finite("u", u)?;
-        let mut out = vec![0.0; self.problem.dim_x()];
-        self.predict_state(py, x, u, &mut out)?;
-        Ok(numpy::PyArray1::from_vec(py, out))
+        let mut out = vec![0.0; p.dim_x()];
+        self.run(py, |_, model| model.predict_state(x, u, &mut out))?;
+        Ok(PyArray1::from_vec(py, out))
+    }
+
+    /// Updates since construction or `reset`.
+    #[getter]
+    fn t(&self) -> usize {
+        self.core.history().t()
     }
 
     #[getter]
     fn n_nodes(&self) -> usize {
-        self.problem.n_nodes()
+        self.core.problem().n_nodes()
     }
 
     #[getter]
     fn n_residuals(&self) -> usize {
-        self.problem.n_residuals()
+        self.core.problem().n_residuals()
     }
 
-    /// J(z) = ‖r(z)‖².
+    /// J(z) = ‖r(z)‖² of the window.
     fn cost(&mut self, py: Python<'_>, z: PyReadonlyArray1<'_, f64>) -> PyResult<f64> {
-        self.ensure(py, slice1("z", &z)?, false)?;
-        Ok(self.eval.cost())
+        let z = slice1("z", &z)?;
+        self.run(py, |core, model| Ok(core.evaluate(model, z, false)?.cost()))
     }
 
     /// (noise of J, noise of ∇J (largest entry)) at z: the estimated rounding noise of the cost
@@ -456,8 +452,11 @@ impl PyMheWindow {
         py: Python<'_>,
         z: PyReadonlyArray1<'_, f64>,
     ) -> PyResult<(f64, f64)> {
-        self.ensure(py, slice1("z", &z)?, true)?;
-        Ok((self.eval.cost_noise(), self.eval.gradient_noise()))
+        let z = slice1("z", &z)?;
+        self.run(py, |core, model| {
+            let ev = core.evaluate(model, z, true)?;
+            Ok((ev.cost_noise(), ev.gradient_noise()))
+        })
     }
 
     /// (J(z), ∇J(z) = 2Jᵀr).
@@ -465,11 +464,15 @@ impl PyMheWindow {
         &mut self,
         py: Python<'py>,
         z: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<(f64, Bound<'py, numpy::PyArray1<f64>>)> {
-        self.ensure(py, slice1("z", &z)?, true)?;
-        let mut g = vec![0.0; self.eval.n_vars()];
-        self.eval.gradient_into(&mut g);
-        Ok((self.eval.cost(), numpy::PyArray1::from_vec(py, g)))
+    ) -> PyResult<(f64, Bound<'py, PyArray1<f64>>)> {
+        let z = slice1("z", &z)?;
+        let mut g = vec![0.0; z.len()];
+        let cost = self.run(py, |core, model| {
+            let ev = core.evaluate(model, z, true)?;
+            ev.gradient_into(&mut g);
+            Ok(ev.cost())
+        })?;
+        Ok((cost, PyArray1::from_vec(py, g)))
     }
 
     /// The Gauss-Newton Hessian 2JᵀJ at z as a dense (n_nodes·n)² array.
@@ -478,9 +481,12 @@ impl PyMheWindow {
         py: Python<'py>,
         z: PyReadonlyArray1<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        self.ensure(py, slice1("z", &z)?, true)?;
-        let nv = self.eval.n_vars();
-        array2(py, self.dense_gn(), nv, nv)
+        let z = slice1("z", &z)?;
+        let h = self.run(py, |core, model| {
+            Ok(Self::dense_gn(core.evaluate(model, z, true)?))
+        })?;
+        let nv = self.n_vars();
+        array2(py, h, nv, nv)
     }
 
     /// The stacked residuals r(z).
@@ -488,9 +494,12 @@ impl PyMheWindow {
         &mut self,
         py: Python<'py>,
         z: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<Bound<'py, numpy::PyArray1<f64>>> {
-        self.ensure(py, slice1("z", &z)?, false)?;
-        Ok(numpy::PyArray1::from_slice(py, self.eval.residuals()))
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let z = slice1("z", &z)?;
+        let r = self.run(py, |core, model| {
+            Ok(core.evaluate(model, z, false)?.residuals().to_vec())
+        })?;
+        Ok(PyArray1::from_vec(py, r))
     }
 
     /// The dense Jacobian ∂r/∂z (n_residuals × n_nodes·n).
@@ -499,49 +508,72 @@ impl PyMheWindow {
         py: Python<'py>,
         z: PyReadonlyArray1<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        self.ensure(py, slice1("z", &z)?, true)?;
-        let (rows, cols) = (self.eval.n_residuals(), self.eval.n_vars());
-        let mut jac = vec![0.0; rows * cols];
-        self.eval.dense_jacobian_into(&mut jac);
+        let z = slice1("z", &z)?;
+        let (jac, rows, cols) = self.run(py, |core, model| {
+            let ev = core.evaluate(model, z, true)?;
+            let (rows, cols) = (ev.n_residuals(), ev.n_vars());
+            let mut jac = vec![0.0; rows * cols];
+            ev.dense_jacobian_into(&mut jac);
+            Ok((jac, rows, cols))
+        })?;
         array2(py, jac, rows, cols)
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn window_problem(
-    dim_x: usize,
-    dim_u: usize,
-    dim_y: usize,
-    eta: f64,
-    q0: &PyReadonlyArray1<'_, f64>,
-    r0: &PyReadonlyArray1<'_, f64>,
-    p2_sqrt: &PyReadonlyArray2<'_, f64>,
-    filtering: bool,
-) -> PyResult<WindowProblem> {
-    let (p2, _, _) = slice2("P2", p2_sqrt)?;
-    let form = if filtering {
-        Form::Filtering
-    } else {
-        Form::Prediction
-    };
-    Ok(WindowProblem::new(
-        dim_x,
-        dim_u,
-        dim_y,
-        eta,
-        slice1("Q0", q0)?,
-        slice1("R0", r0)?,
-        p2,
-        form,
-    )?)
+/// What one `MovingHorizon.update` did: `x_window` (nodes, n), `x_prior` (n,), `P` (n, n) or
+/// None, `cost`, and the solver's `status`, `success`, `nit`, `nfev`, `projected_gradient`,
+/// `interior_iterations`; `error` is the message of a solver failure (the window then keeps
+/// its warm start, `status` is None and `success` False).
+#[pyclass(name = "UpdateReport", module = "gpmhe._core", frozen, get_all)]
+pub(super) struct PyUpdateReport {
+    x_window: Py<PyArray2<f64>>,
+    x_prior: Py<PyArray1<f64>>,
+    #[pyo3(name = "P")]
+    p: Option<Py<PyArray2<f64>>>,
+    cost: f64,
+    status: Option<&'static str>,
+    success: bool,
+    nit: usize,
+    nfev: usize,
+    projected_gradient: f64,
+    interior_iterations: usize,
+    error: Option<String>,
 }
 
-// ===== Window solver =====
-// The real-time bounded Gauss-Newton solver (solver.rs) on a `MheWindow`: one call per update.
+impl PyUpdateReport {
+    fn new(py: Python<'_>, r: UpdateReport, n: usize) -> PyResult<Self> {
+        let rows = r.x_window.len() / n;
+        let p = r.covariance.map(|c| array2(py, c, n, n)).transpose()?;
+        let (status, success, nit, nfev, pg, interior, error) = match r.solve {
+            Ok(s) => (
+                Some(s.status.as_str()),
+                s.status.is_success(),
+                s.nit,
+                s.nfev,
+                s.projected_gradient,
+                s.interior_iterations,
+                None,
+            ),
+            Err(e) => (None, false, 0, 1, f64::NAN, 0, Some(e.to_string())),
+        };
+        Ok(Self {
+            x_window: array2(py, r.x_window, rows, n)?.unbind(),
+            x_prior: PyArray1::from_vec(py, r.x_prior).unbind(),
+            p: p.map(Bound::unbind),
+            cost: r.cost,
+            status,
+            success,
+            nit,
+            nfev,
+            projected_gradient: pg,
+            interior_iterations: interior,
+            error,
+        })
+    }
+}
 
-use crate::solver::{BoxLsqSolver, InteriorMode, SolveReport, SolverOptions, WindowLsq};
-
-/// Solver settings and work buffers, one per estimator (reused every update).
+/// Solver settings and work buffers: given to `MovingHorizon` as its settings, or used directly
+/// on a window set with `MovingHorizon.set_data` (tests, diagnostics).
 #[pyclass(name = "WindowSolver", module = "gpmhe._core")]
 pub(super) struct PyWindowSolver {
     solver: BoxLsqSolver,
@@ -594,138 +626,32 @@ impl PyWindowSolver {
         })
     }
 
-    /// Minimises the window's cost over lower ≤ z ≤ upper from the warm start `z0`. Returns
-    /// (z, cost, status, success, nit, nfev, projected_gradient, interior_iterations, P) with P
-    /// the last n×n block of 4(2JᵀJ)⁻¹ at z, symmetrised (None if 2JᵀJ is singular: see
-    /// `GPMHE.P`); afterwards the window's cached evaluation (with derivatives) is at the
-    /// returned z. Learned models run without the GIL; a known model's Python callback runs
-    /// with it.
+    /// Minimises the window's cost over lower ≤ z ≤ upper from `z0`. Returns (z, cost, status,
+    /// success, nit, nfev, projected_gradient, interior_iterations, P) with P the last n×n
+    /// block of 4(2JᵀJ)⁻¹ at z (None if singular); the window's evaluation is left at z.
+    #[allow(clippy::type_complexity)]
     fn solve<'py>(
         &mut self,
         py: Python<'py>,
-        mut window: PyRefMut<'py, PyMheWindow>,
+        mut window: PyRefMut<'py, PyMovingHorizon>,
         z0: PyReadonlyArray1<'py, f64>,
         lower: PyReadonlyArray1<'py, f64>,
         upper: PyReadonlyArray1<'py, f64>,
     ) -> PyResult<SolveTuple<'py>> {
-        let z = slice1("z0", &z0)?.to_vec();
+        let mut z = slice1("z0", &z0)?.to_vec();
         let (lower, upper) = (slice1("lower", &lower)?, slice1("upper", &upper)?);
-        self.solve_impl(py, &mut window, z, lower, upper)
-    }
-
-    /// One whole GPMHE update in one call: `MheWindow.prepare` (data and warm start) with the
-    /// same arguments, then `solve` on [lower, upper]. Returns `solve`'s tuple plus, for the
-    /// filtering form, the one-step prediction m_x(x̄_t, u_t) from the window's last node (the
-    /// next arrival prior; None in the prediction form).
-    #[allow(clippy::too_many_arguments)]
-    fn step<'py>(
-        &mut self,
-        py: Python<'py>,
-        mut window: PyRefMut<'py, PyMheWindow>,
-        u: PyReadonlyArray2<'py, f64>,
-        y: PyReadonlyArray2<'py, f64>,
-        y_present: Vec<bool>,
-        x_prior: PyReadonlyArray1<'py, f64>,
-        prev_window: PyReadonlyArray2<'py, f64>,
-        first: isize,
-        lower_inner: PyReadonlyArray1<'py, f64>,
-        upper_inner: PyReadonlyArray1<'py, f64>,
-        lower: PyReadonlyArray1<'py, f64>,
-        upper: PyReadonlyArray1<'py, f64>,
-    ) -> PyResult<(SolveTuple<'py>, Option<Bound<'py, numpy::PyArray1<f64>>>)> {
-        let (lower, upper) = (slice1("lower", &lower)?, slice1("upper", &upper)?);
-        let z0 = window.prepare_impl(
-            py,
-            &u,
-            &y,
-            &y_present,
-            &x_prior,
-            &prev_window,
-            first,
-            &lower_inner,
-            &upper_inner,
-        )?;
-        let out = self.solve_impl(py, &mut window, z0, lower, upper)?;
-        let next = if window.problem.form() == Form::Filtering {
-            let n = window.problem.dim_x();
-            let m = window.problem.dim_u();
-            let (u, _, _) = slice2("u", &u)?;
-            let rows = window.problem.n_nodes(); // (u holds rows·m values: checked by set_data)
-            let z = out.0.readonly();
-            let z = z.as_slice()?;
-            let x_last = z[z.len() - n..].to_vec();
-            let mut pred = vec![0.0; n];
-            window.predict_state(py, &x_last, &u[(rows - 1) * m..rows * m], &mut pred)?;
-            Some(numpy::PyArray1::from_vec(py, pred))
-        } else {
-            None
-        };
-        Ok((out, next))
-    }
-}
-
-type SolveTuple<'py> = (
-    Bound<'py, numpy::PyArray1<f64>>,
-    f64,
-    &'static str,
-    bool,
-    usize,
-    usize,
-    f64,
-    usize,
-    Option<Bound<'py, PyArray2<f64>>>,
-);
-
-impl PyWindowSolver {
-    fn solve_impl<'py>(
-        &mut self,
-        py: Python<'py>,
-        w: &mut PyMheWindow,
-        mut z: Vec<f64>,
-        lower: &[f64],
-        upper: &[f64],
-    ) -> PyResult<SolveTuple<'py>> {
-        w.last_z.clear();
-        let dims = (w.problem.dim_x(), w.problem.dim_u(), w.problem.dim_y());
         let (solver, opts) = (&mut self.solver, &self.opts);
-        let report: SolveReport = match &mut w.model {
-            WindowModel::Gp(model) => {
-                let (problem, eval) = (&w.problem, &mut w.eval);
-                py.detach(|| {
-                    let mut lsq = WindowLsq {
-                        problem,
-                        model: &mut **model,
-                        eval,
-                    };
-                    solver.solve(&mut lsq, &mut z, lower, upper, opts)
-                })?
-            }
-            WindowModel::Callback(func) => {
-                let mut model = CallbackModel {
-                    func: func.bind(py),
-                    dims,
-                    err: None,
-                };
-                let mut lsq = WindowLsq {
-                    problem: &w.problem,
-                    model: &mut model,
-                    eval: &mut w.eval,
-                };
-                match solver.solve(&mut lsq, &mut z, lower, upper, opts) {
-                    Ok(r) => r,
-                    // A Python exception raised by the model is more useful than its wrapper.
-                    Err(e) => return Err(model.err.take().unwrap_or_else(|| e.into())),
-                }
-            }
-        };
-        w.last_z.extend_from_slice(&z);
+        let report = window.run(py, |core, model| {
+            core.solve_with(model, &mut z, lower, upper, solver, opts)
+        })?;
+        let n = window.core.problem().dim_x();
         let cov = self
             .solver
             .last_node_covariance()
-            .map(|c| array2(py, c, dims.0, dims.0))
+            .map(|c| array2(py, c, n, n))
             .transpose()?;
         Ok((
-            numpy::PyArray1::from_vec(py, z),
+            PyArray1::from_vec(py, z),
             report.cost,
             report.status.as_str(),
             report.status.is_success(),
@@ -737,3 +663,15 @@ impl PyWindowSolver {
         ))
     }
 }
+
+type SolveTuple<'py> = (
+    Bound<'py, PyArray1<f64>>,
+    f64,
+    &'static str,
+    bool,
+    usize,
+    usize,
+    f64,
+    usize,
+    Option<Bound<'py, PyArray2<f64>>>,
+);

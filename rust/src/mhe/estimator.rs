@@ -1,0 +1,334 @@
+//! The moving-horizon estimator's core: one object built once with the window problem (weights,
+//! form), the horizon, the state box and the solver settings, which owns the sliding history and
+//! the warm start. [`MovingHorizon::update`] is one whole update — cut the window, warm-start
+//! it, solve it, compute the next arrival prior, record the step; a failure before the record
+//! leaves the estimator unchanged.
+//!
+//! The same steps are available one by one for other solvers (SciPy's, from Python):
+//! [`MovingHorizon::prepare`] stages the next window and returns its warm start,
+//! [`MovingHorizon::evaluate`] evaluates the staged window at any z, and
+//! [`MovingHorizon::commit`] records a solution.
+
+use super::history::{History, WindowData};
+use super::problem::{Form, WindowEval, WindowProblem};
+use super::stage::StageModel;
+use crate::error::{check_finite, check_len, Error, Result};
+use crate::solver::{BoxLsqSolver, SolveReport, SolverOptions, WindowLsq};
+
+/// Relative margin by which the warm start is kept inside the box (1e-6 of its width, of 1 where
+/// the width is infinite), so the solver's barrier phase does not start on a bound.
+const INNER_MARGIN: f64 = 1e-6;
+
+/// What one update did.
+#[derive(Debug, Clone)]
+pub struct UpdateReport {
+    /// The optimal window (nodes × n), oldest first; its last row is the estimate.
+    pub x_window: Vec<f64>,
+    /// The arrival prior of the window's first node.
+    pub x_prior: Vec<f64>,
+    /// The last n×n block of 4(2JᵀJ)⁻¹ at the solution (None if singular or no solve ran).
+    pub covariance: Option<Vec<f64>>,
+    /// The solver's report, or the error that stopped it (the window then keeps its warm start).
+    pub solve: std::result::Result<SolveReport, Error>,
+    /// The cost J at `x_window`.
+    pub cost: f64,
+}
+
+/// See the module documentation.
+#[derive(Debug, Clone)]
+pub struct MovingHorizon {
+    problem: WindowProblem,
+    eval: WindowEval,
+    /// z of the evaluation held in `eval` (empty: none).
+    evaluated_at: Vec<f64>,
+    history: History,
+    /// The state box X, and X shrunk by `INNER_MARGIN` (for the warm start).
+    x_bounds: (Vec<f64>, Vec<f64>),
+    inner: (Vec<f64>, Vec<f64>),
+    /// X stacked over the staged window's nodes.
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+    solver: BoxLsqSolver,
+    opts: SolverOptions,
+    /// The staged step (after `prepare`), recorded by `commit`.
+    staged: Option<WindowData>,
+    /// Whether the problem holds a window (staged, or set by `set_window`).
+    has_window: bool,
+}
+
+impl MovingHorizon {
+    /// An estimator at x̂(0) = x0 with horizon M ≥ 1 and the box lower < upper (entries may be
+    /// ±∞) for every window state.
+    pub fn new(
+        problem: WindowProblem,
+        horizon: usize,
+        x0: &[f64],
+        lower: &[f64],
+        upper: &[f64],
+        opts: SolverOptions,
+    ) -> Result<Self> {
+        opts.validate()?;
+        let n = problem.dim_x();
+        let history = History::new(
+            horizon,
+            problem.form(),
+            (n, problem.dim_u(), problem.dim_y()),
+            x0,
+        )?;
+        check_len("x_bounds", lower, n)?;
+        check_len("x_bounds", upper, n)?;
+        if (0..n).any(|a| lower[a].is_nan() || upper[a].is_nan() || lower[a] >= upper[a]) {
+            return Err(Error::invalid(
+                "x_bounds",
+                "need lower < upper, without NaN",
+            ));
+        }
+        let width = |a: usize| match upper[a] - lower[a] {
+            w if w.is_finite() => w,
+            _ => 1.0,
+        };
+        let inner = (
+            (0..n).map(|a| lower[a] + INNER_MARGIN * width(a)).collect(),
+            (0..n).map(|a| upper[a] - INNER_MARGIN * width(a)).collect(),
+        );
+        Ok(Self {
+            problem,
+            eval: WindowEval::default(),
+            evaluated_at: Vec::new(),
+            history,
+            x_bounds: (lower.to_vec(), upper.to_vec()),
+            inner,
+            lower: Vec::new(),
+            upper: Vec::new(),
+            solver: BoxLsqSolver::new(),
+            opts,
+            staged: None,
+            has_window: false,
+        })
+    }
+
+    /// Forgets every step: t = 0, x̂(0) = x0.
+    pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
+        self.history.reset(x0)?;
+        self.staged = None;
+        self.has_window = false;
+        self.evaluated_at.clear();
+        Ok(())
+    }
+
+    pub fn problem(&self) -> &WindowProblem {
+        &self.problem
+    }
+
+    pub fn history(&self) -> &History {
+        &self.history
+    }
+
+    /// The staged window's evaluation (after [`MovingHorizon::evaluate`] or an update).
+    pub fn eval(&self) -> &WindowEval {
+        &self.eval
+    }
+
+    /// The box for the staged window's stacked states.
+    pub fn bounds(&self) -> (&[f64], &[f64]) {
+        (&self.lower, &self.upper)
+    }
+
+    /// One whole update with (u(t), y(t)) (`y` None: not measured); see the module docs.
+    pub fn update(
+        &mut self,
+        model: &mut dyn StageModel,
+        u: &[f64],
+        y: Option<&[f64]>,
+    ) -> Result<UpdateReport> {
+        let z0 = self.prepare(model, u, y)?;
+        let mut z = z0.clone();
+        self.evaluated_at.clear();
+        let solve = {
+            let mut lsq = WindowLsq {
+                problem: &self.problem,
+                model: &mut *model,
+                eval: &mut self.eval,
+            };
+            self.solver
+                .solve(&mut lsq, &mut z, &self.lower, &self.upper, &self.opts)
+        };
+        let (solve, cost, covariance) = match solve {
+            Ok(report) => {
+                self.evaluated_at.extend_from_slice(&z);
+                let cov = self.solver.last_node_covariance();
+                (Ok(report.clone()), report.cost, cov)
+            }
+            // A numerical failure keeps the warm start; anything else is an error.
+            Err(e @ Error::Numerical(_)) => {
+                z = z0;
+                let cost = self.evaluate(model, &z, false)?.cost();
+                (Err(e), cost, None)
+            }
+            Err(e) => return Err(e),
+        };
+        let (x_window, x_prior) = self.commit(model, z)?;
+        Ok(UpdateReport {
+            x_window,
+            x_prior,
+            covariance,
+            solve,
+            cost,
+        })
+    }
+
+    /// Stages the window of the next update with (u(t), y(t)) and returns its warm start z0:
+    /// the previous window's nodes that overlap the new one, each further node predicted from
+    /// the one before with the model, all clipped into the inner box (nodes already inside stay
+    /// bit-identical, so the learned model reuses their GP values). The history is unchanged.
+    pub fn prepare(
+        &mut self,
+        model: &mut dyn StageModel,
+        u: &[f64],
+        y: Option<&[f64]>,
+    ) -> Result<Vec<f64>> {
+        self.staged = None;
+        let data = self.history.next_window(u, y)?;
+        self.problem
+            .set_data(&data.u, &data.y, &data.present, &data.x_prior)?;
+        self.evaluated_at.clear();
+        let z0 = self.warm_start(model, &data)?;
+        let n = self.problem.dim_x();
+        self.lower.clear();
+        self.upper.clear();
+        for _ in 0..data.nodes {
+            self.lower.extend_from_slice(&self.x_bounds.0[..n]);
+            self.upper.extend_from_slice(&self.x_bounds.1[..n]);
+        }
+        self.staged = Some(data);
+        self.has_window = true;
+        Ok(z0)
+    }
+
+    fn warm_start(&self, model: &mut dyn StageModel, data: &WindowData) -> Result<Vec<f64>> {
+        let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
+        let (prev, prev_t0) = self.history.x_window();
+        let rows = prev.len() / n;
+        let first = data.s0 - prev_t0;
+        // The new window starts no later than the previous one ended: they overlap.
+        let kept = rows.saturating_sub(first).min(data.nodes);
+        if kept == 0 {
+            return Err(Error::numerical("internal: windows do not overlap"));
+        }
+        let mut z = vec![0.0; data.nodes * n];
+        z[..kept * n].copy_from_slice(&prev[first * n..(first + kept) * n]);
+        let mut next = vec![0.0; n];
+        for i in kept..data.nodes {
+            let (done, rest) = z.split_at_mut(i * n);
+            let u = &data.u[(i - 1) * m..i * m];
+            model.predict_state(&done[(i - 1) * n..], u, &mut next)?;
+            rest[..n].copy_from_slice(&next);
+        }
+        let (lo, hi) = &self.inner;
+        for (k, v) in z.iter_mut().enumerate() {
+            *v = v.clamp(lo[k % n], hi[k % n]);
+        }
+        Ok(z)
+    }
+
+    /// The staged window's evaluation at z (with the Jacobian if `want_jacobian`); reuses the
+    /// last one when it was at the same z.
+    pub fn evaluate(
+        &mut self,
+        model: &mut dyn StageModel,
+        z: &[f64],
+        want_jacobian: bool,
+    ) -> Result<&WindowEval> {
+        self.check_window()?;
+        let cached =
+            self.evaluated_at.as_slice() == z && (self.eval.has_jacobian() || !want_jacobian);
+        if !cached {
+            self.evaluated_at.clear();
+            self.problem
+                .evaluate(model, z, want_jacobian, &mut self.eval)?;
+            self.evaluated_at.extend_from_slice(z);
+        }
+        Ok(&self.eval)
+    }
+
+    /// Records the staged window's solution z (nodes × n): the next arrival prior is the new
+    /// estimate (prediction form) or its one-step prediction m_x(x̄_t, u(t)) (filtering form).
+    /// Returns (x_window, x_prior of the window).
+    pub fn commit(
+        &mut self,
+        model: &mut dyn StageModel,
+        z: Vec<f64>,
+    ) -> Result<(Vec<f64>, Vec<f64>)> {
+        let n = self.problem.dim_x();
+        let data = self
+            .staged
+            .as_ref()
+            .ok_or_else(|| Error::invalid("z", "no window staged: call prepare first"))?;
+        check_len("z", &z, data.nodes * n)?;
+        check_finite("z", &z)?;
+        let last = &z[z.len() - n..];
+        let next_prior = match self.problem.form() {
+            Form::Prediction => last.to_vec(),
+            Form::Filtering => {
+                let m = self.problem.dim_u();
+                let mut out = vec![0.0; n];
+                let u_t = &data.u[(data.nodes - 1) * m..data.nodes * m];
+                model.predict_state(last, u_t, &mut out)?;
+                out
+            }
+        };
+        let data = self
+            .staged
+            .take()
+            .ok_or_else(|| Error::numerical("lost the window"))?;
+        let x_prior = data.x_prior.clone();
+        self.history.push(data, z.clone(), next_prior);
+        Ok((z, x_prior))
+    }
+
+    /// Sets the window data directly (for diagnostics and tests: such a window cannot be
+    /// committed): `u` (nodes × m), `y` (nodes × p, rows ignored where not `present`), the
+    /// arrival prior `x_prior`. On error the previous window is kept.
+    pub fn set_window(
+        &mut self,
+        u: &[f64],
+        y: &[f64],
+        present: &[bool],
+        x_prior: &[f64],
+    ) -> Result<()> {
+        self.problem.set_data(u, y, present, x_prior)?;
+        self.evaluated_at.clear();
+        self.staged = None;
+        self.has_window = true;
+        Ok(())
+    }
+
+    fn check_window(&self) -> Result<()> {
+        match self.has_window {
+            true => Ok(()),
+            false => Err(Error::invalid("z", "no window set: call prepare first")),
+        }
+    }
+
+    /// Runs the solver on the staged window from z (in place) with other settings.
+    pub fn solve_with(
+        &mut self,
+        model: &mut dyn StageModel,
+        z: &mut [f64],
+        lower: &[f64],
+        upper: &[f64],
+        solver: &mut BoxLsqSolver,
+        opts: &SolverOptions,
+    ) -> Result<SolveReport> {
+        self.check_window()?;
+        self.evaluated_at.clear();
+        let mut lsq = WindowLsq {
+            problem: &self.problem,
+            model,
+            eval: &mut self.eval,
+        };
+        let report = solver.solve(&mut lsq, z, lower, upper, opts)?;
+        self.evaluated_at.extend_from_slice(z);
+        Ok(report)
+    }
+}

@@ -1,0 +1,239 @@
+//! The sliding history of a moving-horizon estimator: the inputs and outputs of the last M + 1
+//! steps, the arrival priors of the last M + 2 times and the previous optimal window. From it,
+//! [`History::next_window`] cuts the data of the next window (without changing anything) and
+//! [`History::push`] records a solved step.
+//!
+//! Time t counts the updates since the last reset. The t-th update adds (u(t), y(t)); its window
+//! starts at time s0 = max(0, end − M) and ends at `end` = t + 1 (prediction form: the last node
+//! has no data) or t (filtering form), so it has M_t + 1 = end − s0 + 1 nodes.
+
+use std::collections::VecDeque;
+
+use super::problem::Form;
+use crate::error::{check_finite, check_len, Error, Result};
+
+/// The data of one window, cut from the history and the new step.
+#[derive(Debug, Clone)]
+pub struct WindowData {
+    /// (nodes × m) inputs, (nodes × p) outputs (zeros where missing), presence per node.
+    pub u: Vec<f64>,
+    pub y: Vec<f64>,
+    pub present: Vec<bool>,
+    /// The arrival prior x̂(s0) for the first node.
+    pub x_prior: Vec<f64>,
+    /// Time of the first node.
+    pub s0: usize,
+    /// Number of nodes M_t + 1.
+    pub nodes: usize,
+    /// The new step (u(t), y(t), whether y(t) was measured), recorded by [`History::push`].
+    step: (Vec<f64>, Vec<f64>, bool),
+}
+
+/// See the module documentation.
+#[derive(Debug, Clone)]
+pub struct History {
+    horizon: usize,
+    form: Form,
+    dims: (usize, usize, usize),
+    t: usize,
+    /// Rows of the last ≤ M + 1 steps, oldest first.
+    u: Vec<f64>,
+    y: Vec<f64>,
+    present: Vec<bool>,
+    /// Arrival priors of the last ≤ M + 2 times, the newest (for time t) last.
+    priors: VecDeque<Vec<f64>>,
+    /// The last optimal window (rows × n), oldest first, and the time of its first row.
+    x_window: Vec<f64>,
+    window_t0: usize,
+}
+
+impl History {
+    /// An empty history for horizon M ≥ 1 and dimensions (n, m, p), at x̂(0) = x0.
+    pub fn new(
+        horizon: usize,
+        form: Form,
+        dims: (usize, usize, usize),
+        x0: &[f64],
+    ) -> Result<Self> {
+        if horizon == 0 {
+            return Err(Error::invalid("horizon", "must be at least 1"));
+        }
+        let mut h = Self {
+            horizon,
+            form,
+            dims,
+            t: 0,
+            u: Vec::new(),
+            y: Vec::new(),
+            present: Vec::new(),
+            priors: VecDeque::with_capacity(horizon + 2),
+            x_window: Vec::new(),
+            window_t0: 0,
+        };
+        h.reset(x0)?;
+        Ok(h)
+    }
+
+    /// Forgets every step: t = 0, x̂(0) = x0.
+    pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
+        check_len("x0", x0, self.dims.0)?;
+        check_finite("x0", x0)?;
+        self.t = 0;
+        self.u.clear();
+        self.y.clear();
+        self.present.clear();
+        self.priors.clear();
+        self.priors.push_back(x0.to_vec());
+        self.x_window = x0.to_vec();
+        self.window_t0 = 0;
+        Ok(())
+    }
+
+    pub fn horizon(&self) -> usize {
+        self.horizon
+    }
+
+    /// Number of updates since the last reset.
+    pub fn t(&self) -> usize {
+        self.t
+    }
+
+    /// The last optimal window (rows × n) and the time of its first row.
+    pub fn x_window(&self) -> (&[f64], usize) {
+        (&self.x_window, self.window_t0)
+    }
+
+    /// The window of the t-th update with the new step (u(t), y(t)) (`y` None: not measured).
+    pub fn next_window(&self, u: &[f64], y: Option<&[f64]>) -> Result<WindowData> {
+        let (_, m, p) = self.dims;
+        check_len("u", u, m)?;
+        check_finite("u", u)?;
+        if let Some(y) = y {
+            check_len("y", y, p)?;
+            check_finite("y", y)?;
+        }
+        let y_t = y.map_or_else(|| vec![0.0; p], <[f64]>::to_vec);
+        let (t, big_m) = (self.t, self.horizon);
+        let end = match self.form {
+            Form::Prediction => t + 1,
+            Form::Filtering => t,
+        };
+        let s0 = end.saturating_sub(big_m);
+        let nodes = end - s0 + 1;
+        // Steps with data: times s0 ..= t, the last of them the new one.
+        let k = t + 1 - s0;
+        let old = k - 1;
+        let mut data = WindowData {
+            u: last_rows(&self.u, m, old),
+            y: last_rows(&self.y, p, old),
+            present: self.present[self.present.len() - old..].to_vec(),
+            x_prior: self.priors[self.priors.len() - 1 - (t - s0)].clone(),
+            s0,
+            nodes,
+            step: (u.to_vec(), y_t.clone(), y.is_some()),
+        };
+        data.u.extend_from_slice(u);
+        data.y.extend_from_slice(&y_t);
+        data.present.push(y.is_some());
+        if nodes > k {
+            // Prediction form: the last node x̄(t+1) carries no data.
+            data.u.resize(nodes * m, 0.0);
+            data.y.resize(nodes * p, 0.0);
+            data.present.push(false);
+        }
+        Ok(data)
+    }
+
+    /// Records a solved step: its data, the optimal window `x_window` and the arrival prior of
+    /// the next time.
+    pub fn push(&mut self, data: WindowData, x_window: Vec<f64>, next_prior: Vec<f64>) {
+        let (_, m, p) = self.dims;
+        let (u, y, present) = data.step;
+        let keep = self.horizon + 1;
+        self.u.extend_from_slice(&u);
+        self.y.extend_from_slice(&y);
+        self.present.push(present);
+        if self.present.len() > keep {
+            let drop = self.present.len() - keep;
+            self.present.drain(..drop);
+            self.u.drain(..drop * m);
+            self.y.drain(..drop * p);
+        }
+        self.priors.push_back(next_prior);
+        if self.priors.len() > self.horizon + 2 {
+            self.priors.pop_front();
+        }
+        self.x_window = x_window;
+        self.window_t0 = data.s0;
+        self.t += 1;
+    }
+}
+
+/// The last `rows` rows (of width `width`) of a row-major buffer.
+fn last_rows(buf: &[f64], width: usize, rows: usize) -> Vec<f64> {
+    buf[buf.len() - rows * width..].to_vec()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Windows of the prediction form for M = 2 and no input: node times and priors.
+    #[test]
+    fn windows_slide_and_pick_their_arrival_prior() {
+        let mut h = History::new(2, Form::Prediction, (1, 0, 1), &[10.0]).unwrap();
+        let mut seen = Vec::new();
+        for t in 0..5 {
+            let y = [t as f64];
+            let w = h.next_window(&[], Some(&y)).unwrap();
+            seen.push((w.s0, w.nodes, w.x_prior[0], w.y.clone(), w.present.clone()));
+            let x = vec![100.0 + t as f64; w.nodes];
+            let last = x[w.nodes - 1];
+            h.push(w, x, vec![last]);
+        }
+        // t = 0: nodes {0, 1}, prior x0; t = 1: {0, 1, 2}; t ≥ 2: {t−1, t, t+1}.
+        assert_eq!(seen[0], (0, 2, 10.0, vec![0.0, 0.0], vec![true, false]));
+        assert_eq!(
+            seen[1],
+            (0, 3, 10.0, vec![0.0, 1.0, 0.0], vec![true, true, false])
+        );
+        assert_eq!(seen[2].0..seen[2].1, 1..3);
+        // The prior of time s0 = t − 1 is the estimate x̂(t−1) pushed two updates before.
+        assert_eq!(seen[2].2, 100.0);
+        assert_eq!(
+            seen[4],
+            (3, 3, 102.0, vec![3.0, 4.0, 0.0], vec![true, true, false])
+        );
+        assert_eq!(h.t(), 5);
+    }
+
+    #[test]
+    fn filtering_windows_end_at_the_newest_output_and_missing_outputs_are_zero() {
+        let mut h = History::new(2, Form::Filtering, (1, 1, 1), &[0.0]).unwrap();
+        for t in 0..4 {
+            let y = if t == 2 { None } else { Some([t as f64]) };
+            let w = h
+                .next_window(&[t as f64], y.as_ref().map(|v| &v[..]))
+                .unwrap();
+            assert_eq!(w.nodes, t.min(2) + 1);
+            assert_eq!(w.u.last(), Some(&(t as f64)));
+            assert_eq!(*w.present.last().unwrap(), t != 2);
+            if t == 2 {
+                assert_eq!(w.y.last(), Some(&0.0));
+            }
+            let nodes = w.nodes;
+            h.push(w, vec![0.0; nodes], vec![t as f64]);
+        }
+    }
+
+    #[test]
+    fn bad_steps_are_rejected_naming_the_argument() {
+        let h = History::new(3, Form::Prediction, (2, 1, 1), &[0.0, 0.0]).unwrap();
+        let err = |r: Result<WindowData>| r.unwrap_err().to_string();
+        assert!(err(h.next_window(&[], Some(&[0.0]))).starts_with("u:"));
+        assert!(err(h.next_window(&[f64::NAN], Some(&[0.0]))).starts_with("u:"));
+        assert!(err(h.next_window(&[0.0], Some(&[0.0, 1.0]))).starts_with("y:"));
+        assert!(History::new(0, Form::Prediction, (2, 1, 1), &[0.0, 0.0]).is_err());
+        assert!(History::new(1, Form::Prediction, (2, 1, 1), &[0.0]).is_err());
+    }
+}

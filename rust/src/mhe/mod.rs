@@ -1,0 +1,18 @@
+//! Moving horizon estimation (docs/user_guide/window.rst): the window problem, the models it
+//! evaluates, the sliding history and the estimator that ties them to the solver.
+//!
+//! * [`stage`]: what a model provides at a batch of points ([`StageModel`]), and the learned
+//!   model [`GpStageModel`];
+//! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]);
+//! * [`history`]: the last M + 1 steps, the arrival priors, the previous window;
+//! * [`estimator`]: [`MovingHorizon`], one update = window, warm start, solve, record.
+
+pub mod estimator;
+pub mod history;
+pub mod problem;
+pub mod stage;
+
+pub use estimator::{MovingHorizon, UpdateReport};
+pub use history::{History, WindowData};
+pub use problem::{Form, WindowEval, WindowProblem};
+pub use stage::{GpStageModel, StageEval, StageModel};

@@ -1,0 +1,334 @@
+//! The model side of the window: [`StageEval`] (means, variances and their input gradients at a
+//! batch of points d = [x; u]), the [`StageModel`] trait every model implements, and the learned
+//! model [`GpStageModel`] (the GPs of f and h, with a cache of the last window's points).
+
+// Index loops over row-major blocks read better than iterator chains here.
+#![allow(clippy::needless_range_loop)]
+
+use crate::error::{check_len, Error, Result};
+use crate::gp::{GpWorkspace, MultiGp};
+
+/// Means, variances and their input gradients of a stage model at k points d = [x; u].
+/// All row-major: `mean_x` k×n, `var_x` k×n, `dmean_x` and `dvar_x` k×n×nd, `mean_y` k×p,
+/// `var_y` k×p, `dmean_y` and `dvar_y` k×p×nd, with nd = n + m.
+#[derive(Debug, Default, Clone)]
+pub struct StageEval {
+    pub mean_x: Vec<f64>,
+    pub var_x: Vec<f64>,
+    pub dmean_x: Vec<f64>,
+    pub dvar_x: Vec<f64>,
+    pub mean_y: Vec<f64>,
+    pub var_y: Vec<f64>,
+    pub dmean_y: Vec<f64>,
+    pub dvar_y: Vec<f64>,
+    /// Typical absolute rounding errors of each output's mean and variance (n and p values,
+    /// the same at every point; zero for a model computed to full precision): how much of a
+    /// change in the window cost is noise (see `WindowEval::cost_noise`).
+    pub mean_x_rounding: Vec<f64>,
+    pub var_x_rounding: Vec<f64>,
+    pub mean_y_rounding: Vec<f64>,
+    pub var_y_rounding: Vec<f64>,
+}
+
+impl StageEval {
+    /// Sizes every buffer for k points (reuses capacity; contents unspecified).
+    pub fn resize(&mut self, k: usize, n: usize, m: usize, p: usize) {
+        let nd = n + m;
+        self.mean_x.resize(k * n, 0.0);
+        self.var_x.resize(k * n, 0.0);
+        self.dmean_x.resize(k * n * nd, 0.0);
+        self.dvar_x.resize(k * n * nd, 0.0);
+        self.mean_y.resize(k * p, 0.0);
+        self.var_y.resize(k * p, 0.0);
+        self.dmean_y.resize(k * p * nd, 0.0);
+        self.dvar_y.resize(k * p * nd, 0.0);
+        // Full precision unless the model says otherwise.
+        for (v, len) in [
+            (&mut self.mean_x_rounding, n),
+            (&mut self.var_x_rounding, n),
+            (&mut self.mean_y_rounding, p),
+            (&mut self.var_y_rounding, p),
+        ] {
+            v.clear();
+            v.resize(len, 0.0);
+        }
+    }
+}
+
+impl StageEval {
+    /// Copies point `i` of `src` into point `j` of `self` (both sized for dimensions n, p, nd).
+    pub(super) fn copy_point(
+        &mut self,
+        j: usize,
+        src: &StageEval,
+        i: usize,
+        n: usize,
+        p: usize,
+        nd: usize,
+    ) {
+        fn row(dst: &mut [f64], src: &[f64], j: usize, i: usize, w: usize) {
+            dst[j * w..(j + 1) * w].copy_from_slice(&src[i * w..(i + 1) * w]);
+        }
+        row(&mut self.mean_x, &src.mean_x, j, i, n);
+        row(&mut self.var_x, &src.var_x, j, i, n);
+        row(&mut self.dmean_x, &src.dmean_x, j, i, n * nd);
+        row(&mut self.dvar_x, &src.dvar_x, j, i, n * nd);
+        row(&mut self.mean_y, &src.mean_y, j, i, p);
+        row(&mut self.var_y, &src.var_y, j, i, p);
+        row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
+        row(&mut self.dvar_y, &src.dvar_y, j, i, p * nd);
+    }
+
+    /// Fails unless every buffer has the size for k points (guards against a model that
+    /// resized them wrongly).
+    pub(super) fn check_sizes(&self, k: usize, n: usize, m: usize, p: usize) -> Result<()> {
+        let nd = n + m;
+        let ok = self.mean_x.len() == k * n
+            && self.var_x.len() == k * n
+            && self.dmean_x.len() == k * n * nd
+            && self.dvar_x.len() == k * n * nd
+            && self.mean_y.len() == k * p
+            && self.var_y.len() == k * p
+            && self.dmean_y.len() == k * p * nd
+            && self.dvar_y.len() == k * p * nd
+            && self.mean_x_rounding.len() == n
+            && self.var_x_rounding.len() == n
+            && self.mean_y_rounding.len() == p
+            && self.var_y_rounding.len() == p;
+        if ok {
+            Ok(())
+        } else {
+            Err(Error::invalid("model", "returned arrays of the wrong size"))
+        }
+    }
+}
+
+/// A model x(t+1) = f(x, u) + w, y = h(x, u) + v with input-dependent variances (zero for a
+/// known model), evaluated for a batch of points at once.
+pub trait StageModel {
+    fn dim_x(&self) -> usize;
+    fn dim_u(&self) -> usize;
+    fn dim_y(&self) -> usize;
+    /// Evaluate at k points d (k×(n+m) row-major) into `out` (resized as needed, reused).
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()>;
+
+    /// The one-step prediction m_x(x, u) into `out` (n): by default the means of one
+    /// evaluation at d = [x; u]. The warm start and the filtering form's arrival prior use it.
+    fn predict_state(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> Result<()> {
+        let mut d = x.to_vec();
+        d.extend_from_slice(u);
+        let mut ev = StageEval::default();
+        self.evaluate(&d, &mut ev)?;
+        check_len("model", &ev.mean_x, out.len())?;
+        out.copy_from_slice(&ev.mean_x);
+        Ok(())
+    }
+}
+
+/// The learned model of GP-MHE: n independent GPs for f (regression targets x(t+1), or the
+/// increment x(t+1) − x(t) when `f_residual`, i.e. prior mean x) and p GPs for h, all on the
+/// inputs d = [x; u]. The variances are the GPs' latent variances (docs/user_guide/gaussian_processes.rst).
+///
+/// The values at the points of the last evaluation are kept: a point given again with exactly
+/// the same coordinates is copied instead of recomputed. A moving-horizon window starts from the
+/// previous solution shifted by one step, so its first evaluation recomputes only the new point.
+#[derive(Debug, Clone)]
+pub struct GpStageModel {
+    f: MultiGp,
+    h: Option<MultiGp>,
+    f_residual: bool,
+    n: usize,
+    m: usize,
+    ws: GpWorkspace,
+    /// Points (k × nd) and values of the last evaluation.
+    last_d: Vec<f64>,
+    last: StageEval,
+    /// Scratch: the points not found in `last`, their values, and where each point comes from
+    /// (`Ok(i)`: point i of `last`; `Err(i)`: point i of `fresh`).
+    miss_d: Vec<f64>,
+    fresh: StageEval,
+    source: Vec<std::result::Result<usize, usize>>,
+}
+
+impl GpStageModel {
+    /// `f` has n outputs on inputs of dimension n + `dim_u`; `h` (None when p = 0) has p outputs
+    /// on the same inputs.
+    pub fn new(f: MultiGp, h: Option<MultiGp>, dim_u: usize, f_residual: bool) -> Result<Self> {
+        let n = f.n_outputs();
+        if f.dim() != n + dim_u {
+            return Err(Error::invalid(
+                "f",
+                format!(
+                    "GP input dimension {} is not dim_x + dim_u = {}",
+                    f.dim(),
+                    n + dim_u
+                ),
+            ));
+        }
+        if let Some(h) = &h {
+            if h.dim() != n + dim_u {
+                return Err(Error::invalid(
+                    "h",
+                    format!(
+                        "GP input dimension {} is not dim_x + dim_u = {}",
+                        h.dim(),
+                        n + dim_u
+                    ),
+                ));
+            }
+        }
+        Ok(Self {
+            f,
+            h,
+            f_residual,
+            n,
+            m: dim_u,
+            ws: GpWorkspace::default(),
+            last_d: Vec::new(),
+            last: StageEval::default(),
+            miss_d: Vec::new(),
+            fresh: StageEval::default(),
+            source: Vec::new(),
+        })
+    }
+
+    /// The one-step prediction m_x(x, u) (the f-GPs' means, plus x with `f_residual`) into
+    /// `out` (n). Does not touch the cache of the last evaluation.
+    pub fn predict_mean(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> Result<()> {
+        check_len("x", x, self.n)?;
+        check_len("u", u, self.m)?;
+        check_len("out", out, self.n)?;
+        self.miss_d.clear();
+        self.miss_d.extend_from_slice(x);
+        self.miss_d.extend_from_slice(u);
+        self.f.predict_mean_into(&self.miss_d, out, &mut self.ws)?;
+        if self.f_residual {
+            for (o, xi) in out.iter_mut().zip(x) {
+                *o += xi;
+            }
+        }
+        Ok(())
+    }
+
+    /// Index of a point of the last evaluation equal to `dj` (trying `hint` first: a shifted
+    /// window finds point j of the new window at j + 1 of the old).
+    fn find_last(&self, dj: &[f64], hint: usize) -> Option<usize> {
+        let nd = dj.len();
+        let k_last = self.last_d.len() / nd;
+        let same = |i: usize| self.last_d[i * nd..(i + 1) * nd] == *dj;
+        if hint < k_last && same(hint) {
+            return Some(hint);
+        }
+        (0..k_last).find(|&i| same(i))
+    }
+
+    /// GP values at the k points `d` into `out` (already sized for k points).
+    fn predict(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, nd) = (self.n, self.n + self.m);
+        let k = d.len() / nd;
+        self.f.predict_with_gradients_into(
+            d,
+            &mut out.mean_x,
+            &mut out.var_x,
+            &mut out.dmean_x,
+            &mut out.dvar_x,
+            &mut self.ws,
+        )?;
+        if self.f_residual {
+            for i in 0..k {
+                for c in 0..n {
+                    out.mean_x[i * n + c] += d[i * nd + c];
+                    out.dmean_x[(i * n + c) * nd + c] += 1.0;
+                }
+            }
+        }
+        if let Some(h) = &self.h {
+            h.predict_with_gradients_into(
+                d,
+                &mut out.mean_y,
+                &mut out.var_y,
+                &mut out.dmean_y,
+                &mut out.dvar_y,
+                &mut self.ws,
+            )?;
+        }
+        Ok(())
+    }
+
+    pub fn f_residual(&self) -> bool {
+        self.f_residual
+    }
+}
+
+impl StageModel for GpStageModel {
+    fn dim_x(&self) -> usize {
+        self.n
+    }
+    fn dim_u(&self) -> usize {
+        self.m
+    }
+    fn dim_y(&self) -> usize {
+        self.h.as_ref().map_or(0, |h| h.n_outputs())
+    }
+    fn predict_state(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> Result<()> {
+        self.predict_mean(x, u, out)
+    }
+
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.dim_y());
+        let nd = n + m;
+        if d.len() % nd != 0 {
+            return Err(Error::invalid(
+                "d",
+                format!(
+                    "length {} is not a multiple of dim_x + dim_u = {nd}",
+                    d.len()
+                ),
+            ));
+        }
+        let k = d.len() / nd;
+        out.resize(k, n, m, p);
+        self.f
+            .rounding_into(&mut out.mean_x_rounding, &mut out.var_x_rounding);
+        if let Some(h) = &self.h {
+            h.rounding_into(&mut out.mean_y_rounding, &mut out.var_y_rounding);
+        }
+        self.source.clear();
+        self.miss_d.clear();
+        for (j, dj) in d.chunks_exact(nd).enumerate() {
+            match self.find_last(dj, j + 1) {
+                Some(i) => self.source.push(Ok(i)),
+                None => {
+                    self.source.push(Err(self.miss_d.len() / nd));
+                    self.miss_d.extend_from_slice(dj);
+                }
+            }
+        }
+        let misses = self.miss_d.len() / nd;
+        if misses == k {
+            self.predict(d, out)?;
+        } else {
+            if misses > 0 {
+                let (miss_d, mut fresh) = (
+                    std::mem::take(&mut self.miss_d),
+                    std::mem::take(&mut self.fresh),
+                );
+                fresh.resize(misses, n, m, p);
+                let r = self.predict(&miss_d, &mut fresh);
+                self.miss_d = miss_d;
+                self.fresh = fresh;
+                r?;
+            }
+            for j in 0..k {
+                match self.source[j] {
+                    Ok(i) => out.copy_point(j, &self.last, i, n, p, nd),
+                    Err(i) => out.copy_point(j, &self.fresh, i, n, p, nd),
+                }
+            }
+        }
+        self.last_d.clear();
+        self.last_d.extend_from_slice(d);
+        self.last.clone_from(out);
+        Ok(())
+    }
+}
