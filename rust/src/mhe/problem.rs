@@ -189,7 +189,8 @@ impl WindowProblem {
         (2.0 * self.eta.powi(power)).sqrt()
     }
 
-    /// Residuals (and, if `want_jacobian`, the Jacobian blocks) at z ((M_t+1)·n values).
+    /// Residuals (and, if `want_jacobian`, the Jacobian blocks) at z ((M_t+1)·n values), in the
+    /// row order of the module documentation.
     pub fn evaluate(
         &self,
         model: &mut dyn StageModel,
@@ -197,6 +198,27 @@ impl WindowProblem {
         want_jacobian: bool,
         out: &mut WindowEval,
     ) -> Result<()> {
+        self.check_model(model)?;
+        let nodes = self.n_nodes();
+        check_len("z", z, nodes * self.n)?;
+        check_finite("z", z)?;
+        self.evaluate_model(model, z, out)?;
+        out.reset(self.n, nodes, self.n_residuals(), want_jacobian);
+        let mut row = self.write_prior_rows(z, want_jacobian, out);
+        for i in 0..nodes {
+            let a = self.stage_weight(i);
+            if self.has_output(i) {
+                row = self.write_output_rows(i, a, row, want_jacobian, out);
+            }
+            if i < self.m_t {
+                row = self.write_process_rows(i, a, z, row, want_jacobian, out);
+            }
+        }
+        debug_assert_eq!(row, out.r.len());
+        out.finish()
+    }
+
+    fn check_model(&self, model: &dyn StageModel) -> Result<()> {
         let (n, m, p) = (self.n, self.m, self.p);
         if model.dim_x() != n || model.dim_u() != m || model.dim_y() != p {
             return Err(Error::invalid(
@@ -209,9 +231,17 @@ impl WindowProblem {
                 ),
             ));
         }
-        let nodes = self.n_nodes();
-        check_len("z", z, nodes * n)?;
-        check_finite("z", z)?;
+        Ok(())
+    }
+
+    /// The model's means, variances and gradients at the stage points d̄_i = [x̄_i; u_i].
+    fn evaluate_model(
+        &self,
+        model: &mut dyn StageModel,
+        z: &[f64],
+        out: &mut WindowEval,
+    ) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.p);
         let nd = n + m;
         let k = self.n_points();
         out.d.resize(k * nd, 0.0);
@@ -224,112 +254,111 @@ impl WindowProblem {
             model.evaluate(&out.d, &mut out.stage)?;
             out.stage.check_sizes(k, n, m, p)?;
         }
-        let rows = self.n_residuals();
-        out.reset(n, nodes, rows, want_jacobian);
-        let WindowEval {
-            stage: st,
-            r: out_r,
-            dr: out_dr,
-            node: out_node,
-            process: out_process,
-            ja: out_ja,
-            jb: out_jb,
-            ..
-        } = out;
+        Ok(())
+    }
 
-        // Prior block.
+    /// The prior block a_{M_t} S (x̄_0 − x̂(t − M_t)): rows 0 … n−1. Returns the next row.
+    fn write_prior_rows(&self, z: &[f64], want_jacobian: bool, out: &mut WindowEval) -> usize {
+        let n = self.n;
         let a = (2.0 * self.eta.powi(self.m_t as i32)).sqrt();
-        let mut row = 0;
         for r in 0..n {
             let mut acc = 0.0;
             for c in 0..n {
                 acc += self.p2_sqrt[r * n + c] * (z[c] - self.x_prior[c]);
             }
-            out_r[row] = a * acc;
-            out_node[row] = 0;
-            out_process[row] = false;
+            out.r[r] = a * acc;
+            out.node[r] = 0;
+            out.process[r] = false;
             if want_jacobian {
                 for c in 0..n {
-                    out_ja[row * n + c] = a * self.p2_sqrt[r * n + c];
+                    out.ja[r * n + c] = a * self.p2_sqrt[r * n + c];
                 }
             }
+        }
+        n
+    }
+
+    /// The output rows of node i from `row` on (weight a). Returns the next row.
+    fn write_output_rows(
+        &self,
+        i: usize,
+        a: f64,
+        mut row: usize,
+        want_jacobian: bool,
+        out: &mut WindowEval,
+    ) -> usize {
+        let (n, p, nd) = (self.n, self.p, self.n + self.m);
+        let st = &out.stage;
+        for kk in 0..p {
+            let (t, g) = (i * p + kk, (i * p + kk) * nd);
+            let w = WeightedRow {
+                a,
+                target: self.y[t],
+                mean: st.mean_y[t],
+                var: st.var_y[t],
+                floor: self.r0[kk],
+                mean_rounding: st.mean_y_rounding[kk],
+                var_rounding: st.var_y_rounding[kk],
+            };
+            let derivs = want_jacobian.then(|| {
+                (
+                    &st.dmean_y[g..g + n],
+                    &st.dvar_y[g..g + n],
+                    &mut out.ja[row * n..(row + 1) * n],
+                )
+            });
+            (out.r[row], out.dr[row], _) = w.write(derivs);
+            out.node[row] = i;
+            out.process[row] = false;
             row += 1;
         }
+        row
+    }
 
-        for i in 0..nodes {
-            let a = self.stage_weight(i);
-            if self.has_output(i) {
-                for kk in 0..p {
-                    let (t, g) = (i * p + kk, (i * p + kk) * nd);
-                    let w = WeightedRow {
-                        a,
-                        target: self.y[t],
-                        mean: st.mean_y[t],
-                        var: st.var_y[t],
-                        floor: self.r0[kk],
-                        mean_rounding: st.mean_y_rounding[kk],
-                        var_rounding: st.var_y_rounding[kk],
-                    };
-                    let derivs = want_jacobian.then(|| {
-                        (
-                            &st.dmean_y[g..g + n],
-                            &st.dvar_y[g..g + n],
-                            &mut out_ja[row * n..(row + 1) * n],
-                        )
-                    });
-                    (out_r[row], out_dr[row], _) = w.write(derivs);
-                    out_node[row] = i;
-                    out_process[row] = false;
-                    row += 1;
-                }
+    /// The process rows of stage i (nodes i and i+1) from `row` on (weight a). Returns the
+    /// next row.
+    fn write_process_rows(
+        &self,
+        i: usize,
+        a: f64,
+        z: &[f64],
+        mut row: usize,
+        want_jacobian: bool,
+        out: &mut WindowEval,
+    ) -> usize {
+        let (n, nd) = (self.n, self.n + self.m);
+        let st = &out.stage;
+        for kk in 0..n {
+            let (t, g) = (i * n + kk, (i * n + kk) * nd);
+            let w = WeightedRow {
+                a,
+                target: z[(i + 1) * n + kk],
+                mean: st.mean_x[t],
+                var: st.var_x[t],
+                floor: self.q0[kk],
+                mean_rounding: st.mean_x_rounding[kk],
+                var_rounding: st.var_x_rounding[kk],
+            };
+            let derivs = want_jacobian.then(|| {
+                (
+                    &st.dmean_x[g..g + n],
+                    &st.dvar_x[g..g + n],
+                    &mut out.ja[row * n..(row + 1) * n],
+                )
+            });
+            let scale;
+            (out.r[row], out.dr[row], scale) = w.write(derivs);
+            if want_jacobian {
+                // ∂r/∂x̄_{i+1}: the target is the next state itself.
+                let jb = &mut out.jb[row * n..(row + 1) * n];
+                jb.iter_mut().for_each(|v| *v = 0.0);
+                jb[kk] = scale;
             }
-            if i < self.m_t {
-                for kk in 0..n {
-                    let (t, g) = (i * n + kk, (i * n + kk) * nd);
-                    let w = WeightedRow {
-                        a,
-                        target: z[(i + 1) * n + kk],
-                        mean: st.mean_x[t],
-                        var: st.var_x[t],
-                        floor: self.q0[kk],
-                        mean_rounding: st.mean_x_rounding[kk],
-                        var_rounding: st.var_x_rounding[kk],
-                    };
-                    let derivs = want_jacobian.then(|| {
-                        (
-                            &st.dmean_x[g..g + n],
-                            &st.dvar_x[g..g + n],
-                            &mut out_ja[row * n..(row + 1) * n],
-                        )
-                    });
-                    let scale;
-                    (out_r[row], out_dr[row], scale) = w.write(derivs);
-                    if want_jacobian {
-                        // ∂r/∂x̄_{i+1}: the target is the next state itself.
-                        let jb = &mut out_jb[row * n..(row + 1) * n];
-                        jb.iter_mut().for_each(|v| *v = 0.0);
-                        jb[kk] = scale;
-                    }
-                    out_node[row] = i;
-                    out_process[row] = true;
-                    row += 1;
-                }
-            }
+            out.node[row] = i;
+            out.process[row] = true;
+            row += 1;
         }
-        debug_assert_eq!(row, rows);
-        out.noise = out
-            .r
-            .iter()
-            .zip(&out.dr)
-            .map(|(r, d)| (2.0 * r * d).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        if out.r.iter().any(|v| !v.is_finite()) {
-            return Err(Error::numerical(
-                "window residuals are not finite (model returned NaN/inf)",
-            ));
-        }
-        Ok(())
+        row
     }
 }
 
@@ -396,6 +425,23 @@ pub struct WindowEval {
 }
 
 impl WindowEval {
+    /// The cost's rounding noise, and an error if a residual is not finite.
+    fn finish(&mut self) -> Result<()> {
+        self.noise = self
+            .r
+            .iter()
+            .zip(&self.dr)
+            .map(|(r, d)| (2.0 * r * d).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        if self.r.iter().any(|v| !v.is_finite()) {
+            return Err(Error::numerical(
+                "window residuals are not finite (model returned NaN/inf)",
+            ));
+        }
+        Ok(())
+    }
+
     fn reset(&mut self, n: usize, nodes: usize, rows: usize, want_jacobian: bool) {
         self.n = n;
         self.nodes = nodes;
