@@ -153,39 +153,42 @@ def gps_with_n_points(model, n_points, rng):
     return LearnedModel(fg, hg)
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--tc-steps", type=int, default=40)
-    ap.add_argument("--block", type=int, default=10,
-                    help="steps per estimator per round of the interleaved timing")
-    ap.add_argument("--quick", action="store_true", help="short runs, smaller scaling tables")
-    args = ap.parse_args(argv)
-    steps = 30 if args.quick else args.steps
-    tc_steps = 5 if args.quick else min(args.tc_steps, steps)
-    rng = np.random.default_rng(args.seed)
-    warnings.simplefilter("ignore")  # optimiser chatter; failed windows are counted instead
-
+def fit_models(seed, rng):
+    """The GPs on 5 training trajectories (3 and 2 restarts) and the exact models."""
     t0 = time.perf_counter()
     data = br.training_data(5, rng=rng)
-    gp5 = LearnedModel.from_trajectories(*data, n_restarts=3, random_state=args.seed)
+    gp5 = LearnedModel.from_trajectories(*data, n_restarts=3, random_state=seed)
     print(f"GPs fitted on 5 trajectories in {time.perf_counter() - t0:.1f} s "
           f"(N = {gp5.f_gp._core_model.n_train} per f-GP, {gp5.h_gp._core_model.n_train} for h)")
     # With 2 restarts the second f-GP's fit lands on a worse local optimum of the LML (on seed 0:
     # sigma_f = 1000, length-scales (155, 1000), imitating a linear map) whose cost is only
     # resolvable to ~1e-6 relative: the solver then stops at that noise floor.
-    gp5_2r = LearnedModel.from_trajectories(*data, n_restarts=2, random_state=args.seed)
+    gp5_2r = LearnedModel.from_trajectories(*data, n_restarts=2, random_state=seed)
     for name, g in (("3 restarts", gp5), ("2 restarts", gp5_2r)):
         print(f"  {name}: f-GP sigma_f {np.round(g.f_gp.sigma_f, 2)}, LML "
               f"{np.round(g.f_gp.log_marginal_likelihood(), 1)}")
     known = KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
     known_vec = KnownModel(br.f_batch, br.h_batch, 2, 1, f_jacobian=br.f_jacobian_batch,
                            h_jacobian=br.h_jacobian_batch, vectorized=True)
-    x, y = br.simulate(br.X_TRUE0, steps, rng)
-    Q, R = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1)
-    kw = dict(x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    return gp5, gp5_2r, known, known_vec
 
+
+MHE_ROWS = [  # (name, model key, solver, solver_options, uses tc_steps)
+    ("GPMHE Rust gauss-newton", "gp5", "gauss-newton", {}, False),
+    ("GPMHE Rust gauss-newton, dtol=0 (to gtol)", "gp5", "gauss-newton", {"dtol": 0.0}, False),
+    ("GPMHE Rust gauss-newton, 2-restart GPs", "gp5_2r", "gauss-newton", {}, False),
+    ("GPMHE least-squares (SciPy)", "gp5", "least-squares", {}, False),
+    ("GPMHE trust-constr (SciPy)", "gp5", "trust-constr", {}, True),
+    ("exact-model MHE, Rust gauss-newton", "known", "gauss-newton", {}, False),
+    ("exact-model MHE, Rust gauss-newton, vectorised", "known_vec", "gauss-newton", {}, False),
+    ("exact-model MHE, least-squares", "known", "least-squares", {}, False),
+]
+
+
+def make_steppers(models, kw, steps, tc_steps, rows=MHE_ROWS):
+    """(steppers for `interleaved_runs`, failed-window counts, evaluation lists) of the filterpy
+    filters, the GP-EKF and every MHE row."""
+    Q, R = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1)
     failed, nfev = {}, {}
 
     def mhe(model, solver, opts, name):
@@ -205,25 +208,21 @@ def main(argv=None):
         ("filterpy EKF (exact model)", ekf_step(ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian,
                                                          br.X_PRIOR0, np.eye(2), Q, R)), steps),
         ("filterpy UKF (exact model)", make_ukf(Q, R), steps),
-        ("GP-EKF (5 traj.)", ekf_step(GPEKF(gp5, br.X_PRIOR0, np.eye(2), Q, R)), steps),
+        ("GP-EKF (5 traj.)", ekf_step(GPEKF(models["gp5"], br.X_PRIOR0, np.eye(2), Q, R)), steps),
     ]
-    for name, model, solver, opts, n_steps in [
-        ("GPMHE Rust gauss-newton", gp5, "gauss-newton", {}, steps),
-        ("GPMHE Rust gauss-newton, dtol=0 (to gtol)", gp5, "gauss-newton", {"dtol": 0.0}, steps),
-        ("GPMHE Rust gauss-newton, 2-restart GPs", gp5_2r, "gauss-newton", {}, steps),
-        ("GPMHE least-squares (SciPy)", gp5, "least-squares", {}, steps),
-        ("GPMHE trust-constr (SciPy)", gp5, "trust-constr", {}, tc_steps),
-        ("exact-model MHE, Rust gauss-newton", known, "gauss-newton", {}, steps),
-        ("exact-model MHE, Rust gauss-newton, vectorised", known_vec, "gauss-newton", {}, steps),
-        ("exact-model MHE, least-squares", known, "least-squares", {}, steps),
-    ]:
-        steppers.append((name, mhe(model, solver, opts, name), n_steps))
-    runs = interleaved_runs(steppers, y, args.block)
-    nfev = {name: float(np.median(ev)) for name, ev in nfev.items()}
+    for name, key, solver, opts, tc in rows:
+        steppers.append((name, mhe(models[key], solver, opts, name), tc_steps if tc else steps))
+    return steppers, failed, nfev
 
+
+def time_table(models, kw, x, y, steps, tc_steps, block, seed):
+    """The first table: time per update of every estimator, interleaved."""
+    steppers, failed, nfev = make_steppers(models, kw, steps, tc_steps)
+    runs = interleaved_runs(steppers, y, block)
+    nfev = {name: float(np.median(ev)) for name, ev in nfev.items()}
     ekf_med = np.median(runs["filterpy EKF (exact model)"][1])
     print(f"\n## Time per update, batch reactor from the poor prior ({steps} steps, seed "
-          f"{args.seed}; trust-constr: first {tc_steps} steps)\n")
+          f"{seed}; trust-constr: first {tc_steps} steps)\n")
     print("| estimator                                      | median ms |   p95 ms | ×EKF med "
           "| RMSE (failed windows) [median window evaluations]")
     print("|" + "-" * 48 + "|-----------|-----------|----------|-----")
@@ -240,51 +239,75 @@ def main(argv=None):
               for tag in ("", ", vectorised"))
     print(f"Exact-model MHE (Rust solver): vectorised KnownModel {kp / kv:.1f}× faster than "
           f"per point (medians)")
-    time_split(gp5, kw, y, steps)
 
-    # --- scaling in M --------------------------------------------------------------------
-    horizons = [5, 15, 60] if args.quick else [5, 10, 15, 30, 60]
-    after = 20 if args.quick else 60
+
+def counted_run(est, y, steps):
+    """Times of `steps` updates of `est` and its window evaluations per update."""
+    nfev = []
+
+    def step(yt):
+        out = est.update(None, yt)
+        nfev.append(est.nfev)
+        return out
+    _, ts = timed_run(step, y, steps)
+    return ts, np.array(nfev)
+
+
+def scaling_in_m(gp5, kw, seed, quick):
+    horizons = [5, 15, 60] if quick else [5, 10, 15, 30, 60]
+    after = 20 if quick else 60
     print(f"\n## Scaling in the horizon M (Rust solver, N as above; {after} updates with a full "
           f"window, t ≥ M)\n")
     print("|   M | median ms |   p95 ms | mean evaluations per update | µs per evaluation per node |")
     print("|-----|-----------|----------|-----------------------------|----------------------------|")
     for M in horizons:
-        xM, yM = br.simulate(br.X_TRUE0, M + after, np.random.default_rng(args.seed + 1))
-        est = GPMHE(gp5, br.X_PRIOR0, **{**kw, "horizon": M})
-        nfev = []
-
-        def step(yt, est=est, nfev=nfev):
-            out = est.update(None, yt)
-            nfev.append(est.nfev)
-            return out
-        _, ts = timed_run(step, yM, M + after)
-        ts, ev = ts[M:], np.array(nfev[M:])
+        _, yM = br.simulate(br.X_TRUE0, M + after, np.random.default_rng(seed + 1))
+        ts, ev = counted_run(GPMHE(gp5, br.X_PRIOR0, **{**kw, "horizon": M}), yM, M + after)
+        ts, ev = ts[M:], ev[M:]
         per = np.sum(ts) / np.sum(ev) / (M + 1) * 1e6
         print(f"| {M:3d} | {np.median(ts) * 1e3:9.3f} | {np.percentile(ts, 95) * 1e3:8.3f} | "
               f"{np.mean(ev):27.1f} | {per:26.1f} |")
 
-    # --- scaling in N --------------------------------------------------------------------
-    sizes = [50, 150, 500] if args.quick else [50, 150, 500, 2000]
-    after = 10 if args.quick else 25
+
+def scaling_in_n(gp5, kw, seed, quick):
+    sizes = [50, 150, 500] if quick else [50, 150, 500, 2000]
+    after = 10 if quick else 25
     print(f"\n## Scaling in the training points per GP N (Rust solver, M = 15, {after} updates "
           f"with a full window)\n")
     print("|    N | median ms |   p95 ms | mean evaluations per update |")
     print("|------|-----------|----------|-----------------------------|")
     for N in sizes:
-        model = gps_with_n_points(gp5, N, np.random.default_rng(args.seed + 2))
-        xN, yN = br.simulate(br.X_TRUE0, 15 + after, np.random.default_rng(args.seed + 1))
-        est = GPMHE(model, br.X_PRIOR0, **kw)
-        nfev = []
-
-        def step(yt, est=est, nfev=nfev):
-            out = est.update(None, yt)
-            nfev.append(est.nfev)
-            return out
-        _, ts = timed_run(step, yN, 15 + after)
+        model = gps_with_n_points(gp5, N, np.random.default_rng(seed + 2))
+        _, yN = br.simulate(br.X_TRUE0, 15 + after, np.random.default_rng(seed + 1))
+        ts, ev = counted_run(GPMHE(model, br.X_PRIOR0, **kw), yN, 15 + after)
         ts = ts[15:]
         print(f"| {N:4d} | {np.median(ts) * 1e3:9.3f} | {np.percentile(ts, 95) * 1e3:8.3f} | "
-              f"{np.mean(nfev[15:]):27.1f} |")
+              f"{np.mean(ev[15:]):27.1f} |")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--tc-steps", type=int, default=40)
+    ap.add_argument("--block", type=int, default=10,
+                    help="steps per estimator per round of the interleaved timing")
+    ap.add_argument("--quick", action="store_true", help="short runs, smaller scaling tables")
+    args = ap.parse_args(argv)
+    steps = 30 if args.quick else args.steps
+    tc_steps = 5 if args.quick else min(args.tc_steps, steps)
+    rng = np.random.default_rng(args.seed)
+    warnings.simplefilter("ignore")  # optimiser chatter; failed windows are counted instead
+
+    t0 = time.perf_counter()
+    gp5, gp5_2r, known, known_vec = fit_models(args.seed, rng)
+    models = dict(gp5=gp5, gp5_2r=gp5_2r, known=known, known_vec=known_vec)
+    x, y = br.simulate(br.X_TRUE0, steps, rng)
+    kw = dict(x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    time_table(models, kw, x, y, steps, tc_steps, args.block, args.seed)
+    time_split(gp5, kw, y, steps)
+    scaling_in_m(gp5, kw, args.seed, args.quick)
+    scaling_in_n(gp5, kw, args.seed, args.quick)
     print(f"\ntotal benchmark time {time.perf_counter() - t0:.0f} s")
     return 0
 
