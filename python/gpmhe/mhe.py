@@ -5,7 +5,7 @@ SciPy's solvers. The estimator itself is one Rust object (`gpmhe._core.MovingHor
 with the model, horizon, weights, form, state box and solver settings): it owns the sliding
 history and the warm start, and with the default solver one ``update(u, y)`` is one Rust call
 (window, warm start, solve, covariance, next arrival prior). SciPy's solvers evaluate the same
-Rust window between ``prepare`` and ``commit``. See the user guide, *Architecture*.
+Rust window between ``prepare`` and ``commit``. See *Architecture* in the documentation.
 """
 
 from __future__ import annotations
