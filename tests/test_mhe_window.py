@@ -138,8 +138,8 @@ def test_prepare_warm_start_shifts_predicts_and_clips(kind, form):
     settings = dict(horizon=3, x0=np.zeros(2), lower=lo, upper=hi)
     filtering = form == "filtering"
     if kind == "known-stage-eval":  # no predict callable: the window uses stage_eval's means
-        win = _core.MovingHorizon.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2),
-                                                np.ones(2), np.eye(2), filtering, **settings)
+        win = _core.MovingHorizon(_core.StageModel.callback(model.stage_eval, 2, 1, 2), 0.9,
+                                  np.ones(2), np.ones(2), np.eye(2), filtering, **settings)
     else:
         win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), filtering, **settings)
     inner = (lo + 1e-6 * (hi - lo), hi - 1e-6 * (hi - lo))
@@ -204,17 +204,16 @@ def test_prepare_rejects_bad_arguments_naming_them():
     def bad_predict(x, u):
         return np.zeros(3)
 
-    win2 = _core.MovingHorizon.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2),
-                                             np.ones(2), np.eye(2), False, predict=bad_predict,
-                                             horizon=3, x0=np.zeros(2))
+    bad = _core.StageModel.callback(model.stage_eval, 2, 1, 2, predict=bad_predict)
+    win2 = _core.MovingHorizon(bad, 0.9, np.ones(2), np.ones(2), np.eye(2), False, horizon=3,
+                               x0=np.zeros(2))
     with pytest.raises(ValueError, match="predict"):
         win2.prepare(np.zeros(1), np.zeros(2))
     with pytest.raises(ValueError, match="predict"):
         win2.update(np.zeros(1), np.zeros(2))
     assert win2.t == 0
     with pytest.raises(ValueError, match="predict"):
-        _core.MovingHorizon.with_callback(model.stage_eval, 2, 1, 2, 0.9, np.ones(2), np.ones(2),
-                                          np.eye(2), False, predict=3.0)
+        _core.StageModel.callback(model.stage_eval, 2, 1, 2, predict=3.0)
 
 
 def test_update_is_prepare_then_solve_then_commit():

@@ -228,50 +228,52 @@ class UpdateReport:
     interior_iterations: int
     error: str | None
 
+class StageModel:
+    """The model of a `MovingHorizon`: the learned GPs or a known model's Python functions."""
+
+    @staticmethod
+    def gp(f_gp: MultiGP, h_gp: MultiGP | None, dim_u: int, f_residual: bool) -> StageModel:
+        """f's GPs (dim_x outputs) and h's (dim_y outputs; None when dim_y = 0) on [x; u];
+        `f_residual`: f's GPs model x(t+1) − x(t)."""
+        ...
+    @staticmethod
+    def callback(
+        stage_eval: Callable[[_F], tuple[_F, _F, _F, _F, _F, _F, _F, _F]],
+        dim_x: int,
+        dim_u: int,
+        dim_y: int,
+        predict: Callable[[_F, _F], _F] | None = None,
+    ) -> StageModel:
+        """`predict(x, u)`: the one-step prediction used for warm starts and the filtering
+        form's arrival prior (None: the means of `stage_eval` at one point)."""
+        ...
+    @property
+    def dims(self) -> tuple[int, int, int]: ...
+
 class MovingHorizon:
     """The moving-horizon estimator's core (rust/src/mhe/): built once with the model, the
     window weights and form, the horizon, x̂(0), the state box and the solver settings; owns the
     sliding history and the warm start. `update(u, y)` is one whole update; `prepare`, the
     window methods (`cost`, ...) and `commit` are its steps for other solvers."""
 
-    @staticmethod
-    def with_callback(
-        stage_eval: Callable[[_F], tuple[_F, _F, _F, _F, _F, _F, _F, _F]],
-        dim_x: int,
-        dim_u: int,
-        dim_y: int,
+    def __init__(
+        self,
+        model: StageModel,
         eta: float,
         q0: _F,
         r0: _F,
         p2_sqrt: _F,
         filtering: bool,
-        predict: Callable[[_F, _F], _F] | None = None,
         horizon: int = 1,
         x0: _F | None = None,
         lower: _F | None = None,
         upper: _F | None = None,
         solver: WindowSolver | None = None,
-    ) -> MovingHorizon:
-        """`predict(x, u)`: the one-step prediction used for warm starts and the filtering
-        form's arrival prior (None: the means of `stage_eval` at one point)."""
+    ) -> None:
+        """`q0`, `r0`: diagonals of Q0, R0; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form;
+        `horizon`: M; `x0`: x̂(0) (zeros if None); `lower`, `upper`: the state box (±inf if
+        None); `solver`: the solver settings (defaults if None)."""
         ...
-    @staticmethod
-    def with_gp(
-        f_gp: MultiGP,
-        h_gp: MultiGP | None,
-        dim_u: int,
-        f_residual: bool,
-        eta: float,
-        q0: _F,
-        r0: _F,
-        p2_sqrt: _F,
-        filtering: bool,
-        horizon: int = 1,
-        x0: _F | None = None,
-        lower: _F | None = None,
-        upper: _F | None = None,
-        solver: WindowSolver | None = None,
-    ) -> MovingHorizon: ...
     def reset(self, x0: _F) -> None: ...
     def update(self, u: _F, y: _F | None = None) -> UpdateReport:
         """One whole update; on error the estimator is unchanged."""

@@ -337,11 +337,11 @@ class KnownModel(_SharedOnCopy):
 
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
         """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`)."""
-        return _core.MovingHorizon.with_callback(
-            self.stage_eval, self.dim_x, self.dim_u, self.dim_y, eta, q0, r0, p2_sqrt, filtering,
+        model = _core.StageModel.callback(
+            self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
             predict=lambda x, u: np.ascontiguousarray(self.predict(x, u), dtype=np.float64),
-            **settings,
         )
+        return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
 
 def _trajectories(states, outputs, inputs, n, p, m):
@@ -646,8 +646,8 @@ class LearnedModel(_SharedOnCopy):
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
         """The Rust estimator core on the GPs (see `gpmhe._core.MovingHorizon`)."""
         h = None if self.h_gp is None else self.h_gp._core_model
-        return _core.MovingHorizon.with_gp(self.f_gp._core_model, h, self.dim_u, self.f_residual,
-                                           eta, q0, r0, p2_sqrt, filtering, **settings)
+        model = _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u, self.f_residual)
+        return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
     def save(self, path):
         """Save both GPs and the settings to one ``.npz`` file (no pickle).

@@ -140,8 +140,90 @@ enum Model {
     Callback {
         stage_eval: Py<PyAny>,
         predict: Option<Py<PyAny>>,
+        dims: (usize, usize, usize),
     },
     Gp(Box<GpStageModel>),
+}
+
+impl Model {
+    fn clone_ref(&self, py: Python<'_>) -> Self {
+        match self {
+            Model::Callback {
+                stage_eval,
+                predict,
+                dims,
+            } => Model::Callback {
+                stage_eval: stage_eval.clone_ref(py),
+                predict: predict.as_ref().map(|p| p.clone_ref(py)),
+                dims: *dims,
+            },
+            Model::Gp(gp) => Model::Gp(gp.clone()),
+        }
+    }
+
+    fn dims(&self) -> (usize, usize, usize) {
+        match self {
+            Model::Callback { dims, .. } => *dims,
+            Model::Gp(gp) => (gp.dim_x(), gp.dim_u(), gp.dim_y()),
+        }
+    }
+}
+
+/// The model of a `MovingHorizon`: `StageModel.gp(...)` (the learned GPs) or
+/// `StageModel.callback(...)` (a `gpmhe.KnownModel`'s Python functions).
+#[pyclass(name = "StageModel", module = "gpmhe._core", frozen)]
+pub(super) struct PyStageModel {
+    model: Model,
+}
+
+#[pymethods]
+impl PyStageModel {
+    /// The learned model: `f_gp` (dim_x outputs) and `h_gp` (dim_y outputs, None when
+    /// dim_y = 0) on inputs [x; u]; `f_residual`: f's GPs model x(t+1) − x(t).
+    #[staticmethod]
+    fn gp(
+        f_gp: PyRef<'_, PyMultiGp>,
+        h_gp: Option<PyRef<'_, PyMultiGp>>,
+        dim_u: usize,
+        f_residual: bool,
+    ) -> PyResult<Self> {
+        let f = f_gp.inner.clone();
+        let gp = GpStageModel::new(f, h_gp.map(|h| h.inner.clone()), dim_u, f_residual)?;
+        Ok(Self {
+            model: Model::Gp(Box::new(gp)),
+        })
+    }
+
+    /// A model given by the Python callable `stage_eval` (see `gpmhe.KnownModel`), with
+    /// `predict(x, u)` for one-step predictions if given (else the means of `stage_eval`).
+    #[staticmethod]
+    #[pyo3(signature = (stage_eval, dim_x, dim_u, dim_y, predict=None))]
+    fn callback(
+        stage_eval: Bound<'_, PyAny>,
+        dim_x: usize,
+        dim_u: usize,
+        dim_y: usize,
+        predict: Option<Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        if !stage_eval.is_callable() {
+            return Err(PyValueError::new_err("stage_eval: must be callable"));
+        }
+        if predict.as_ref().is_some_and(|f| !f.is_callable()) {
+            return Err(PyValueError::new_err("predict: must be callable or None"));
+        }
+        let model = Model::Callback {
+            stage_eval: stage_eval.unbind(),
+            predict: predict.map(Bound::unbind),
+            dims: (dim_x, dim_u, dim_y),
+        };
+        Ok(Self { model })
+    }
+
+    /// (dim_x, dim_u, dim_y).
+    #[getter]
+    fn dims(&self) -> (usize, usize, usize) {
+        self.model.dims()
+    }
 }
 
 /// A moving-horizon estimator (see `gpmhe.GPMHE`, which validates its settings and input and
@@ -166,12 +248,12 @@ impl PyMovingHorizon {
             Model::Callback {
                 stage_eval,
                 predict,
+                dims,
             } => {
-                let p = core.problem();
                 let mut cb = CallbackModel {
                     func: stage_eval.bind(py),
                     predict: predict.as_ref().map(|f| f.bind(py)),
-                    dims: (p.dim_x(), p.dim_u(), p.dim_y()),
+                    dims: *dims,
                     err: None,
                 };
                 match f(core, &mut cb) {
@@ -180,48 +262,6 @@ impl PyMovingHorizon {
                 }
             }
         }
-    }
-
-    /// The core for `model` with the settings shared by both constructors.
-    #[allow(clippy::too_many_arguments)]
-    fn build(
-        model: Model,
-        dims: (usize, usize, usize),
-        eta: f64,
-        q0: &PyReadonlyArray1<'_, f64>,
-        r0: &PyReadonlyArray1<'_, f64>,
-        p2_sqrt: &PyReadonlyArray2<'_, f64>,
-        filtering: bool,
-        horizon: usize,
-        x0: Option<PyReadonlyArray1<'_, f64>>,
-        lower: Option<PyReadonlyArray1<'_, f64>>,
-        upper: Option<PyReadonlyArray1<'_, f64>>,
-        solver: Option<PyRef<'_, PyWindowSolver>>,
-    ) -> PyResult<Self> {
-        let (n, m, p) = dims;
-        let form = if filtering {
-            Form::Filtering
-        } else {
-            Form::Prediction
-        };
-        let (p2, _, _) = slice2("P2", p2_sqrt)?;
-        let problem =
-            WindowProblem::new(n, m, p, eta, slice1("Q0", q0)?, slice1("R0", r0)?, p2, form)?;
-        let or =
-            |a: &Option<PyReadonlyArray1<'_, f64>>, name: &str, fill: f64| -> PyResult<Vec<f64>> {
-                a.as_ref()
-                    .map_or(Ok(vec![fill; n]), |a| Ok(slice1(name, a)?.to_vec()))
-            };
-        let opts = solver.map_or_else(SolverOptions::default, |s| s.opts.clone());
-        let core = MovingHorizon::new(
-            problem,
-            horizon,
-            &or(&x0, "x0", 0.0)?,
-            &or(&lower, "x_bounds", f64::NEG_INFINITY)?,
-            &or(&upper, "x_bounds", f64::INFINITY)?,
-            opts,
-        )?;
-        Ok(Self { core, model })
     }
 
     fn n_vars(&self) -> usize {
@@ -253,81 +293,50 @@ impl PyMovingHorizon {
 
 #[pymethods]
 impl PyMovingHorizon {
-    /// An estimator whose model is the Python callable `stage_eval` (see `gpmhe.KnownModel`),
-    /// with `predict(x, u)` for one-step predictions if given. `q0`, `r0`: diagonals of Q0,
-    /// R0; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros
-    /// if None); `lower`, `upper`: the state box (±inf if None); `solver`: the settings.
-    #[staticmethod]
+    /// An estimator on `model` (a `StageModel`). `q0`, `r0`: diagonals of Q0, R0; `p2_sqrt`: S
+    /// with P2 = SᵀS; `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros if None);
+    /// `lower`, `upper`: the state box (±inf if None); `solver`: the solver settings.
+    #[new]
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (stage_eval, dim_x, dim_u, dim_y, eta, q0, r0, p2_sqrt, filtering,
-                        predict=None, horizon=1, x0=None, lower=None, upper=None, solver=None))]
-    fn with_callback(
-        stage_eval: Bound<'_, PyAny>,
-        dim_x: usize,
-        dim_u: usize,
-        dim_y: usize,
+    #[pyo3(signature = (model, eta, q0, r0, p2_sqrt, filtering, horizon=1, x0=None, lower=None,
+                        upper=None, solver=None))]
+    fn new(
+        py: Python<'_>,
+        model: PyRef<'_, PyStageModel>,
         eta: f64,
         q0: PyReadonlyArray1<'_, f64>,
         r0: PyReadonlyArray1<'_, f64>,
         p2_sqrt: PyReadonlyArray2<'_, f64>,
         filtering: bool,
-        predict: Option<Bound<'_, PyAny>>,
         horizon: usize,
         x0: Option<PyReadonlyArray1<'_, f64>>,
         lower: Option<PyReadonlyArray1<'_, f64>>,
         upper: Option<PyReadonlyArray1<'_, f64>>,
         solver: Option<PyRef<'_, PyWindowSolver>>,
     ) -> PyResult<Self> {
-        if !stage_eval.is_callable() {
-            return Err(PyValueError::new_err("stage_eval: must be callable"));
-        }
-        if predict.as_ref().is_some_and(|f| !f.is_callable()) {
-            return Err(PyValueError::new_err("predict: must be callable or None"));
-        }
-        let model = Model::Callback {
-            stage_eval: stage_eval.unbind(),
-            predict: predict.map(Bound::unbind),
+        let (n, m, p) = model.model.dims();
+        let form = match filtering {
+            true => Form::Filtering,
+            false => Form::Prediction,
         };
-        let dims = (dim_x, dim_u, dim_y);
-        Self::build(
-            model, dims, eta, &q0, &r0, &p2_sqrt, filtering, horizon, x0, lower, upper, solver,
-        )
-    }
-
-    /// An estimator on the learned model: `f_gp` (dim_x outputs) and `h_gp` (dim_y outputs,
-    /// None when dim_y = 0) on inputs [x; u]; `f_residual`: f's GPs model x(t+1) − x(t). The
-    /// other settings as for `with_callback`.
-    #[staticmethod]
-    #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (f_gp, h_gp, dim_u, f_residual, eta, q0, r0, p2_sqrt, filtering,
-                        horizon=1, x0=None, lower=None, upper=None, solver=None))]
-    fn with_gp(
-        f_gp: PyRef<'_, PyMultiGp>,
-        h_gp: Option<PyRef<'_, PyMultiGp>>,
-        dim_u: usize,
-        f_residual: bool,
-        eta: f64,
-        q0: PyReadonlyArray1<'_, f64>,
-        r0: PyReadonlyArray1<'_, f64>,
-        p2_sqrt: PyReadonlyArray2<'_, f64>,
-        filtering: bool,
-        horizon: usize,
-        x0: Option<PyReadonlyArray1<'_, f64>>,
-        lower: Option<PyReadonlyArray1<'_, f64>>,
-        upper: Option<PyReadonlyArray1<'_, f64>>,
-        solver: Option<PyRef<'_, PyWindowSolver>>,
-    ) -> PyResult<Self> {
-        let gp = GpStageModel::new(
-            f_gp.inner.clone(),
-            h_gp.map(|h| h.inner.clone()),
-            dim_u,
-            f_residual,
+        let (p2, _, _) = slice2("P2", &p2_sqrt)?;
+        let (q0, r0) = (slice1("Q0", &q0)?, slice1("R0", &r0)?);
+        let problem = WindowProblem::new(n, m, p, eta, q0, r0, p2, form)?;
+        let or = |a: &Option<PyReadonlyArray1<'_, f64>>, name: &str, fill: f64| {
+            a.as_ref()
+                .map_or(Ok(vec![fill; n]), |a| slice1(name, a).map(<[f64]>::to_vec))
+        };
+        let opts = solver.map_or_else(SolverOptions::default, |s| s.opts.clone());
+        let core = MovingHorizon::new(
+            problem,
+            horizon,
+            &or(&x0, "x0", 0.0)?,
+            &or(&lower, "x_bounds", f64::NEG_INFINITY)?,
+            &or(&upper, "x_bounds", f64::INFINITY)?,
+            opts,
         )?;
-        let dims = (gp.dim_x(), dim_u, gp.dim_y());
-        let model = Model::Gp(Box::new(gp));
-        Self::build(
-            model, dims, eta, &q0, &r0, &p2_sqrt, filtering, horizon, x0, lower, upper, solver,
-        )
+        let model = model.model.clone_ref(py);
+        Ok(Self { core, model })
     }
 
     /// Forgets every step: t = 0, x̂(0) = x0.

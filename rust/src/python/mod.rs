@@ -20,6 +20,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<gp::PyMultiGp>()?;
     m.add_function(wrap_pyfunction!(gp::gp_log_marginal_likelihood, m)?)?;
     // MHE window
+    m.add_class::<mhe::PyStageModel>()?;
     m.add_class::<mhe::PyMovingHorizon>()?;
     m.add_class::<mhe::PyUpdateReport>()?;
     // Window solver
