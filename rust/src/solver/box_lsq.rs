@@ -13,23 +13,27 @@ use super::{
 use crate::error::{check_finite, check_len, Error, Result};
 
 /// Work buffers of the solver, reused across calls (nothing is allocated once sized).
+///
+/// `g`, `diag`, `off` and the two noise estimates always describe one point (the current z
+/// whenever [`Progress::derivs_at_z`] holds); the scratch vectors are grouped by who uses them.
 #[derive(Debug, Default, Clone)]
 pub struct BoxLsqSolver {
     pub(super) chol: BlockTridiagCholesky,
+    /// The projected start, kept while the (non-monotone) barrier phase runs.
     pub(super) z0: Vec<f64>,
+    /// Gradient 2Jᵀr of the last point taken.
     pub(super) g: Vec<f64>,
+    /// Gauss-Newton blocks 2JᵀJ of the last point taken (as in [`BlockLsqProblem`]).
     pub(super) diag: Vec<f64>,
     pub(super) off: Vec<f64>,
-    pub(super) shift: Vec<f64>,
-    pub(super) fixed: Vec<bool>,
+    /// Variables fixed by lower == upper.
     pub(super) fixed_bound: Vec<bool>,
-    pub(super) step: Vec<f64>,
-    pub(super) trial: Vec<f64>,
-    pub(super) hp: Vec<f64>,
-    pub(super) yl: Vec<f64>,
-    pub(super) yu: Vec<f64>,
-    pub(super) dyl: Vec<f64>,
-    pub(super) dyu: Vec<f64>,
+    /// The damped Gauss-Newton step of either phase.
+    pub(super) work: StepWork,
+    /// The barrier phase's bound multipliers.
+    pub(super) duals: Duals,
+    /// The active-set phase's alternatives to a clipped step.
+    pub(super) clip: ClipWork,
     /// The problem's cost and gradient noise at the point whose derivatives are in `g`, `diag`,
     /// `off`.
     pub(super) noise_at_z: f64,
@@ -37,6 +41,50 @@ pub struct BoxLsqSolver {
     /// Window size of the last `solve` (0 before any).
     pub(super) nodes: usize,
     pub(super) n: usize,
+}
+
+/// The linear system (H + diag(shift)) step = rhs with the `fixed` variables held, and the
+/// point it leads to; used by both phases.
+#[derive(Debug, Default, Clone)]
+pub(super) struct StepWork {
+    /// Damping (and in the barrier phase Σ) added to the diagonal.
+    pub(super) shift: Vec<f64>,
+    /// Variables held this iteration (unit row and column in the factorisation).
+    pub(super) fixed: Vec<bool>,
+    /// Right-hand side, then the step.
+    pub(super) step: Vec<f64>,
+    /// The trial point (in the active-set phase first the held variables' moves to their bound).
+    pub(super) trial: Vec<f64>,
+    /// Scratch: H·s products, a gradient at the trial point, a second trial point.
+    pub(super) hp: Vec<f64>,
+}
+
+/// Multipliers of the lower and upper bounds and their Newton steps (barrier phase).
+#[derive(Debug, Default, Clone)]
+pub(super) struct Duals {
+    pub(super) yl: Vec<f64>,
+    pub(super) yu: Vec<f64>,
+    pub(super) dyl: Vec<f64>,
+    pub(super) dyu: Vec<f64>,
+}
+
+/// The active-set phase's candidates when the projected step was clipped by a bound.
+#[derive(Debug, Default, Clone)]
+pub(super) struct ClipWork {
+    /// The step before projection on the box.
+    pub(super) unprojected: Vec<f64>,
+    /// The unprojected step truncated at the first bound it meets.
+    pub(super) truncated: Vec<f64>,
+    /// A shorter step along the projection arc P(z + αu) − z.
+    pub(super) arc: Vec<f64>,
+}
+
+/// The box and the options of one solve, handed together to the steps of both phases.
+#[derive(Clone, Copy)]
+pub(super) struct Limits<'a> {
+    pub(super) lower: &'a [f64],
+    pub(super) upper: &'a [f64],
+    pub(super) opts: &'a SolverOptions,
 }
 
 /// Mutable state shared by the two phases.
@@ -83,18 +131,21 @@ impl BoxLsqSolver {
         let nn = n * n;
         for v in [
             &mut self.g,
-            &mut self.shift,
-            &mut self.step,
-            &mut self.trial,
-            &mut self.hp,
-            &mut self.yl,
-            &mut self.yu,
-            &mut self.dyl,
-            &mut self.dyu,
+            &mut self.work.shift,
+            &mut self.work.step,
+            &mut self.work.trial,
+            &mut self.work.hp,
+            &mut self.duals.yl,
+            &mut self.duals.yu,
+            &mut self.duals.dyl,
+            &mut self.duals.dyu,
+            &mut self.clip.unprojected,
+            &mut self.clip.truncated,
+            &mut self.clip.arc,
         ] {
             v.resize(len, 0.0);
         }
-        self.fixed.resize(len, false);
+        self.work.fixed.resize(len, false);
         self.fixed_bound.resize(len, false);
         self.diag.resize(nodes * nn, 0.0);
         self.off.resize(nodes.saturating_sub(1) * nn, 0.0);
@@ -131,16 +182,16 @@ impl BoxLsqSolver {
         }
         // The solver's own factor and scratch (`shift`, `fixed`), so no per-update allocation
         // of blocks.
-        self.shift.fill(0.0);
-        self.fixed.fill(false);
+        self.work.shift.fill(0.0);
+        self.work.fixed.fill(false);
         let b = undamped_last_block_inverse(
             &mut self.chol,
             nodes,
             n,
             &self.diag,
             &self.off,
-            &self.shift,
-            &self.fixed,
+            &self.work.shift,
+            &self.work.fixed,
         )?;
         Some(
             (0..n * n)

@@ -1,6 +1,9 @@
 //! A synthetic window-like least-squares problem with an analytic Jacobian, shared by the
 //! solver's tests (compiled for tests only).
 
+// The residual loops index several arrays at once.
+#![allow(clippy::needless_range_loop)]
+
 use nalgebra::{DMatrix, DVector};
 
 use super::{BlockLsqProblem, SolverOptions};
