@@ -12,7 +12,8 @@
 //!   prediction (12)–(13) in O(N·(n² + n_b)) (N = n + Σ n_b), and the EKF update 4a (states and
 //!   weights) or 4b (states only, as a Schmidt "consider" update). In pure-prediction mode (§3.2)
 //!   the weights are not part of the state: the trained GPs enter as noisy inputs.
-//! * `simd`: the reductions of those kernels, with AVX2 chosen at run time.
+//! * The reductions and triangular solves of those kernels are in `crate::linalg` (AVX2 chosen at
+//!   run time).
 
 use faer::linalg::matmul::matmul;
 use faer::linalg::solvers::Llt;
@@ -21,8 +22,7 @@ use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
 
-mod simd;
-use simd::{dot, dot4, symv_column};
+use crate::linalg::{self, add4, axpy, dot4, dot_lanes8, symv_column, ReciprocalWithFloor};
 
 /// Largest relative jitter (times σ_K²) added to K's diagonal before giving up on its Cholesky.
 const MAX_REL_JITTER: f64 = 1e-6;
@@ -312,7 +312,7 @@ impl RgpBasis {
             };
         }
         forward_substitution(&self.chol, &self.inv_diag, TINY_REL * s2.sqrt(), j);
-        dot(j, j)
+        dot_lanes8(j, j)
     }
 
     /// L⁻¹ m in place (weights to whitened coordinates).
@@ -368,115 +368,32 @@ impl RgpBasis {
             } else {
                 self.infer(z, j)
             };
-            mean_out[q] = dot(j, mean);
+            mean_out[q] = dot_lanes8(j, mean);
             let jcj = quad_form(cov, j);
             var_out[q] = (s2 - jkj).max(0.0) + jcj.max(0.0) + self.sigma_r2;
         }
     }
 }
 
-/// y += α x.
-#[inline(always)]
-fn axpy(y: &mut [f64], alpha: f64, x: &[f64]) {
-    for (yi, xi) in y.iter_mut().zip(x) {
-        *yi += alpha * xi;
-    }
-}
-
-/// y −= a₀ x₀, then −= a₁ x₁, −= a₂ x₂, −= a₃ x₃, in one pass over y (the four axpys of a block of
-/// four columns in a substitution). `y + (−a)x` rounds exactly as `y − ax` (negation is exact), so
-/// this is [`add4`] with the coefficients negated.
-#[inline(always)]
-fn sub4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
-    add4(y, [-a[0], -a[1], -a[2], -a[3]], x)
-}
-
-/// y += a₀ x₀, then += a₁ x₁, += a₂ x₂, += a₃ x₃, in one pass over y (four columns of a
-/// matrix-vector product, with the same operations in the same order per entry).
-#[inline(always)]
-fn add4(y: &mut [f64], a: [f64; 4], x: [&[f64]; 4]) {
-    let n = y
-        .len()
-        .min(x[0].len())
-        .min(x[1].len())
-        .min(x[2].len())
-        .min(x[3].len());
-    let (x0, x1, x2, x3) = (&x[0][..n], &x[1][..n], &x[2][..n], &x[3][..n]);
-    for ((((yi, v0), v1), v2), v3) in y[..n].iter_mut().zip(x0).zip(x1).zip(x2).zip(x3) {
-        *yi = (((*yi + a[0] * v0) + a[1] * v1) + a[2] * v2) + a[3] * v3;
-    }
-}
-
-// The two substitutions below are the per-step triangular solves with K's Cholesky factor for one
-// right-hand side of length n_b ≤ a few hundred. faer's blocked solver is built for large and
-// multi-column systems; at this size its dispatch overhead cost more than the arithmetic, so
-// both work on blocks of four columns of L (the forward one subtracts a solved block from the
-// rest of v in one pass, `sub4`; the backward one takes four dot products in one pass, `dot4`).
-// The diagonal is applied as a multiplication by its precomputed reciprocal: a division's
-// latency would otherwise dominate the sequential part.
+// The per-step triangular solves with K's Cholesky factor for one right-hand side of length
+// n_b ≤ a few hundred: `linalg::triangular` with this module's rounding ([`ReciprocalWithFloor`]:
+// the diagonal applied as a multiplication by its precomputed reciprocal, tiny results set to 0,
+// the backward sweep in dot form reading L's columns again).
 
 /// Solves L v = b in place (L lower triangular, column-major; `inv_diag` = 1 / diag(L)); entries
 /// of v below `tiny` in magnitude are set to 0 (see TINY_REL).
 #[inline(always)]
 fn forward_substitution(l: &Mat<f64>, inv_diag: &[f64], tiny: f64, v: &mut [f64]) {
-    let nb = v.len();
-    let mut j0 = 0;
-    while j0 < nb {
-        let j1 = (j0 + 4).min(nb);
-        for j in j0..j1 {
-            let mut vj = v[j] * inv_diag[j];
-            if vj.abs() < tiny {
-                vj = 0.0;
-            }
-            v[j] = vj;
-            let col = l.col_as_slice(j);
-            for s in j + 1..j1 {
-                v[s] -= vj * col[s];
-            }
-        }
-        if j1 - j0 == 4 && j1 < nb {
-            let a = [v[j0], v[j0 + 1], v[j0 + 2], v[j0 + 3]];
-            if a != [0.0; 4] {
-                let c = |t: usize| &l.col_as_slice(j0 + t)[j1..];
-                sub4(&mut v[j1..], a, [c(0), c(1), c(2), c(3)]);
-            }
-        }
-        j0 = j1;
-    }
+    let rounding = ReciprocalWithFloor { inv_diag, tiny };
+    linalg::forward_substitution(|j| l.col_as_slice(j), &rounding, v)
 }
 
-/// Solves Lᵀ v = b in place with the same lower factor L (column-major; `inv_diag` = 1 / diag(L))
-/// in dot form, from the last row to the first: v_i = (b_i − L[i+1.., i] · v[i+1..]) / L_ii, four
-/// rows at a time (their dots with the already solved part in one pass, `dot4`). Reading L's
-/// columns again, still in cache from the forward substitution, instead of a stored Lᵀ halves the
-/// memory a step streams through. Entries of v below `tiny` in magnitude are set to 0.
+/// Solves Lᵀ v = b in place with the same lower factor L (column-major; `inv_diag` =
+/// 1 / diag(L)); entries of v below `tiny` in magnitude are set to 0.
 #[inline(always)]
 fn back_substitution(l: &Mat<f64>, inv_diag: &[f64], tiny: f64, v: &mut [f64]) {
-    let nb = v.len();
-    let mut i1 = nb;
-    while i1 > 0 {
-        let i0 = i1.saturating_sub(4);
-        let d = if i1 - i0 == 4 && i1 < nb {
-            let c = |t: usize| &l.col_as_slice(i0 + t)[i1..];
-            dot4([c(0), c(1), c(2), c(3)], &v[i1..])
-        } else {
-            let mut d = [0.0; 4];
-            for (t, dt) in d.iter_mut().enumerate().take(i1 - i0) {
-                *dt = dot(&l.col_as_slice(i0 + t)[i1..], &v[i1..]);
-            }
-            d
-        };
-        for i in (i0..i1).rev() {
-            let col = l.col_as_slice(i);
-            let mut s = v[i] - d[i - i0];
-            for jj in i + 1..i1 {
-                s -= col[jj] * v[jj];
-            }
-            let vi = s * inv_diag[i];
-            v[i] = if vi.abs() < tiny { 0.0 } else { vi };
-        }
-        i1 = i0;
-    }
+    let rounding = ReciprocalWithFloor { inv_diag, tiny };
+    linalg::back_substitution(|j| l.col_as_slice(j), &rounding, v)
 }
 
 /// vᵀ C v for a symmetric C.
@@ -486,7 +403,7 @@ fn quad_form(c: MatRef<'_, f64>, v: &[f64]) -> f64 {
     for (jj, vj) in v.iter().enumerate() {
         let col = c.col(jj);
         let t = match col.try_as_col_major() {
-            Some(col) => dot(col.as_slice(), v),
+            Some(col) => dot_lanes8(col.as_slice(), v),
             None => (0..v.len()).map(|i| col[i] * v[i]).sum(),
         };
         s += t * vj;
@@ -681,7 +598,7 @@ impl Rgp {
             let gcol = MatMut::from_column_major_slice_mut(&mut self.g, nb, 1);
             matmul(gcol, Accum::Replace, self.cov.as_ref(), jcol, 1.0, Par::Seq);
         }
-        let jcj = dot(&self.j, &self.g);
+        let jcj = dot_lanes8(&self.j, &self.g);
         let cp = (self.basis.sigma_k2() - jkj).max(0.0) + jcj;
         let s = cp + self.basis.sigma_r2 + var_y;
         if !(s.is_finite() && s > 0.0) {
@@ -689,7 +606,7 @@ impl Rgp {
                 "innovation variance {s} is not positive (set var_y > 0 or sigma_r > 0)"
             )));
         }
-        let mu_p = dot(&self.j, &self.mean);
+        let mu_p = dot_lanes8(&self.j, &self.mean);
         let innov = (y - mu_p) / s;
         for (m, g) in self.mean.iter_mut().zip(&self.g) {
             *m += g * innov;
@@ -1119,10 +1036,10 @@ impl RgpEkf {
             let base = (gp.basis.sigma_k2() - jkj).max(0.0) + gp.basis.sigma_r2;
             if self.augmented {
                 let o = self.offsets[g];
-                self.mu_zp[g] = dot(j, &self.mu[o..o + nb]);
+                self.mu_zp[g] = dot_lanes8(j, &self.mu[o..o + nb]);
                 self.dvar[g] = base;
             } else {
-                self.mu_zp[g] = dot(j, &gp.mean);
+                self.mu_zp[g] = dot_lanes8(j, &gp.mean);
                 self.dvar[g] = base + quad_form(gp.cov.as_ref(), j).max(0.0);
             }
         }
@@ -1166,7 +1083,7 @@ impl RgpEkf {
                 let out = &mut self.jc[g * nt..(g + 1) * nt];
                 // columns before the block: C[i, z_g] = C[z_g, i], stored in column i
                 for (i, v) in out[..o].iter_mut().enumerate() {
-                    *v = dot(&self.cov.col_as_slice(i)[o..o + nb], jg);
+                    *v = dot_lanes8(&self.cov.col_as_slice(i)[o..o + nb], jg);
                 }
                 out[o..].fill(0.0);
                 // four columns k..k+4 at a time: below their 4 × 4 diagonal block, out[i] +=
@@ -1233,7 +1150,7 @@ impl RgpEkf {
                 let (o, jo, nb) = self.block(g);
                 for r in 0..n {
                     self.tj[r * q + g] =
-                        dot(&self.t[r * nt + o..r * nt + o + nb], &self.j[jo..jo + nb]);
+                        dot_lanes8(&self.t[r * nt + o..r * nt + o + nb], &self.j[jo..jo + nb]);
                 }
             }
         }
@@ -1320,8 +1237,8 @@ impl RgpEkf {
         for i in 0..p {
             for jj in 0..=i {
                 let v = 0.5
-                    * (dot(&h[i * n..(i + 1) * n], &self.pht[jj * nt..jj * nt + n])
-                        + dot(&h[jj * n..(jj + 1) * n], &self.pht[i * nt..i * nt + n]))
+                    * (dot_lanes8(&h[i * n..(i + 1) * n], &self.pht[jj * nt..jj * nt + n])
+                        + dot_lanes8(&h[jj * n..(jj + 1) * n], &self.pht[i * nt..i * nt + n]))
                     + 0.5 * (r[i * p + jj] + r[jj * p + i]);
                 s[i * p + jj] = v;
                 s[jj * p + i] = v;
