@@ -19,3 +19,17 @@ pub(crate) use triangular::{
     back_substitution, forward_substitution, DivideByDiagonal, ReciprocalWithFloor,
 };
 pub(crate) use vector::{add4, axpy, dot_lanes4, sum_lanes4, sum_of_squares_lanes4};
+
+/// Deterministic test vectors in [−0.5, 0.5) (no rand dependency).
+#[cfg(test)]
+pub(crate) fn test_data(n: usize, seed: u64) -> Vec<f64> {
+    let mut s = seed;
+    (0..n)
+        .map(|_| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        })
+        .collect()
+}

@@ -194,18 +194,7 @@ pub(crate) fn back_substitution<'a, R: Rounding>(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn data(n: usize, seed: u64) -> Vec<f64> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
-            })
-            .collect()
-    }
+    use crate::linalg::test_data as data;
 
     /// A well-conditioned lower factor, column-major, with Lᵀ copied into the upper triangle.
     fn factor(n: usize, seed: u64) -> Vec<f64> {

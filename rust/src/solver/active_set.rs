@@ -107,12 +107,9 @@ impl BoxLsqSolver {
         &mut self,
         prob: &mut P,
         z: &mut [f64],
-        lower: &[f64],
-        upper: &[f64],
-        opts: &SolverOptions,
+        lim: Limits<'_>,
         pr: &mut Progress,
     ) -> Status {
-        let lim = Limits { lower, upper, opts };
         let mut st = LmState {
             lambda: 1e-6,
             nu: 2.0,
@@ -456,7 +453,7 @@ impl BoxLsqSolver {
         st: &mut LmState,
         t: &Trial,
     ) -> Option<Status> {
-        let Limits { lower, upper, opts } = lim;
+        let opts = lim.opts;
         let Trial {
             ct,
             rho,
@@ -494,14 +491,10 @@ impl BoxLsqSolver {
         let a_star = if c > 0.0 { -gp / c } else { f64::INFINITY };
         if gp < 0.0 && !(0.7..=1.5).contains(&a_star) {
             let a = a_star.clamp(0.2, EXTRAP_MAX);
-            let w = &mut self.work;
-            for k in 0..z.len() {
-                w.trial[k] = (z[k] + (a - 1.0) * w.step[k]).clamp(lower[k], upper[k]);
-            }
-            let c2 = prob.evaluate(&w.trial, true).unwrap_or(f64::INFINITY);
-            pr.nfev += 1;
+            // z is already z_old + step
+            let c2 = self.evaluate_along_step(prob, z, lim, pr, a - 1.0);
             if c2.is_finite() && c2 < pr.cost {
-                z.copy_from_slice(&w.trial);
+                z.copy_from_slice(&self.work.trial);
                 pr.cost = c2;
                 self.take_derivatives(prob);
             } else {
@@ -523,7 +516,6 @@ impl BoxLsqSolver {
         st: &mut LmState,
         t: &Trial,
     ) -> Option<Status> {
-        let Limits { lower, upper, .. } = lim;
         let Trial {
             ct,
             gp,
@@ -537,14 +529,9 @@ impl BoxLsqSolver {
             let a = (-gp / c).clamp(0.05, 0.9);
             let php = -2.0 * (pred + gp); // stepᵀ H step
             let pred2 = -(a * gp + 0.5 * a * a * php);
-            let w = &mut self.work;
-            for k in 0..z.len() {
-                w.trial[k] = (z[k] + a * w.step[k]).clamp(lower[k], upper[k]);
-            }
-            let c2 = prob.evaluate(&w.trial, true).unwrap_or(f64::INFINITY);
-            pr.nfev += 1;
+            let c2 = self.evaluate_along_step(prob, z, lim, pr, a);
             if c2.is_finite() && pred2 > 0.0 && pr.cost - c2 > ARMIJO * pred2 {
-                z.copy_from_slice(&w.trial);
+                z.copy_from_slice(&self.work.trial);
                 pr.cost = c2;
                 pr.derivs_at_z = true;
                 self.take_derivatives(prob);
@@ -554,5 +541,25 @@ impl BoxLsqSolver {
             }
         }
         st.damp_harder().then_some(Status::NoProgress)
+    }
+
+    /// J at P(z + a·step) (left in `work.trial`), +∞ if the evaluation fails; the problem's
+    /// derivatives then refer to that point.
+    fn evaluate_along_step<P: BlockLsqProblem + ?Sized>(
+        &mut self,
+        prob: &mut P,
+        z: &[f64],
+        lim: Limits<'_>,
+        pr: &mut Progress,
+        a: f64,
+    ) -> f64 {
+        let Limits { lower, upper, .. } = lim;
+        let w = &mut self.work;
+        for k in 0..z.len() {
+            w.trial[k] = (z[k] + a * w.step[k]).clamp(lower[k], upper[k]);
+        }
+        let c2 = prob.evaluate(&w.trial, true).unwrap_or(f64::INFINITY);
+        pr.nfev += 1;
+        c2
     }
 }

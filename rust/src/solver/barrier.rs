@@ -16,7 +16,7 @@
 use super::box_lsq::{
     finite_lower, finite_upper, Limits, Progress, ARMIJO, EXTRAP_MAX, LAMBDA_MAX, NOISE_PG,
 };
-use super::{BlockLsqProblem, BoxLsqSolver, SolverOptions};
+use super::{BlockLsqProblem, BoxLsqSolver};
 
 /// The log-barrier term −μ Σ ln s over the finite bounds of the free variables.
 fn barrier(z: &[f64], lower: &[f64], upper: &[f64], fixed_bound: &[bool], mu: f64) -> f64 {
@@ -35,8 +35,13 @@ fn barrier(z: &[f64], lower: &[f64], upper: &[f64], fixed_bound: &[bool], mu: f6
     b
 }
 
-/// How far one barrier step may go, and the merit's slope along it.
+/// What the line search needs about one barrier step: μ, the merit at z, how far the step may
+/// go and the merit's slope along it.
+#[derive(Clone, Copy)]
 struct StepLimits {
+    mu: f64,
+    /// φ_μ(z) = J(z) − μ Σ ln s.
+    phi0: f64,
     /// Largest primal step length keeping z inside the box (fraction to the boundary).
     a_max: f64,
     /// Dual step length (fraction to the boundary, at most 1).
@@ -91,12 +96,10 @@ impl BoxLsqSolver {
         &mut self,
         prob: &mut P,
         z: &mut [f64],
-        lower: &[f64],
-        upper: &[f64],
-        opts: &SolverOptions,
+        lim: Limits<'_>,
         pr: &mut Progress,
     ) {
-        let lim = Limits { lower, upper, opts };
+        let Limits { lower, upper, opts } = lim;
         let mut mu = opts.mu_init;
         let n_bounded = self.init_duals(z, lower, upper, mu);
         let mut lambda = 0.0f64;
@@ -120,9 +123,9 @@ impl BoxLsqSolver {
                 }
                 continue;
             }
-            let limits = self.step_limits(z, lower, upper, mu);
-            let phi0 = pr.cost + barrier(z, lower, upper, &self.fixed_bound, mu);
-            let Some(mut acc) = self.line_search(prob, z, lim, pr, mu, phi0, &limits) else {
+            let mut limits = self.step_limits(z, lower, upper, mu);
+            limits.phi0 = pr.cost + barrier(z, lower, upper, &self.fixed_bound, mu);
+            let Some(mut acc) = self.line_search(prob, z, lim, pr, &limits) else {
                 // g and the blocks still hold the derivatives at z: damp harder and retry, but
                 // leave the rest to the active-set phase after repeated failures.
                 lambda = (10.0 * lambda).max(1e-8);
@@ -133,7 +136,7 @@ impl BoxLsqSolver {
                 continue;
             };
             if acc.have_derivs && acc.alpha == 1.0 {
-                self.extrapolate(prob, z, lim, pr, mu, phi0, &limits, &mut acc);
+                self.extrapolate(prob, z, lim, pr, &limits, &mut acc);
             }
             failures = 0;
             z.copy_from_slice(&self.work.trial);
@@ -271,7 +274,7 @@ impl BoxLsqSolver {
     }
 
     /// Fraction to the boundary, primal and dual, for the step in `work.step`; the dual steps
-    /// go to `duals.dyl`, `duals.dyu`.
+    /// go to `duals.dyl`, `duals.dyu`. The merit `phi0` is left for the caller (NaN here).
     fn step_limits(&mut self, z: &[f64], lower: &[f64], upper: &[f64], mu: f64) -> StepLimits {
         let tau = (1.0 - mu).max(0.99);
         let mut a_max = f64::INFINITY;
@@ -311,24 +314,27 @@ impl BoxLsqSolver {
             }
             dphi += gb * dz;
         }
-        StepLimits { a_max, a_d, dphi }
+        StepLimits {
+            mu,
+            phi0: f64::NAN,
+            a_max,
+            a_d,
+            dphi,
+        }
     }
 
-    /// Armijo backtracking on φ_μ = J − μ Σ ln s (merit `phi0` at z) from the largest step
-    /// inside the box; the accepted point is left in `work.trial`. None after 12 halvings.
-    #[allow(clippy::too_many_arguments)]
+    /// Armijo backtracking on φ_μ = J − μ Σ ln s from the largest step inside the box; the
+    /// accepted point is left in `work.trial`. None after 12 halvings.
     fn line_search<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
         z: &[f64],
         lim: Limits<'_>,
         pr: &mut Progress,
-        mu: f64,
-        phi0: f64,
         limits: &StepLimits,
     ) -> Option<Accepted> {
         let Limits { lower, upper, .. } = lim;
-        let dphi = limits.dphi;
+        let StepLimits { mu, phi0, dphi, .. } = *limits;
         let w = &mut self.work;
         let mut alpha = limits.a_max.min(1.0);
         for ls in 0..12 {
@@ -355,20 +361,17 @@ impl BoxLsqSolver {
     /// After a full step: Gauss-Newton underestimates the step along flat directions (rho ≈ 2),
     /// so try the minimiser of the parabola through φ(0), φ'(0), φ(1) and keep it in
     /// `work.trial` if its merit is lower.
-    #[allow(clippy::too_many_arguments)]
     fn extrapolate<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
         z: &[f64],
         lim: Limits<'_>,
         pr: &mut Progress,
-        mu: f64,
-        phi0: f64,
         limits: &StepLimits,
         acc: &mut Accepted,
     ) {
         let Limits { lower, upper, .. } = lim;
-        let dphi = limits.dphi;
+        let StepLimits { mu, phi0, dphi, .. } = *limits;
         let c = 2.0 * (acc.phit - phi0 - dphi);
         let a_star = if c > 0.0 { -dphi / c } else { f64::INFINITY };
         let a = a_star.min(EXTRAP_MAX).min(limits.a_max);

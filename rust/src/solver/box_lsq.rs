@@ -263,6 +263,7 @@ impl BoxLsqSolver {
             InteriorMode::Never => false,
         };
 
+        let lim = Limits { lower, upper, opts };
         let mut pr = Progress {
             cost: f64::NAN,
             nit: 0,
@@ -273,19 +274,19 @@ impl BoxLsqSolver {
         self.start(prob, z, &mut pr)?;
         let status;
         if !run_interior {
-            status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+            status = self.active_set_phase(prob, z, lim, &mut pr);
         } else {
             // The barrier phase is not monotone in J: keep the (projected) start and its cost,
             // and fall back to the active-set phase from there if the result costs more.
             let cost0 = pr.cost;
             self.z0.clear();
             self.z0.extend_from_slice(z);
-            let status_i = self.interior_path(prob, z, lower, upper, opts, &mut pr)?;
+            let status_i = self.interior_path(prob, z, lim, &mut pr)?;
             interior_iterations = pr.nit;
             if pr.cost > cost0 {
                 z.copy_from_slice(&self.z0);
                 self.start(prob, z, &mut pr)?;
-                status = self.active_set_phase(prob, z, lower, upper, opts, &mut pr);
+                status = self.active_set_phase(prob, z, lim, &mut pr);
             } else {
                 status = status_i;
             }
@@ -313,15 +314,13 @@ impl BoxLsqSolver {
         &mut self,
         prob: &mut P,
         z: &mut [f64],
-        lower: &[f64],
-        upper: &[f64],
-        opts: &SolverOptions,
+        lim: Limits<'_>,
         pr: &mut Progress,
     ) -> Result<Status> {
-        self.push_inside(z, lower, upper);
+        self.push_inside(z, lim.lower, lim.upper);
         self.start(prob, z, pr)?;
-        self.interior_phase(prob, z, lower, upper, opts, pr);
-        Ok(self.active_set_phase(prob, z, lower, upper, opts, pr))
+        self.interior_phase(prob, z, lim, pr);
+        Ok(self.active_set_phase(prob, z, lim, pr))
     }
 
     pub(super) fn start<P: BlockLsqProblem + ?Sized>(
