@@ -46,54 +46,13 @@ impl RgpBasis {
         sigma_p: f64,
     ) -> Result<Self> {
         let nx = lower.len();
-        if nx == 0 {
-            return Err(Error::invalid(
-                "lower",
-                "needs at least one input dimension",
-            ));
-        }
-        check_finite("lower", lower)?;
-        check_finite("upper", upper)?;
-        check_len("upper", upper, nx)?;
-        if n_points.len() != nx {
-            return Err(Error::invalid(
-                "n_points",
-                format!("expected {nx} values, got {}", n_points.len()),
-            ));
-        }
-        if let Some(i) = (0..nx).find(|&i| upper[i] <= lower[i]) {
-            return Err(Error::invalid(
-                "upper",
-                format!("must exceed lower on every axis (axis {i})"),
-            ));
-        }
-        if let Some(n) = n_points.iter().find(|&&n| n < 2) {
-            return Err(Error::invalid(
-                "n_points",
-                format!("need at least 2 points per axis, got {n}"),
-            ));
-        }
-        let nb: usize = n_points.iter().product();
-        if nb > 20_000 {
-            return Err(Error::invalid(
-                "n_points",
-                format!("{nb} basis vectors is too many for a dense recursive GP"),
-            ));
-        }
+        let nb = check_grid(lower, upper, n_points)?;
         check_positive("sigma_K", sigma_k)?;
         check_positive("L", l)?;
         check_nonneg("sigma_r", sigma_r)?;
         check_nonneg("sigma_p", sigma_p)?;
         let kernel = SeArd::new(sigma_k, &vec![l.sqrt(); nx])?;
-        // Grid of eq. (5): the first axis varies fastest.
-        let mut basis = vec![0.0; nb * nx];
-        for b in 0..nb {
-            let mut rest = b;
-            for i in 0..nx {
-                basis[b * nx + i] = (rest % n_points[i]) as f64;
-                rest /= n_points[i];
-            }
-        }
+        let basis = unit_grid(n_points, nb);
         let mut k = kernel.gram(&basis);
         let s2 = kernel.variance();
         for c in 0..nb {
@@ -103,38 +62,7 @@ impl RgpBasis {
                 }
             }
         }
-        let mut jitter = 0.0;
-        let chol = loop {
-            let mut kj = k.clone();
-            for i in 0..nb {
-                kj[(i, i)] += jitter;
-            }
-            if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
-                let mut l = llt.L().to_owned();
-                // see TINY_REL
-                let tiny = TINY_REL * s2.sqrt();
-                for c in 0..nb {
-                    for v in l.col_as_slice_mut(c) {
-                        if v.abs() < tiny {
-                            *v = 0.0;
-                        }
-                    }
-                }
-                break l;
-            }
-            jitter = if jitter == 0.0 {
-                1e-12 * s2
-            } else {
-                jitter * 10.0
-            };
-            if jitter > MAX_REL_JITTER * s2 {
-                return Err(Error::numerical(format!(
-                    "the kernel matrix K of {nb} basis vectors is not positive definite even with \
-                     jitter {:.1e}·σ_K²; use a smaller L or fewer basis vectors",
-                    MAX_REL_JITTER
-                )));
-            }
-        };
+        let (chol, jitter) = factor_with_jitter(&k, s2)?;
         Ok(Self {
             lower: lower.to_vec(),
             scale: (0..nx)
@@ -305,6 +233,99 @@ impl RgpBasis {
             var_out[q] = (s2 - jkj).max(0.0) + jcj.max(0.0) + self.sigma_r2;
         }
     }
+}
+
+/// Checks the grid's arguments, naming the bad one, and returns the number of basis vectors.
+fn check_grid(lower: &[f64], upper: &[f64], n_points: &[usize]) -> Result<usize> {
+    let nx = lower.len();
+    if nx == 0 {
+        return Err(Error::invalid(
+            "lower",
+            "needs at least one input dimension",
+        ));
+    }
+    check_finite("lower", lower)?;
+    check_finite("upper", upper)?;
+    check_len("upper", upper, nx)?;
+    if n_points.len() != nx {
+        return Err(Error::invalid(
+            "n_points",
+            format!("expected {nx} values, got {}", n_points.len()),
+        ));
+    }
+    if let Some(i) = (0..nx).find(|&i| upper[i] <= lower[i]) {
+        return Err(Error::invalid(
+            "upper",
+            format!("must exceed lower on every axis (axis {i})"),
+        ));
+    }
+    if let Some(n) = n_points.iter().find(|&&n| n < 2) {
+        return Err(Error::invalid(
+            "n_points",
+            format!("need at least 2 points per axis, got {n}"),
+        ));
+    }
+    let nb: usize = n_points.iter().product();
+    if nb > 20_000 {
+        return Err(Error::invalid(
+            "n_points",
+            format!("{nb} basis vectors is too many for a dense recursive GP"),
+        ));
+    }
+    Ok(nb)
+}
+
+/// The grid of eq. (5) in grid units (n_b × n_X row-major): the first axis varies fastest.
+fn unit_grid(n_points: &[usize], nb: usize) -> Vec<f64> {
+    let nx = n_points.len();
+    let mut basis = vec![0.0; nb * nx];
+    for b in 0..nb {
+        let mut rest = b;
+        for i in 0..nx {
+            basis[b * nx + i] = (rest % n_points[i]) as f64;
+            rest /= n_points[i];
+        }
+    }
+    basis
+}
+
+/// The lower Cholesky factor of K + jitter·I, entries below TINY_REL·σ_K set to 0, with the
+/// jitter: none if K factors, else from 1e-12·σ_K² growing tenfold up to MAX_REL_JITTER·σ_K².
+fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
+    let nb = k.nrows();
+    let mut jitter = 0.0;
+    let chol = loop {
+        let mut kj = k.clone();
+        for i in 0..nb {
+            kj[(i, i)] += jitter;
+        }
+        if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
+            let mut l = llt.L().to_owned();
+            // see TINY_REL
+            let tiny = TINY_REL * s2.sqrt();
+            for c in 0..nb {
+                for v in l.col_as_slice_mut(c) {
+                    if v.abs() < tiny {
+                        *v = 0.0;
+                    }
+                }
+            }
+            break l;
+        }
+        jitter = if jitter == 0.0 {
+            1e-12 * s2
+        } else {
+            jitter * 10.0
+        };
+        if jitter > MAX_REL_JITTER * s2 {
+            return Err(Error::numerical(format!(
+                "the kernel matrix K of {nb} basis vectors is not positive definite even with \
+                 jitter {:.1e}·σ_K²; use a smaller L or fewer basis vectors",
+                MAX_REL_JITTER
+            )));
+        }
+    };
+    Ok((chol, jitter))
 }
 
 // The per-step triangular solves with K's Cholesky factor for one right-hand side of length

@@ -403,7 +403,30 @@ impl RgpEkf {
 
     #[inline(always)]
     fn predict_impl(&mut self, x_pred: &[f64], a: &[f64], e: &[f64], q_x: &[f64]) -> Result<()> {
-        let (n, q, nt) = (self.n, self.gps.len(), self.nt);
+        self.check_predict_inputs(x_pred, a, e, q_x)?;
+        let n = self.n;
+        if self.augmented {
+            self.weights_times_cov();
+        }
+        self.propagate_rows(a, e);
+        self.predicted_state_block(a, e, q_x);
+        if self.augmented {
+            self.predicted_weight_blocks();
+        }
+        self.mu[..n].copy_from_slice(x_pred);
+        self.inferred = false;
+        Ok(())
+    }
+
+    /// The inputs of [`Self::predict`], checked in order; [`Self::infer`] must have run first.
+    fn check_predict_inputs(
+        &self,
+        x_pred: &[f64],
+        a: &[f64],
+        e: &[f64],
+        q_x: &[f64],
+    ) -> Result<()> {
+        let (n, q) = (self.n, self.gps.len());
         if !self.inferred {
             return Err(Error::invalid(
                 "zeta",
@@ -418,58 +441,70 @@ impl RgpEkf {
         check_finite("A", a)?;
         check_finite("e", e)?;
         check_finite("Q_x", q_x)?;
+        Ok(())
+    }
+
+    /// Augmented mode: jc[g, :] = J_g C[z_g, :] for every GP (see the comment inside).
+    #[inline(always)]
+    fn weights_times_cov(&mut self) {
+        let (q, nt) = (self.gps.len(), self.nt);
         // The products below involve an n-row block and vectors of length N; at these sizes plain
         // loops over C's contiguous columns beat faer's matmul dispatch.
         // jc[g, :] = J_g C[z_g, :] = (C J̃_g)ᵀ with J̃_g = J_g on the block z_g, 0 elsewhere: a
         // symmetric matrix-vector product from the stored lower triangle (see the struct's doc)
-        if self.augmented {
-            for g in 0..q {
-                let (o, jo, nb) = self.block(g);
-                let jg = &self.j[jo..jo + nb];
-                let out = &mut self.jc[g * nt..(g + 1) * nt];
-                // columns before the block: C[i, z_g] = C[z_g, i], stored in column i
-                for (i, v) in out[..o].iter_mut().enumerate() {
-                    *v = dot_lanes8(&self.cov.col_as_slice(i)[o..o + nb], jg);
-                }
-                out[o..].fill(0.0);
-                // four columns k..k+4 at a time: below their 4 × 4 diagonal block, out[i] +=
-                // Σ_t J_t C[i, k+t] in one pass (lower part) and out[k+t] += C[i, k+t] J_i in
-                // another (upper part of rows k..k+4, = columns by symmetry; four dots sharing J)
-                let mut b = 0;
-                while b + 4 <= nb {
-                    let k = o + b;
-                    let c = |t: usize| &self.cov.col_as_slice(k + t)[k + 4..o + nb];
-                    let a = [jg[b], jg[b + 1], jg[b + 2], jg[b + 3]];
-                    add4(&mut out[k + 4..o + nb], a, [c(0), c(1), c(2), c(3)]);
-                    let d = dot4([c(0), c(1), c(2), c(3)], &jg[b + 4..]);
-                    for t in 0..4 {
-                        let col = self.cov.col_as_slice(k + t);
-                        out[k + t] += a[t] * col[k + t];
-                        for s2 in t + 1..4 {
-                            out[k + s2] += a[t] * col[k + s2];
-                            out[k + t] += col[k + s2] * a[s2];
-                        }
-                        out[k + t] += d[t];
-                        axpy(&mut out[o + nb..], a[t], &col[o + nb..]);
+        for g in 0..q {
+            let (o, jo, nb) = self.block(g);
+            let jg = &self.j[jo..jo + nb];
+            let out = &mut self.jc[g * nt..(g + 1) * nt];
+            // columns before the block: C[i, z_g] = C[z_g, i], stored in column i
+            for (i, v) in out[..o].iter_mut().enumerate() {
+                *v = dot_lanes8(&self.cov.col_as_slice(i)[o..o + nb], jg);
+            }
+            out[o..].fill(0.0);
+            // four columns k..k+4 at a time: below their 4 × 4 diagonal block, out[i] +=
+            // Σ_t J_t C[i, k+t] in one pass (lower part) and out[k+t] += C[i, k+t] J_i in
+            // another (upper part of rows k..k+4, = columns by symmetry; four dots sharing J)
+            let mut b = 0;
+            while b + 4 <= nb {
+                let k = o + b;
+                let c = |t: usize| &self.cov.col_as_slice(k + t)[k + 4..o + nb];
+                let a = [jg[b], jg[b + 1], jg[b + 2], jg[b + 3]];
+                add4(&mut out[k + 4..o + nb], a, [c(0), c(1), c(2), c(3)]);
+                let d = dot4([c(0), c(1), c(2), c(3)], &jg[b + 4..]);
+                for t in 0..4 {
+                    let col = self.cov.col_as_slice(k + t);
+                    out[k + t] += a[t] * col[k + t];
+                    for s2 in t + 1..4 {
+                        out[k + s2] += a[t] * col[k + s2];
+                        out[k + t] += col[k + s2] * a[s2];
                     }
-                    b += 4;
+                    out[k + t] += d[t];
+                    axpy(&mut out[o + nb..], a[t], &col[o + nb..]);
                 }
-                for (b, &jb) in jg.iter().enumerate().skip(b) {
-                    let k = o + b;
-                    let col = self.cov.col_as_slice(k);
-                    // one pass over column k below the diagonal: out[i] += J_b C[i, k] (lower
-                    // part) and out[k] += C[k, i] J_i (upper part of row k, = column k by symmetry)
-                    let up = symv_column(
-                        &mut out[k + 1..o + nb],
-                        jb,
-                        &col[k + 1..o + nb],
-                        &jg[b + 1..],
-                    );
-                    out[k] += up + jb * col[k];
-                    axpy(&mut out[o + nb..], jb, &col[o + nb..]);
-                }
+                b += 4;
+            }
+            for (b, &jb) in jg.iter().enumerate().skip(b) {
+                let k = o + b;
+                let col = self.cov.col_as_slice(k);
+                // one pass over column k below the diagonal: out[i] += J_b C[i, k] (lower
+                // part) and out[k] += C[k, i] J_i (upper part of row k, = column k by symmetry)
+                let up = symv_column(
+                    &mut out[k + 1..o + nb],
+                    jb,
+                    &col[k + 1..o + nb],
+                    &jg[b + 1..],
+                );
+                out[k] += up + jb * col[k];
+                axpy(&mut out[o + nb..], jb, &col[o + nb..]);
             }
         }
+    }
+
+    /// T = Ã[0..n, :] C (`t`) and, augmented, tj = T[:, z_g] J_gᵀ: everything the new state rows
+    /// need from the old C.
+    #[inline(always)]
+    fn propagate_rows(&mut self, a: &[f64], e: &[f64]) {
+        let (n, q, nt) = (self.n, self.gps.len(), self.nt);
         // T = Ã[0..n, :] C = A C[x, :] + e (J C[z, :])   (n × N, row-major: t[r N + c]). Row r
         // is Σ_k A[r, k] C[:, k] + Σ_g e[r, g] jc[g, :]: axpys over the complete columns 0..n of C
         // (C[x, c] = C[c, x] for every c, the state block being exactly symmetric).
@@ -500,6 +535,12 @@ impl RgpEkf {
                 }
             }
         }
+    }
+
+    /// The new state block C[x, x] (exactly symmetric).
+    #[inline(always)]
+    fn predicted_state_block(&mut self, a: &[f64], e: &[f64], q_x: &[f64]) {
+        let (n, q, nt) = (self.n, self.gps.len(), self.nt);
         // C[x, x] = T[:, x] Aᵀ + tj eᵀ + e D eᵀ + Q_x: the lower half, mirrored (exactly
         // symmetric); T and tj hold everything needed from the old C
         for c in 0..n {
@@ -518,28 +559,28 @@ impl RgpEkf {
                 self.cov[(c, r)] = s;
             }
         }
-        if self.augmented {
-            // C[z, x] = T[:, z]ᵀ (C[x, z] above the diagonal is not stored); C[z, z] += σ_p² I
-            for r in 0..n {
-                self.cov.col_as_slice_mut(r)[n..]
-                    .copy_from_slice(&self.t[r * nt + n..(r + 1) * nt]);
-            }
-            for g in 0..q {
-                let (o, nb, sp2) = (
-                    self.offsets[g],
-                    self.gps[g].basis.n_basis(),
-                    self.gps[g].basis.sigma_p2,
-                );
-                if sp2 != 0.0 {
-                    for i in o..o + nb {
-                        self.cov.col_as_slice_mut(i)[i] += sp2;
-                    }
+    }
+
+    /// Augmented mode: the new C[z, x] and σ_p² added to the weights' diagonal blocks.
+    #[inline(always)]
+    fn predicted_weight_blocks(&mut self) {
+        let (n, q, nt) = (self.n, self.gps.len(), self.nt);
+        // C[z, x] = T[:, z]ᵀ (C[x, z] above the diagonal is not stored); C[z, z] += σ_p² I
+        for r in 0..n {
+            self.cov.col_as_slice_mut(r)[n..].copy_from_slice(&self.t[r * nt + n..(r + 1) * nt]);
+        }
+        for g in 0..q {
+            let (o, nb, sp2) = (
+                self.offsets[g],
+                self.gps[g].basis.n_basis(),
+                self.gps[g].basis.sigma_p2,
+            );
+            if sp2 != 0.0 {
+                for i in o..o + nb {
+                    self.cov.col_as_slice_mut(i)[i] += sp2;
                 }
             }
         }
-        self.mu[..n].copy_from_slice(x_pred);
-        self.inferred = false;
-        Ok(())
     }
 
     /// Step 4 (19): EKF update with the innovation ν = y − h(x^p) (length p), H = ∂h/∂x (p × n)

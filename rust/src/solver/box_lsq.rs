@@ -120,6 +120,27 @@ pub(super) fn finite_upper(u: f64) -> bool {
     u < f64::INFINITY
 }
 
+/// The checks of [`BoxLsqSolver::solve`]'s arrays, naming the bad argument (`len` = nodes · n).
+fn check_inputs(len: usize, z: &[f64], lower: &[f64], upper: &[f64]) -> Result<()> {
+    if len == 0 {
+        return Err(Error::invalid("z", "the problem has no variables"));
+    }
+    check_len("z", z, len)?;
+    check_len("lower", lower, len)?;
+    check_len("upper", upper, len)?;
+    check_finite("z", z)?;
+    if let Some(k) = (0..len).find(|&k| lower[k].is_nan() || upper[k].is_nan()) {
+        return Err(Error::invalid("bounds", format!("NaN bound at index {k}")));
+    }
+    if let Some(k) = (0..len).find(|&k| lower[k] > upper[k]) {
+        return Err(Error::invalid(
+            "bounds",
+            format!("lower > upper at index {k}"),
+        ));
+    }
+    Ok(())
+}
+
 impl BoxLsqSolver {
     pub fn new() -> Self {
         Self::default()
@@ -202,8 +223,8 @@ impl BoxLsqSolver {
 
     /// Minimises J(z) over lower ≤ z ≤ upper starting from `z` (a warm start; projected onto the
     /// box first) and writes the best point found into `z`. Bounds may be ±∞ and lower == upper
-    /// fixes a variable. The returned cost is never above the cost at the projected start. Errors only on invalid input or when J is not finite at the start;
-    /// afterwards z is always finite and the problem's derivatives refer to the returned z.
+    /// fixes a variable. The returned cost is never above the cost at the projected start.
+    /// Errors only on invalid input or when J is not finite at the start; afterwards z is always finite and the problem's derivatives refer to the returned z.
     pub fn solve<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -215,53 +236,14 @@ impl BoxLsqSolver {
         opts.validate()?;
         let (nodes, n) = (prob.n_nodes(), prob.node_dim());
         let len = nodes * n;
-        if nodes == 0 || n == 0 {
-            return Err(Error::invalid("z", "the problem has no variables"));
-        }
-        check_len("z", z, len)?;
-        check_len("lower", lower, len)?;
-        check_len("upper", upper, len)?;
-        check_finite("z", z)?;
-        if let Some(k) = (0..len).find(|&k| lower[k].is_nan() || upper[k].is_nan()) {
-            return Err(Error::invalid("bounds", format!("NaN bound at index {k}")));
-        }
-        if let Some(k) = (0..len).find(|&k| lower[k] > upper[k]) {
-            return Err(Error::invalid(
-                "bounds",
-                format!("lower > upper at index {k}"),
-            ));
-        }
+        check_inputs(len, z, lower, upper)?;
         self.resize(nodes, n);
         for k in 0..len {
             z[k] = z[k].clamp(lower[k], upper[k]);
             self.fixed_bound[k] = lower[k] == upper[k];
         }
 
-        let has_bounds = (0..len)
-            .any(|k| !self.fixed_bound[k] && (finite_lower(lower[k]) || finite_upper(upper[k])));
-        let near = (0..len).any(|k| {
-            if self.fixed_bound[k] {
-                return false;
-            }
-            let (l, u) = (lower[k], upper[k]);
-            let w_l = if finite_upper(u) {
-                u - l
-            } else {
-                l.abs().max(1.0)
-            };
-            let w_u = if finite_lower(l) {
-                u - l
-            } else {
-                u.abs().max(1.0)
-            };
-            (finite_lower(l) && z[k] - l <= opts.interior_zone * w_l)
-                || (finite_upper(u) && u - z[k] <= opts.interior_zone * w_u)
-        });
-        let run_interior = match opts.interior {
-            InteriorMode::Always => has_bounds,
-            InteriorMode::Auto => has_bounds && near,
-            InteriorMode::Never => false,
-        };
+        let run_interior = self.wants_interior(z, lower, upper, opts);
 
         let lim = Limits { lower, upper, opts };
         let mut pr = Progress {
@@ -307,6 +289,43 @@ impl BoxLsqSolver {
             interior_iterations,
             nfev: pr.nfev,
         })
+    }
+
+    /// Whether the interior phase runs first (see [`InteriorMode`]): some free variable has a
+    /// finite bound and, for `Auto`, lies within `interior_zone` of it.
+    fn wants_interior(
+        &self,
+        z: &[f64],
+        lower: &[f64],
+        upper: &[f64],
+        opts: &SolverOptions,
+    ) -> bool {
+        let len = z.len();
+        let has_bounds = (0..len)
+            .any(|k| !self.fixed_bound[k] && (finite_lower(lower[k]) || finite_upper(upper[k])));
+        let near = (0..len).any(|k| {
+            if self.fixed_bound[k] {
+                return false;
+            }
+            let (l, u) = (lower[k], upper[k]);
+            let w_l = if finite_upper(u) {
+                u - l
+            } else {
+                l.abs().max(1.0)
+            };
+            let w_u = if finite_lower(l) {
+                u - l
+            } else {
+                u.abs().max(1.0)
+            };
+            (finite_lower(l) && z[k] - l <= opts.interior_zone * w_l)
+                || (finite_upper(u) && u - z[k] <= opts.interior_zone * w_u)
+        });
+        match opts.interior {
+            InteriorMode::Always => has_bounds,
+            InteriorMode::Auto => has_bounds && near,
+            InteriorMode::Never => false,
+        }
     }
 
     /// Barrier phase from a pushed-inside copy of z, then the active-set polish.
