@@ -27,7 +27,7 @@ use super::vector::add4;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Backward {
     /// Solved blocks are subtracted from the unknowns above them (needs Lᵀ in the strict upper
-    /// triangle). A leading block of fewer than four unknowns is solved column by column too.
+    /// triangle). The first 0–3 unknowns are solved column by column too.
     Columns,
     /// Each block takes its dot products with the solved unknowns first.
     Dots,
@@ -107,23 +107,33 @@ pub(crate) fn forward_substitution<'a, R: Rounding>(
 ) {
     let n = x.len();
     let mut j0 = 0;
-    while j0 < n {
-        let j1 = (j0 + 4).min(n);
-        // The block's triangle, column by column.
-        for j in j0..j1 {
-            let c = col(j);
-            let xj = rounding.pivot(j, x[j], c[j]);
-            x[j] = xj;
-            for s in j + 1..j1 {
-                x[s] -= xj * c[s];
+    while j0 + 4 <= n {
+        // The block's 4 × 4 triangle, column by column (fixed size, so it unrolls).
+        let c = [col(j0), col(j0 + 1), col(j0 + 2), col(j0 + 3)];
+        let mut xb = [x[j0], x[j0 + 1], x[j0 + 2], x[j0 + 3]];
+        for q in 0..4 {
+            let xj = rounding.pivot(j0 + q, xb[q], c[q][j0 + q]);
+            xb[q] = xj;
+            for s in q + 1..4 {
+                xb[s] -= xj * c[q][j0 + s];
             }
         }
-        if j1 - j0 == 4 && j1 < n {
-            let a = [x[j0], x[j0 + 1], x[j0 + 2], x[j0 + 3]];
-            let c = |t: usize| &col(j0 + t)[j1..];
-            rounding.subtract4(&mut x[j1..], a, [c(0), c(1), c(2), c(3)]);
+        x[j0..j0 + 4].copy_from_slice(&xb);
+        let j1 = j0 + 4;
+        if j1 < n {
+            let c = |t: usize| &c[t][j1..];
+            rounding.subtract4(&mut x[j1..], xb, [c(0), c(1), c(2), c(3)]);
         }
         j0 = j1;
+    }
+    // The last 0–3 unknowns, column by column.
+    for j in j0..n {
+        let c = col(j);
+        let xj = rounding.pivot(j, x[j], c[j]);
+        x[j] = xj;
+        for s in j + 1..n {
+            x[s] -= xj * c[s];
+        }
     }
 }
 
@@ -138,56 +148,67 @@ pub(crate) fn back_substitution<'a, R: Rounding>(
 ) {
     let n = x.len();
     let mut i1 = n;
-    while i1 > 0 {
-        let i0 = i1.saturating_sub(4);
-        let full = i1 - i0 == 4;
+    while i1 >= 4 {
+        let i0 = i1 - 4;
+        let c = [col(i0), col(i0 + 1), col(i0 + 2), col(i0 + 3)];
         // The solved unknowns' terms: dot form takes them now (column form has already
-        // subtracted them, after the blocks below).
+        // subtracted them, after the blocks below). The first block's dots are over nothing.
         let d = match R::BACKWARD {
-            Backward::Dots if full && i1 < n => {
-                let c = |t: usize| &col(i0 + t)[i1..];
+            Backward::Dots if i1 < n => {
+                let c = |t: usize| &c[t][i1..];
                 Some(dot4([c(0), c(1), c(2), c(3)], &x[i1..]))
             }
-            Backward::Dots => {
-                let mut d = [0.0; 4];
-                for (t, dt) in d.iter_mut().enumerate().take(i1 - i0) {
-                    *dt = dot_lanes8(&col(i0 + t)[i1..], &x[i1..]);
-                }
-                Some(d)
-            }
+            Backward::Dots => Some(c.map(|ct| dot_lanes8(&ct[i1..], &x[i1..]))),
             Backward::Columns => None,
         };
-        if d.is_none() && !full {
-            // Column form, leading block of fewer than four: column by column, last first.
-            for j in (i0..i1).rev() {
-                let c = col(j);
-                let xj = rounding.pivot(j, x[j], c[j]);
-                x[j] = xj;
-                for (xi, u) in x[i0..j].iter_mut().zip(&c[i0..j]) {
-                    *xi -= u * xj;
-                }
+        // The block's 4 × 4 triangle row by row, last row first (L[i0 + r, i0 + q] is column
+        // i0 + q below the diagonal; fixed size, so it unrolls).
+        let mut xb = [x[i0], x[i0 + 1], x[i0 + 2], x[i0 + 3]];
+        for q in (0..4).rev() {
+            let mut s = match d {
+                Some(d) => xb[q] - d[q],
+                None => xb[q],
+            };
+            for r in q + 1..4 {
+                s -= c[q][i0 + r] * xb[r];
             }
-        } else {
-            // The block's triangle row by row, last row first: L[jj, i] = column i below row i.
-            for i in (i0..i1).rev() {
+            xb[q] = rounding.pivot(i0 + q, s, c[q][i0 + q]);
+        }
+        x[i0..i1].copy_from_slice(&xb);
+        if d.is_none() && i0 > 0 {
+            // Column form: the solved block leaves the unknowns above it (Lᵀ's columns).
+            let c = |t: usize| &c[t][..i0];
+            rounding.subtract4(&mut x[..i0], xb, [c(0), c(1), c(2), c(3)]);
+        }
+        i1 = i0;
+    }
+    // The first 0–3 unknowns.
+    match R::BACKWARD {
+        Backward::Dots => {
+            let mut d = [0.0; 4];
+            for (t, dt) in d.iter_mut().enumerate().take(i1) {
+                *dt = dot_lanes8(&col(t)[i1..], &x[i1..]);
+            }
+            for i in (0..i1).rev() {
                 let c = col(i);
-                let mut s = match d {
-                    Some(d) => x[i] - d[i - i0],
-                    None => x[i],
-                };
+                let mut s = x[i] - d[i];
                 for jj in i + 1..i1 {
                     s -= c[jj] * x[jj];
                 }
                 x[i] = rounding.pivot(i, s, c[i]);
             }
         }
-        if d.is_none() && i0 > 0 {
-            // Column form: the solved block leaves the unknowns above it (Lᵀ's columns).
-            let a = [x[i0], x[i0 + 1], x[i0 + 2], x[i0 + 3]];
-            let c = |t: usize| &col(i0 + t)[..i0];
-            rounding.subtract4(&mut x[..i0], a, [c(0), c(1), c(2), c(3)]);
+        Backward::Columns => {
+            // column by column, last first
+            for j in (0..i1).rev() {
+                let c = col(j);
+                let xj = rounding.pivot(j, x[j], c[j]);
+                x[j] = xj;
+                for (xi, u) in x[..j].iter_mut().zip(&c[..j]) {
+                    *xi -= u * xj;
+                }
+            }
         }
-        i1 = i0;
     }
 }
 
