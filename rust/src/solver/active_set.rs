@@ -464,10 +464,7 @@ impl BoxLsqSolver {
         st.noise_failures = 0;
         let decrease = pr.cost - ct;
         let old = pr.cost;
-        z.copy_from_slice(&self.work.trial);
-        pr.cost = ct;
-        pr.derivs_at_z = true;
-        self.take_derivatives(prob);
+        self.take_trial(prob, z, pr, ct);
         st.nu = 2.0;
         if unmeasurable {
             st.lambda /= 3.0;
@@ -494,9 +491,7 @@ impl BoxLsqSolver {
             // z is already z_old + step
             let c2 = self.evaluate_along_step(prob, z, lim, pr, a - 1.0);
             if c2.is_finite() && c2 < pr.cost {
-                z.copy_from_slice(&self.work.trial);
-                pr.cost = c2;
-                self.take_derivatives(prob);
+                self.take_trial(prob, z, pr, c2);
             } else {
                 pr.derivs_at_z = false;
             }
@@ -531,10 +526,7 @@ impl BoxLsqSolver {
             let pred2 = -(a * gp + 0.5 * a * a * php);
             let c2 = self.evaluate_along_step(prob, z, lim, pr, a);
             if c2.is_finite() && pred2 > 0.0 && pr.cost - c2 > ARMIJO * pred2 {
-                z.copy_from_slice(&self.work.trial);
-                pr.cost = c2;
-                pr.derivs_at_z = true;
-                self.take_derivatives(prob);
+                self.take_trial(prob, z, pr, c2);
                 st.noise_failures = 0;
                 st.lambda *= 2.0;
                 return None;
@@ -561,5 +553,20 @@ impl BoxLsqSolver {
         let c2 = prob.evaluate(&w.trial, true).unwrap_or(f64::INFINITY);
         pr.nfev += 1;
         c2
+    }
+
+    /// Moves z to `work.trial`, whose cost is `cost` and whose derivatives the problem holds
+    /// (it was the last point evaluated), and takes them.
+    fn take_trial<P: BlockLsqProblem + ?Sized>(
+        &mut self,
+        prob: &P,
+        z: &mut [f64],
+        pr: &mut Progress,
+        cost: f64,
+    ) {
+        z.copy_from_slice(&self.work.trial);
+        pr.cost = cost;
+        pr.derivs_at_z = true;
+        self.take_derivatives(prob);
     }
 }
