@@ -24,6 +24,10 @@ use faer::{Mat, MatMut, MatRef, Par};
 
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
+use crate::linalg::{
+    back_substitution, dot_lanes4, forward_substitution, sum_lanes4, sum_of_squares_lanes4,
+    DivideByDiagonal,
+};
 
 /// Relative size of the first jitter tried, and of the largest (see the module docs).
 const JITTER_START: f64 = 1e-10;
@@ -507,7 +511,7 @@ impl Gp {
         self.solve(v, k, Triangle::Lower);
         for j in 0..k {
             // Clamp round-off negatives (test points on top of noise-free data) at 0.
-            var[j * q + o] = (s2 - sum_of_squares(&v[j * n..(j + 1) * n])).max(0.0);
+            var[j * q + o] = (s2 - sum_of_squares_lanes4(&v[j * n..(j + 1) * n])).max(0.0);
         }
         let Some((_, dvar)) = grads else { return };
         // β = L⁻ᵀ v = (K + σ_ε² I)⁻¹ k*; ∂σ²/∂d_jl = −2 ∂(Σ_i β_ij k_ij)/∂d_jl |_β fixed
@@ -555,9 +559,9 @@ impl Gp {
             .zip(sums.chunks_exact_mut(nd + 1))
         {
             for (l, xl) in self.xt.chunks_exact(n).enumerate() {
-                sj[l] = dot(pc, xl);
+                sj[l] = dot_lanes4(pc, xl);
             }
-            sj[nd] = sum(pc);
+            sj[nd] = sum_lanes4(pc);
         }
     }
 }
@@ -578,125 +582,18 @@ enum Triangle {
 
 /// Forward (L x = b) or backward (Lᵀ x = b) substitution for each N-long column of `v`, with
 /// `s` the Cholesky storage (N × N column-major, L in the lower and Lᵀ in the strict upper
-/// triangle), column-oriented and four unknowns at a time: once x_j … x_j+3 are known (a 4 × 4
-/// triangle), columns j … j+3 of L below them (forward) or of Lᵀ above them (backward) are
-/// subtracted from the unknowns left in one pass, whose elements are independent (it
-/// vectorises, and x is loaded and stored once per four columns).
+/// triangle): `linalg::triangular` with this module's rounding ([`DivideByDiagonal`]: division
+/// by the diagonal, a solved block's terms summed before they are subtracted, the backward sweep
+/// in column form over the stored Lᵀ).
 #[inline(always)]
 fn substitution(s: &[f64], n: usize, v: &mut [f64], tri: Triangle) {
-    const B: usize = 4;
     let col = |j: usize| &s[j * n..(j + 1) * n];
     for x in v.chunks_exact_mut(n) {
         match tri {
-            Triangle::Lower => {
-                let mut j = 0;
-                while j + B <= n {
-                    let c = [col(j), col(j + 1), col(j + 2), col(j + 3)];
-                    // The 4 × 4 diagonal block, in order.
-                    for q in 0..B {
-                        let mut xq = x[j + q];
-                        for r in 0..q {
-                            xq -= c[r][j + q] * x[j + r];
-                        }
-                        x[j + q] = xq / c[q][j + q];
-                    }
-                    let (x0, x1, x2, x3) = (x[j], x[j + 1], x[j + 2], x[j + 3]);
-                    let rest = j + B;
-                    for ((((xi, a), b), cc), d) in x[rest..]
-                        .iter_mut()
-                        .zip(&c[0][rest..])
-                        .zip(&c[1][rest..])
-                        .zip(&c[2][rest..])
-                        .zip(&c[3][rest..])
-                    {
-                        *xi -= ((a * x0 + b * x1) + cc * x2) + d * x3;
-                    }
-                    j += B;
-                }
-                for j in j..n {
-                    let c = col(j);
-                    let xj = x[j] / c[j];
-                    x[j] = xj;
-                    for (xi, l) in x[j + 1..].iter_mut().zip(&c[j + 1..]) {
-                        *xi -= l * xj;
-                    }
-                }
-            }
-            Triangle::Upper => {
-                let mut end = n;
-                while end >= B {
-                    let j = end - B;
-                    let c = [col(j), col(j + 1), col(j + 2), col(j + 3)];
-                    // The 4 × 4 diagonal block of Lᵀ, last unknown first.
-                    for q in (0..B).rev() {
-                        let mut xq = x[j + q];
-                        for r in q + 1..B {
-                            xq -= c[r][j + q] * x[j + r];
-                        }
-                        x[j + q] = xq / c[q][j + q];
-                    }
-                    let (x0, x1, x2, x3) = (x[j], x[j + 1], x[j + 2], x[j + 3]);
-                    for ((((xi, a), b), cc), d) in x[..j]
-                        .iter_mut()
-                        .zip(&c[0][..j])
-                        .zip(&c[1][..j])
-                        .zip(&c[2][..j])
-                        .zip(&c[3][..j])
-                    {
-                        *xi -= ((a * x0 + b * x1) + cc * x2) + d * x3;
-                    }
-                    end = j;
-                }
-                for j in (0..end).rev() {
-                    let c = col(j);
-                    let xj = x[j] / c[j];
-                    x[j] = xj;
-                    for (xi, u) in x[..j].iter_mut().zip(&c[..j]) {
-                        *xi -= u * xj;
-                    }
-                }
-            }
+            Triangle::Lower => forward_substitution(col, &DivideByDiagonal, x),
+            Triangle::Upper => back_substitution(col, &DivideByDiagonal, x),
         }
     }
-}
-
-/// Σ a_i with four partial sums, so that the loop vectorises (a plain `sum` is a serial chain).
-#[inline(always)]
-fn sum(a: &[f64]) -> f64 {
-    let mut acc = [0.0; 4];
-    let chunks = a.chunks_exact(4);
-    let tail: f64 = chunks.remainder().iter().sum();
-    for c in chunks {
-        for l in 0..4 {
-            acc[l] += c[l];
-        }
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
-}
-
-/// Σ a_i b_i (four partial sums).
-#[inline(always)]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for l in 0..4 {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
-}
-
-/// Σ v_i² (four partial sums).
-#[inline(always)]
-fn sum_of_squares(v: &[f64]) -> f64 {
-    dot(v, v)
 }
 
 /// out_i = σ_f² exp(−½ Σ_l w_l (d_l − x_il)²) for the training points x (N × n_d row-major).

@@ -5,6 +5,7 @@
 pub mod error;
 pub mod gp;
 pub mod kernel;
+mod linalg;
 pub mod mhe;
 pub mod rgp;
 pub mod solver;

@@ -10,10 +10,11 @@
 //! [`MovingHorizon::commit`] records a solution.
 
 use super::history::{History, WindowData};
+use super::lsq::WindowLsq;
 use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::solver::{BoxLsqSolver, SolveReport, SolverOptions, WindowLsq};
+use crate::solver::{BoxLsqSolver, SolveReport, SolverOptions};
 
 /// Relative margin by which the warm start is kept inside the box (1e-6 of its width, of 1 where
 /// the width is infinite), so the solver's barrier phase does not start on a bound.

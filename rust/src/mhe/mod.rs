@@ -5,14 +5,17 @@
 //!   model [`GpStageModel`];
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]);
 //! * [`history`]: the last M + 1 steps, the arrival priors, the previous window;
+//! * [`lsq`]: the window as the solver's least-squares problem ([`WindowLsq`]);
 //! * [`estimator`]: [`MovingHorizon`], one update = window, warm start, solve, record.
 
 pub mod estimator;
 pub mod history;
+pub mod lsq;
 pub mod problem;
 pub mod stage;
 
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, WindowData};
+pub use lsq::WindowLsq;
 pub use problem::{Form, WindowEval, WindowProblem};
 pub use stage::{GpStageModel, StageEval, StageModel};

@@ -1,17 +1,18 @@
-//! The reductions of the RGP-dKF step (dot products, four at once for the back substitution, and
-//! the fused column pass of the symmetric matrix-vector product J C_z) for vectors of a few dozen
-//! to a few hundred entries.
+//! Run-time dispatched reductions (dot products, four at once for the back substitution, and the
+//! fused column pass of a symmetric matrix-vector product) for vectors of a few dozen to a few
+//! hundred entries: the per-step kernels of the RGP-dKF (`rgp/`).
 //!
-//! LLVM vectorises the element-wise loops of `rgp.rs` (axpy) by itself but not these reductions:
+//! LLVM vectorises element-wise loops (axpy) by itself but not these reductions:
 //! without reassociation it keeps their partial sums scalar. Each function here is written twice
 //! with the same partial sums in the same order: portable Rust (eight partial sums as two arrays of
 //! four), and AVX2 intrinsics (the same sums in two 4-lane registers), chosen at run time. Both
 //! perform identical floating-point operations (no fused multiply-add), so the results do not
 //! depend on the CPU.
 
-/// a · b over the common length.
+/// a · b over the common length, with eight partial sums (see [`dot_portable`]); AVX2 when
+/// the CPU has it, chosen at run time.
 #[inline(always)]
-pub(super) fn dot(a: &[f64], b: &[f64]) -> f64 {
+pub(crate) fn dot_lanes8(a: &[f64], b: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -20,10 +21,10 @@ pub(super) fn dot(a: &[f64], b: &[f64]) -> f64 {
     dot_portable(a, b)
 }
 
-/// y += α x and returns x · v (the dot product as [`dot`] computes it), in one pass over x: one
+/// y += α x and returns x · v (the dot product as [`dot_lanes8`] computes it), in one pass over x: one
 /// column of a symmetric matrix-vector product from the lower triangle. Over the common length.
 #[inline(always)]
-pub(super) fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
+pub(crate) fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -36,7 +37,7 @@ pub(super) fn symv_column(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f6
 /// transposed triangular solve). Each is summed in four partial sums over blocks of four
 /// entries, added as ((l0 + l1) + (l2 + l3)), then the last 0–3 products in order.
 #[inline(always)]
-pub(super) fn dot4(x: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
+pub(crate) fn dot4(x: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -45,7 +46,7 @@ pub(super) fn dot4(x: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
     dot4_portable(x, v)
 }
 
-pub(super) fn dot4_portable(x: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
+pub(crate) fn dot4_portable(x: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
     let n = x.iter().fold(v.len(), |n, c| n.min(c.len()));
     let mut out = [0.0; 4];
     for (o, c) in out.iter_mut().zip(x) {
@@ -67,10 +68,10 @@ pub(super) fn dot4_portable(x: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
     out
 }
 
-/// The partial sums of [`dot`]: blocks of eight go to two sets of four sums (s0 gets entries
+/// The partial sums of [`dot_lanes8`]: blocks of eight go to two sets of four sums (s0 gets entries
 /// 8i..8i+4, s1 entries 8i+4..8i+8), a following block of four to s0; then the lane sums
 /// s0 + s1 are added as ((l0 + l1) + (l2 + l3)) and the last 0–3 products in order.
-pub(super) fn dot_portable(a: &[f64], b: &[f64]) -> f64 {
+pub(crate) fn dot_portable(a: &[f64], b: &[f64]) -> f64 {
     let n = a.len().min(b.len());
     let (a, b) = (&a[..n], &b[..n]);
     let (mut s0, mut s1) = ([0.0f64; 4], [0.0f64; 4]);
@@ -96,7 +97,7 @@ pub(super) fn dot_portable(a: &[f64], b: &[f64]) -> f64 {
     s
 }
 
-pub(super) fn symv_column_portable(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
+pub(crate) fn symv_column_portable(y: &mut [f64], alpha: f64, x: &[f64], v: &[f64]) -> f64 {
     let n = y.len().min(x.len()).min(v.len());
     for (yi, xi) in y[..n].iter_mut().zip(&x[..n]) {
         *yi += alpha * xi;
@@ -105,7 +106,7 @@ pub(super) fn symv_column_portable(y: &mut [f64], alpha: f64, x: &[f64], v: &[f6
 }
 
 #[cfg(target_arch = "x86_64")]
-pub(super) mod avx2 {
+pub(crate) mod avx2 {
     use std::arch::x86_64::*;
 
     /// ((l0 + l1) + (l2 + l3)) of s0 + s1, as in [`super::dot_portable`].
@@ -121,7 +122,7 @@ pub(super) mod avx2 {
         (l[0] + l[1]) + (l[2] + l[3])
     }
 
-    /// [`super::dot`] with AVX2.
+    /// [`super::dot_lanes8`] with AVX2.
     ///
     /// # Safety
     /// The CPU must support AVX2.
@@ -248,25 +249,14 @@ pub(super) mod avx2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn data(n: usize, seed: u64) -> Vec<f64> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                ((s >> 11) as f64 / (1u64 << 53) as f64) - 0.5
-            })
-            .collect()
-    }
+    use crate::linalg::test_data as data;
 
     #[test]
     fn dot_and_symv_column_agree_with_plain_sums_and_across_cpus() {
         for n in [0, 1, 3, 4, 5, 7, 8, 9, 12, 13, 16, 31, 80, 125] {
             let (a, b, y0) = (data(n, 1), data(n, 2), data(n, 3));
             let plain: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
-            let d = dot(&a, &b);
+            let d = dot_lanes8(&a, &b);
             assert!((d - plain).abs() <= 1e-14 * (1.0 + plain.abs()), "n = {n}");
             assert_eq!(d.to_bits(), dot_portable(&a, &b).to_bits(), "n = {n}");
             let (mut y1, mut y2) = (y0.clone(), y0.clone());

@@ -1,0 +1,314 @@
+//! The linear algebra of one solver iteration: the block-tridiagonal Cholesky factorisation of the
+//! damped Gauss-Newton Hessian (the Riccati-like recursion over the horizon), its solves, the last
+//! diagonal block of its inverse (the last node's Laplace covariance) and the block-tridiagonal
+//! matrix-vector product.
+
+// Index loops over variables touch several parallel arrays (z, bounds, duals, steps) and read
+// better than zipped iterator chains.
+#![allow(clippy::needless_range_loop)]
+
+use nalgebra::{Cholesky, DMatrix, DVectorView, DVectorViewMut};
+
+/// Block-tridiagonal Cholesky factorisation A = LLᵀ of a symmetric positive-definite matrix with
+/// n×n blocks: L has diagonal blocks L_i and sub-diagonal blocks X_iᵀ with X_i = L_i⁻¹ A_{i,i+1};
+/// L_{i+1}L_{i+1}ᵀ = A_{i+1,i+1} − X_iᵀX_i (the Riccati-like recursion). Cost O(nodes·n³).
+#[derive(Debug, Default, Clone)]
+pub struct BlockTridiagCholesky {
+    n: usize,
+    l: Vec<DMatrix<f64>>,
+    x: Vec<DMatrix<f64>>,
+}
+
+impl BlockTridiagCholesky {
+    /// Factors A + diag(shift), with `diag`/`off` row-major blocks as in [`BlockLsqProblem`].
+    /// Variables with `fixed[k]` get a unit row and column (their solution equals their
+    /// right-hand side). Returns false if the matrix is not numerically positive definite.
+    pub fn factor(
+        &mut self,
+        nodes: usize,
+        n: usize,
+        diag: &[f64],
+        off: &[f64],
+        shift: &[f64],
+        fixed: &[bool],
+    ) -> bool {
+        if self.n != n || self.l.len() != nodes {
+            self.n = n;
+            self.l = (0..nodes).map(|_| DMatrix::zeros(n, n)).collect();
+            self.x = (0..nodes.saturating_sub(1))
+                .map(|_| DMatrix::zeros(n, n))
+                .collect();
+        }
+        let nn = n * n;
+        for i in 0..nodes {
+            let mut a = std::mem::replace(&mut self.l[i], DMatrix::zeros(0, 0));
+            for r in 0..n {
+                for c in 0..=r {
+                    let (kr, kc) = (i * n + r, i * n + c);
+                    a[(r, c)] = if fixed[kr] || fixed[kc] {
+                        if r == c {
+                            1.0
+                        } else {
+                            0.0
+                        }
+                    } else if r == c {
+                        diag[i * nn + r * n + c] + shift[kr]
+                    } else {
+                        diag[i * nn + r * n + c]
+                    };
+                }
+            }
+            if i > 0 {
+                let xp = &self.x[i - 1];
+                // Lower triangle of a − XᵀX (the upper part of `a` is never read).
+                for r in 0..n {
+                    for c in 0..=r {
+                        a[(r, c)] -= xp.column(r).dot(&xp.column(c));
+                    }
+                }
+            }
+            match Cholesky::new(a) {
+                Some(ch) => self.l[i] = ch.unpack_dirty(),
+                None => {
+                    self.l[i] = DMatrix::zeros(n, n);
+                    return false;
+                }
+            }
+            let li = &self.l[i];
+            if (0..n).any(|k| !(li[(k, k)].is_finite() && li[(k, k)] > 0.0)) {
+                return false;
+            }
+            if i + 1 < nodes {
+                let x = &mut self.x[i];
+                for r in 0..n {
+                    for c in 0..n {
+                        x[(r, c)] = if fixed[i * n + r] || fixed[(i + 1) * n + c] {
+                            0.0
+                        } else {
+                            off[i * nn + r * n + c]
+                        };
+                    }
+                }
+                self.l[i].solve_lower_triangular_unchecked_mut(x);
+            }
+        }
+        true
+    }
+
+    /// Solves A x = b in place (after a successful [`factor`](Self::factor)).
+    pub fn solve_in_place(&self, b: &mut [f64]) {
+        let n = self.n;
+        let nodes = self.l.len();
+        for i in 0..nodes {
+            let (prev, cur) = b.split_at_mut(i * n);
+            let mut cur = DVectorViewMut::from_slice(&mut cur[..n], n);
+            if i > 0 {
+                let yp = DVectorView::from_slice(&prev[(i - 1) * n..], n);
+                cur.gemv_tr(-1.0, &self.x[i - 1], &yp, 1.0);
+            }
+            self.l[i].solve_lower_triangular_unchecked_mut(&mut cur);
+        }
+        for i in (0..nodes).rev() {
+            let (cur, next) = b.split_at_mut((i + 1) * n);
+            let mut cur = DVectorViewMut::from_slice(&mut cur[i * n..], n);
+            if i + 1 < nodes {
+                let xn = DVectorView::from_slice(&next[..n], n);
+                cur.gemv(-1.0, &self.x[i], &xn, 1.0);
+            }
+            self.l[i].tr_solve_lower_triangular_unchecked_mut(&mut cur);
+        }
+    }
+}
+
+impl BlockTridiagCholesky {
+    /// The last n×n diagonal block of A⁻¹ (row-major into `out`) after a successful
+    /// [`factor`](Self::factor): L is block lower-bidiagonal, so (A⁻¹)_NN = L_N⁻ᵀ L_N⁻¹.
+    pub fn last_block_of_inverse(&self, out: &mut [f64]) {
+        let n = self.n;
+        let Some(l) = self.l.last() else { return };
+        let mut x = DMatrix::<f64>::identity(n, n);
+        l.solve_lower_triangular_unchecked_mut(&mut x);
+        let inv = x.transpose() * x;
+        for r in 0..n {
+            for c in 0..n {
+                out[r * n + c] = inv[(r, c)];
+            }
+        }
+    }
+}
+
+/// The last n×n block of (2JᵀJ)⁻¹ from the block-tridiagonal Gauss-Newton blocks (row-major
+/// into `out`), or None when 2JᵀJ is not positive definite. O(nodes·n³).
+pub fn gauss_newton_last_block_inverse(
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+) -> Option<Vec<f64>> {
+    let zero = vec![0.0; nodes * n];
+    let free = vec![false; nodes * n];
+    undamped_last_block_inverse(
+        &mut BlockTridiagCholesky::default(),
+        nodes,
+        n,
+        diag,
+        off,
+        &zero,
+        &free,
+    )
+}
+
+/// The last n×n block of the inverse of the undamped block-tridiagonal matrix (`zero` shifts,
+/// nothing held), factored in `chol`; None if not positive definite or not finite.
+pub(super) fn undamped_last_block_inverse(
+    chol: &mut BlockTridiagCholesky,
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+    zero: &[f64],
+    free: &[bool],
+) -> Option<Vec<f64>> {
+    if !chol.factor(nodes, n, diag, off, zero, free) {
+        return None;
+    }
+    let mut out = vec![0.0; n * n];
+    chol.last_block_of_inverse(&mut out);
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
+/// y = A x for a block-tridiagonal symmetric A given by row-major `diag`/`off` blocks.
+pub fn block_tridiag_matvec(
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+    x: &[f64],
+    y: &mut [f64],
+) {
+    let nn = n * n;
+    for i in 0..nodes {
+        for r in 0..n {
+            let mut s = 0.0;
+            for c in 0..n {
+                s += diag[i * nn + r * n + c] * x[i * n + c];
+                if i + 1 < nodes {
+                    s += off[i * nn + r * n + c] * x[(i + 1) * n + c];
+                }
+                if i > 0 {
+                    // block (i, i−1) = off_{i−1}ᵀ
+                    s += off[(i - 1) * nn + c * n + r] * x[(i - 1) * n + c];
+                }
+            }
+            y[i * n + r] = s;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solver::test_problem::{random_z, Lcg, Synthetic};
+    use crate::solver::BlockLsqProblem;
+    use nalgebra::DVector;
+
+    fn dense_from_blocks(nodes: usize, n: usize, diag: &[f64], off: &[f64]) -> DMatrix<f64> {
+        let mut a = DMatrix::zeros(nodes * n, nodes * n);
+        for i in 0..nodes {
+            for r in 0..n {
+                for c in 0..n {
+                    a[(i * n + r, i * n + c)] = diag[i * n * n + r * n + c];
+                    if i + 1 < nodes {
+                        let v = off[i * n * n + r * n + c];
+                        a[(i * n + r, (i + 1) * n + c)] = v;
+                        a[((i + 1) * n + c, i * n + r)] = v;
+                    }
+                }
+            }
+        }
+        a
+    }
+
+    #[test]
+    fn block_tridiagonal_solve_matches_dense_solve() {
+        for &(nodes, n) in &[(1usize, 1usize), (1, 3), (2, 2), (16, 2), (7, 4)] {
+            let mut p = Synthetic::new(nodes, n, 11 + nodes as u64);
+            let z = random_z(nodes, n, 3);
+            p.evaluate(&z, true).unwrap();
+            let mut diag = vec![0.0; nodes * n * n];
+            let mut off = vec![0.0; nodes.saturating_sub(1) * n * n];
+            p.gauss_newton_blocks_into(&mut diag, &mut off);
+            let mut rng = Lcg(5);
+            let shift: Vec<f64> = (0..nodes * n).map(|_| 0.1 + rng.next().abs()).collect();
+            let rhs: Vec<f64> = (0..nodes * n).map(|_| rng.next()).collect();
+            for mask_every in [0usize, 3] {
+                let fixed: Vec<bool> = (0..nodes * n)
+                    .map(|k| mask_every > 0 && k % mask_every == 1)
+                    .collect();
+                let mut chol = BlockTridiagCholesky::default();
+                assert!(chol.factor(nodes, n, &diag, &off, &shift, &fixed));
+                let mut x: Vec<f64> = rhs
+                    .iter()
+                    .zip(&fixed)
+                    .map(|(&b, &f)| if f { 0.0 } else { b })
+                    .collect();
+                chol.solve_in_place(&mut x);
+                // Dense reference: the same matrix with fixed rows/cols replaced by identity.
+                let mut a = dense_from_blocks(nodes, n, &diag, &off);
+                for k in 0..nodes * n {
+                    a[(k, k)] += shift[k];
+                }
+                for k in 0..nodes * n {
+                    if fixed[k] {
+                        a.row_mut(k).fill(0.0);
+                        a.column_mut(k).fill(0.0);
+                        a[(k, k)] = 1.0;
+                    }
+                }
+                let b = DVector::from_iterator(
+                    nodes * n,
+                    rhs.iter()
+                        .zip(&fixed)
+                        .map(|(&b, &f)| if f { 0.0 } else { b }),
+                );
+                let xd = a.clone().cholesky().unwrap().solve(&b);
+                for k in 0..nodes * n {
+                    assert!(
+                        (x[k] - xd[k]).abs() < 1e-10 * (1.0 + xd[k].abs()),
+                        "{nodes} {n} {k}"
+                    );
+                }
+                if mask_every == 0 {
+                    // last diagonal block of the inverse of A + diag(shift)
+                    let mut d2 = diag.clone();
+                    for k in 0..nodes * n {
+                        d2[(k / n) * n * n + (k % n) * n + k % n] += shift[k];
+                    }
+                    let inv = gauss_newton_last_block_inverse(nodes, n, &d2, &off).unwrap();
+                    let ainv = a.clone().try_inverse().unwrap();
+                    for r in 0..n {
+                        for c in 0..n {
+                            let e = ainv[((nodes - 1) * n + r, (nodes - 1) * n + c)];
+                            assert!((inv[r * n + c] - e).abs() < 1e-9 * (1.0 + e.abs()));
+                        }
+                    }
+                }
+                let mut y = vec![0.0; nodes * n];
+                block_tridiag_matvec(nodes, n, &diag, &off, &x, &mut y);
+                let yd = dense_from_blocks(nodes, n, &diag, &off) * DVector::from_column_slice(&x);
+                for k in 0..nodes * n {
+                    assert!((y[k] - yd[k]).abs() < 1e-10 * (1.0 + yd[k].abs()));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn factor_reports_indefinite_matrix() {
+        let diag = vec![1.0, 0.0, 0.0, -1.0];
+        let mut chol = BlockTridiagCholesky::default();
+        assert!(!chol.factor(1, 2, &diag, &[], &[0.0, 0.0], &[false, false]));
+        // ... and recovers on the next call.
+        assert!(chol.factor(1, 2, &diag, &[], &[0.0, 2.0], &[false, false]));
+    }
+}

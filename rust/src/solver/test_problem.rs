@@ -1,0 +1,215 @@
+//! A synthetic window-like least-squares problem with an analytic Jacobian, shared by the
+//! solver's tests (compiled for tests only).
+
+// The residual loops index several arrays at once.
+#![allow(clippy::needless_range_loop)]
+
+use nalgebra::{DMatrix, DVector};
+
+use super::{BlockLsqProblem, SolverOptions};
+use crate::error::Result;
+
+/// The defaults without the early decrement stop: tests of first-order optimality run to
+/// `gtol`.
+pub(crate) fn strict() -> SolverOptions {
+    SolverOptions {
+        dtol: 0.0,
+        ..SolverOptions::default()
+    }
+}
+
+/// Deterministic pseudo-random numbers in [−1, 1) (no rand dependency).
+pub(super) struct Lcg(pub(super) u64);
+impl Lcg {
+    pub(super) fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+}
+
+/// A synthetic window-like problem: prior rows on node 0, process rows
+/// z_{j+1} − f(z_j) on nodes j, j+1, output rows y_j − h(z_j) (p = 2) on node j; dense
+/// analytic Jacobian, from which the gradient and the Gauss-Newton blocks are formed.
+pub(super) struct Synthetic {
+    pub(super) nodes: usize,
+    pub(super) n: usize,
+    pub(super) a: Vec<f64>,
+    pub(super) y: Vec<f64>,
+    pub(super) wq: f64,
+    pub(super) wr: f64,
+    /// cost is +inf when z[0] exceeds this (tests robustness to failed evaluations)
+    pub(super) blowup: f64,
+    pub(super) r: Vec<f64>,
+    pub(super) jac: DMatrix<f64>,
+}
+
+const P: usize = 2;
+
+impl Synthetic {
+    pub(super) fn new(nodes: usize, n: usize, seed: u64) -> Self {
+        let mut rng = Lcg(seed);
+        let a: Vec<f64> = (0..n).map(|_| rng.next()).collect();
+        let rows = n + (nodes - 1) * n + nodes * P;
+        let mut p = Synthetic {
+            nodes,
+            n,
+            a: a.clone(),
+            y: vec![0.0; nodes * P],
+            wq: 3.0,
+            wr: 2.0,
+            blowup: f64::INFINITY,
+            r: vec![0.0; rows],
+            jac: DMatrix::zeros(rows, nodes * n),
+        };
+        // Outputs of a noisy trajectory from a perturbed initial state, plus output noise:
+        // residuals of order one at the optimum, as in a whitened MHE window.
+        let mut x: Vec<f64> = a.iter().map(|v| v + 0.3 * rng.next()).collect();
+        let (mut fx, mut fj) = (vec![0.0; n], DMatrix::zeros(n, n));
+        let (mut hx, mut hj) = (vec![0.0; P], DMatrix::zeros(P, n));
+        for j in 0..nodes {
+            p.h(&x, &mut hx, &mut hj);
+            for r in 0..P {
+                p.y[j * P + r] = hx[r] + 0.5 * rng.next();
+            }
+            p.f(&x, &mut fx, &mut fj);
+            for r in 0..n {
+                x[r] = fx[r] + 0.3 * rng.next();
+            }
+        }
+        p
+    }
+    fn f(&self, x: &[f64], out: &mut [f64], jac: &mut DMatrix<f64>) {
+        let n = self.n;
+        for r in 0..n {
+            let nx = x[(r + 1) % n];
+            out[r] = x[r] + 0.3 * nx.sin() - 0.1 * x[r] * x[r];
+            for c in 0..n {
+                jac[(r, c)] = 0.0;
+            }
+            jac[(r, r)] += 1.0 - 0.2 * x[r];
+            jac[(r, (r + 1) % n)] += 0.3 * nx.cos();
+        }
+    }
+    fn h(&self, x: &[f64], out: &mut [f64], jac: &mut DMatrix<f64>) {
+        let n = self.n;
+        out[0] = x[0] + x[n - 1] * x[n - 1];
+        out[1] = (0.5 * x[0]).exp() - x[1 % n];
+        jac.fill(0.0);
+        jac[(0, 0)] += 1.0;
+        jac[(0, n - 1)] += 2.0 * x[n - 1];
+        jac[(1, 0)] += 0.5 * (0.5 * x[0]).exp();
+        jac[(1, 1 % n)] -= 1.0;
+    }
+    pub(super) fn residuals(&mut self, z: &[f64]) {
+        let n = self.n;
+        self.jac.fill(0.0);
+        let mut row = 0;
+        for c in 0..n {
+            self.r[row] = z[c] - self.a[c];
+            self.jac[(row, c)] = 1.0;
+            row += 1;
+        }
+        let mut fx = vec![0.0; n];
+        let mut fj = DMatrix::zeros(n, n);
+        for j in 0..self.nodes - 1 {
+            self.f(&z[j * n..(j + 1) * n], &mut fx, &mut fj);
+            for r in 0..n {
+                self.r[row] = self.wq * (z[(j + 1) * n + r] - fx[r]);
+                self.jac[(row, (j + 1) * n + r)] = self.wq;
+                for c in 0..n {
+                    self.jac[(row, j * n + c)] = -self.wq * fj[(r, c)];
+                }
+                row += 1;
+            }
+        }
+        let mut hx = vec![0.0; P];
+        let mut hj = DMatrix::zeros(P, n);
+        for j in 0..self.nodes {
+            self.h(&z[j * n..(j + 1) * n], &mut hx, &mut hj);
+            for r in 0..P {
+                self.r[row] = self.wr * (self.y[j * P + r] - hx[r]);
+                for c in 0..n {
+                    self.jac[(row, j * n + c)] = -self.wr * hj[(r, c)];
+                }
+                row += 1;
+            }
+        }
+    }
+    pub(super) fn dense_hessian(&self) -> DMatrix<f64> {
+        self.jac.transpose() * &self.jac * 2.0
+    }
+}
+
+impl BlockLsqProblem for Synthetic {
+    fn n_nodes(&self) -> usize {
+        self.nodes
+    }
+    fn node_dim(&self) -> usize {
+        self.n
+    }
+    fn evaluate(&mut self, z: &[f64], _want: bool) -> Result<f64> {
+        if z[0] > self.blowup {
+            return Ok(f64::INFINITY);
+        }
+        self.residuals(z);
+        Ok(self.r.iter().map(|v| v * v).sum())
+    }
+    fn gradient_into(&self, g: &mut [f64]) {
+        let gv = self.jac.transpose() * DVector::from_column_slice(&self.r) * 2.0;
+        g.copy_from_slice(gv.as_slice());
+    }
+    fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
+        let h = self.dense_hessian();
+        let n = self.n;
+        for i in 0..self.nodes {
+            for r in 0..n {
+                for c in 0..n {
+                    diag[i * n * n + r * n + c] = h[(i * n + r, i * n + c)];
+                    if i + 1 < self.nodes {
+                        off[i * n * n + r * n + c] = h[(i * n + r, (i + 1) * n + c)];
+                    }
+                }
+            }
+        }
+    }
+}
+
+pub(super) fn random_z(nodes: usize, n: usize, seed: u64) -> Vec<f64> {
+    let mut rng = Lcg(seed);
+    (0..nodes * n).map(|_| rng.next()).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn synthetic_jacobian_matches_finite_differences() {
+        let mut p = Synthetic::new(5, 3, 7);
+        let z = random_z(5, 3, 8);
+        p.residuals(&z);
+        let (r0, jac) = (p.r.clone(), p.jac.clone());
+        let h = 1e-6;
+        for k in 0..z.len() {
+            let mut zp = z.clone();
+            zp[k] += h;
+            p.residuals(&zp);
+            for row in 0..r0.len() {
+                let fd = (p.r[row] - r0[row]) / h;
+                assert!((fd - jac[(row, k)]).abs() < 1e-4, "row {row} col {k}");
+            }
+        }
+        // The Hessian really is block-tridiagonal.
+        let hd = p.dense_hessian();
+        for i in 0..15usize {
+            for j in 0..15 {
+                if (i / 3).abs_diff(j / 3) > 1 {
+                    assert_eq!(hd[(i, j)], 0.0);
+                }
+            }
+        }
+    }
+}
