@@ -177,17 +177,18 @@ def test_multi_output_errors(data):
 def test_core_rejects_non_contiguous_and_mismatched_arrays(data):
     D, y = data
     theta = np.log([1.0, 1.0, 1.0, 0.1])
+    Y, thetas = y[:, None].copy(), theta[None, :].copy()
     with pytest.raises(ValueError, match="x"):
-        _core.GP(np.asfortranarray(D), y, theta)
+        _core.MultiGP(np.asfortranarray(D), Y, thetas)
     with pytest.raises(ValueError, match="x"):
-        _core.GP(D, y, np.log([1.0, 1.0, 0.1]))
+        _core.log_marginal_likelihood(D, y, np.log([1.0, 1.0, 0.1]))
     with pytest.raises(ValueError, match="y"):
-        _core.MultiGP(D, y[:-1, None].copy(), theta[None, :].copy())
+        _core.MultiGP(D, y[:-1, None].copy(), thetas)
     with pytest.raises(ValueError, match="thetas"):
-        _core.MultiGP(D, y[:, None].copy(), theta[None, :3].copy())
+        _core.MultiGP(D, Y, theta[None, :3].copy())
     with pytest.raises(TypeError):
-        _core.GP(D.astype(np.float32), y, theta)
-    gp = _core.GP(D, y, theta)
+        _core.MultiGP(D.astype(np.float32), Y, thetas)
+    gp = _core.MultiGP(D, Y, thetas)
     with pytest.raises(ValueError, match="D"):
         gp.predict(np.zeros((2, 3)))
 
