@@ -198,3 +198,21 @@ def test_load_rejects_other_files(tmp_path):
     np.savez(path, a=np.zeros(3))
     with pytest.raises(ValueError, match="path"):
         GaussianProcess.load(path)
+
+
+def test_input_error_in_the_fit_is_raised_not_counted_as_a_bad_theta(data, monkeypatch):
+    # The optimiser's objective counts numerical failures and a trial theta the core cannot
+    # represent as +inf, but a genuine input error surfaces as the ValueError naming the argument.
+    D, y = data
+
+    def refuses(message):
+        def core(*args, **kwargs):
+            raise ValueError(message)
+        return core
+
+    monkeypatch.setattr(gpmhe.gp._core, "log_marginal_likelihood", refuses("y: simulated input error"))
+    with pytest.raises(ValueError, match="^y: simulated"):
+        GaussianProcess().fit(D, y)
+    monkeypatch.setattr(gpmhe.gp._core, "log_marginal_likelihood", refuses("theta: exp(theta[0]) overflows"))
+    with pytest.raises(NumericalError, match="fit"):
+        GaussianProcess().fit(D, y)

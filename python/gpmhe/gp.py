@@ -24,6 +24,7 @@ it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.
 from __future__ import annotations
 
 import os
+import types
 import warnings
 from typing import Any, Optional, Sequence, Tuple, Union
 
@@ -257,8 +258,10 @@ class _ExactGP:
 
     q independent SE-ARD GPs on shared inputs in one ``_core.MultiGP``; the training data are kept
     as (N, n_d) and (N, q) arrays and theta as (q, n_d + 2). `GaussianProcess` is the q = 1 case:
-    with ``_squeeze`` its results drop the output axis. The subclasses add the public methods (each
-    with its own docstring), the natural-unit attributes (``_store``) and ``__repr__``.
+    with ``_squeeze`` its results drop the output axis. The subclasses add the natural-unit
+    attributes (``_check_hyperparameters``, ``_store``), what differs in their API (``fit``'s
+    argument name, the shapes of theta, the LML and the jitter, the properties) and ``__repr__``;
+    `_documented` gives each its own copies of the shared methods with its docstrings.
     """
 
     #: The class name, in messages and as the ``kind`` of saved files.
@@ -268,9 +271,18 @@ class _ExactGP:
     #: One output: drop the output axis of predictions, theta, the LML and the saved targets.
     _squeeze = False
 
-    def _init_settings(
-        self, optimizer: Optional[str], n_restarts: int, bounds: Any, random_state: Any, maxiter: int
+    def __init__(
+        self,
+        sigma_f: Union[float, np.ndarray] = 1.0,
+        lengthscales: Union[float, Sequence[float], np.ndarray] = 1.0,
+        sigma_eps: Union[float, np.ndarray] = 0.1,
+        optimizer: Optional[str] = "L-BFGS-B",
+        n_restarts: int = 0,
+        bounds: Any = DEFAULT_BOUNDS,
+        random_state: Union[None, int, np.random.Generator] = None,
+        maxiter: int = 15000,
     ) -> None:
+        self._check_hyperparameters(sigma_f, lengthscales, sigma_eps)
         self.optimizer = one_of("optimizer", optimizer, ("L-BFGS-B", None))
         self.n_restarts = integer("n_restarts", n_restarts)
         _Theta.log_bounds(bounds, None)  # validate the form now; expanded once n_d is known
@@ -281,7 +293,12 @@ class _ExactGP:
         self._D: Optional[np.ndarray] = None
         self._Y: Optional[np.ndarray] = None
 
+    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
+        """Set sigma_f, lengthscales and sigma_eps (natural units) from the constructor's values."""
+        raise NotImplementedError
+
     def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
+        """Set sigma_f, lengthscales and sigma_eps from their (q,), (q, n_d), (q,) values."""
         raise NotImplementedError
 
     # -- state -------------------------------------------------------------------------------
@@ -307,6 +324,20 @@ class _ExactGP:
     def _refactor(self, theta: Any) -> None:
         """Factor the fitted model again at a new theta (the ``theta`` setter)."""
         self._set_model(_core.MultiGP(self._D, self._Y, self._theta_rows(theta)), self._D, self._Y)
+
+    @property
+    def dim(self) -> int:
+        return self._model().dim
+
+    @property
+    def D_train(self) -> np.ndarray:
+        self._model()
+        return self._D.copy()
+
+    @property
+    def y_train(self) -> np.ndarray:
+        self._model()
+        return self._out(self._Y).copy()
 
     def _out(self, a: np.ndarray) -> np.ndarray:
         """A per-point result (k, q, ...) as it is returned: (k, ...) for one output."""
@@ -348,7 +379,7 @@ class _ExactGP:
 
     # -- prediction --------------------------------------------------------------------------
 
-    def _predict(self, D: Any, return_std: bool):
+    def predict(self, D: Any, return_std: bool = False):
         m = self._model()
         D = points("D", D, m.dim, check_finite=False)  # the core scans D for NaN/inf
         if not return_std:
@@ -356,21 +387,21 @@ class _ExactGP:
         mean, var = m.predict(D)
         return self._out(mean), np.sqrt(self._out(var))
 
-    def _predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         m = self._model()
         mean, var, dmean, dvar = m.predict_with_gradients(points("D", D, m.dim, check_finite=False))
         return self._out(mean), self._out(var), self._out(dmean), self._out(dvar)
 
     # -- persistence -------------------------------------------------------------------------
 
-    def _save(self, path: Union[str, os.PathLike]) -> None:
+    def save(self, path: Union[str, os.PathLike]) -> None:
         theta, Y = self._model().thetas, self._Y
         if self._squeeze:
             theta, Y = theta[0], Y[:, 0]
         np.savez(path, format_version=_FORMAT_VERSION, kind=self._kind, D=self._D, y=Y, theta=theta, **_settings(self))
 
     @classmethod
-    def _load(cls, path: Union[str, os.PathLike]) -> Any:
+    def load(cls, path: Union[str, os.PathLike]) -> "_ExactGP":
         with np.load(path, allow_pickle=False) as f:
             _check_kind(f, cls._kind)
             gp = cls(**_settings_from(f))
@@ -381,9 +412,307 @@ class _ExactGP:
         return gp
 
 
+# ----------------------------------------------------------------------------- docstrings
+
+# The docstrings of the methods both public classes have, written once: `_documented` fills them
+# in for each class with the fields below (its name, shapes, wording and examples).
+_TEST_POINTS = """Parameters
+----------
+D : array_like of shape (k, n_d)
+    Test points."""
+_FILE_EXAMPLE = """Examples
+--------
+>>> import io
+>>> import numpy as np
+>>> from gpmhe import {cls}
+>>> D = np.linspace(0.0, 5.0, 20)[:, None]"""
+_DOCS = {
+    "dim": """{dim_summary}
+
+The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
+""",
+    "D_train": """Training inputs, shape (N, n_d).
+
+Those of the last successful ``fit``; raises `NotFittedError` before it.
+""",
+    "y_train": """Training targets, shape {y_shape}.
+
+Those of the last successful ``fit``; raises `NotFittedError` before it.
+""",
+    "fit": """{fit_summary}
+
+Parameters
+----------
+D : array_like of shape (N, n_d)
+    Training inputs, N >= 2 finite rows.
+{target}
+
+Returns
+-------
+{cls}
+    ``self``, fitted.
+
+Raises
+------
+ValueError
+    If D or {y} have the wrong shape or contain NaN or inf.
+gpmhe.NumericalError
+    {fit_numerical}
+
+Warns
+-----
+ConvergenceWarning
+    {fit_warns}
+
+Notes
+-----
+A failed fit leaves the model unchanged.
+
+Examples
+--------
+>>> import numpy as np
+>>> from gpmhe import {cls}
+{fit_example}
+""",
+    "predict": """{predict_summary}
+
+""" + _TEST_POINTS + """
+return_std : bool, default False
+    {return_std}
+
+Returns
+-------
+{predict_returns}
+
+Examples
+--------
+>>> import numpy as np
+>>> from gpmhe import {cls}
+>>> D = np.linspace(0.0, 5.0, 20)[:, None]
+{predict_example}
+""",
+    "predict_with_gradients": """{pwg_summary}
+
+""" + _TEST_POINTS + """
+
+Returns
+-------
+{pwg_returns}
+
+Examples
+--------
+{pwg_example}
+""",
+    "save": """Save the fitted model and its settings to an ``.npz`` file (no pickle).
+
+The training data, theta and the optimiser settings are stored; ``random_state`` is not.
+
+Parameters
+----------
+path : str, os.PathLike or file-like object
+    Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
+    it).
+
+See Also
+--------
+load : Read the file back.
+
+""" + _FILE_EXAMPLE + """
+>>> gp = {cls}(optimizer=None).fit(D, {example_targets})
+>>> buf = io.BytesIO()
+>>> gp.save(buf)
+>>> _ = buf.seek(0)
+>>> bool(np.array_equal({cls}.load(buf).predict(D), gp.predict(D)))
+True
+""",
+    "load": """Load a model written by ``save``.
+
+Parameters
+----------
+path : str, os.PathLike or file-like object
+    The ``.npz`` file.
+
+Returns
+-------
+{cls}
+    The fitted model, with the saved settings (``random_state`` None).
+
+Raises
+------
+ValueError
+    If the file is not a saved `{cls}` or was written by a newer gpmhe.
+
+""" + _FILE_EXAMPLE + """
+>>> buf = io.BytesIO()
+>>> {load_example}
+>>> _ = buf.seek(0)
+>>> {cls}.load(buf)
+{load_repr}
+""",
+}
+
+# Each field's text for GaussianProcess, then for MultiOutputGP.
+_DOC_FIELDS = {
+    "cls": ("GaussianProcess", "MultiOutputGP"),
+    "dim_summary": ("Input dimension n_d of the fitted model.", "Input dimension n_d."),
+    "y_shape": ("(N,)", "(N, q)"),
+    "y": ("y", "Y"),
+    "example_targets": ("np.sin(D[:, 0])", "np.column_stack([D, D ** 2])"),
+    "fit_summary": (
+        "Fit the GP to training data, optimising the hyperparameters if an optimizer is set.",
+        "Fit one GP per output column, optimising each output's hyperparameters if set.",
+    ),
+    "target": (
+        """y : array_like of shape (N,)
+    Training targets.""",
+        """Y : array_like of shape (N, q) or (N,)
+    Training targets, one column per output (a 1-D Y is one output).""",
+    ),
+    "fit_numerical": (
+        """If no optimiser run reached a finite log marginal likelihood, or the kernel matrix
+    cannot be factored even with jitter.""",
+        "If an output's fit failed numerically (see `GaussianProcess.fit`).",
+    ),
+    "fit_warns": (
+        "If the best optimiser run stopped without converging.",
+        "If the optimiser did not converge for some output.",
+    ),
+    "fit_example": (
+        """>>> D = np.linspace(0.0, 5.0, 20)[:, None]
+>>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
+>>> gp.D_train.shape, gp.dim
+((20, 1), 1)""",
+        """>>> D = np.random.default_rng(0).uniform(size=(10, 3))
+>>> gp = MultiOutputGP(optimizer=None).fit(D, D[:, :2] ** 2)
+>>> gp.n_outputs, gp.dim, gp.lengthscales.shape
+(2, 3, (2, 3))""",
+    ),
+    "predict_summary": (
+        "Posterior mean, and optionally standard deviation, of the latent f at test points.",
+        "Posterior means, and optionally latent standard deviations, of all outputs.",
+    ),
+    "return_std": (
+        "Also return the posterior standard deviation of the latent (noise-free) f.",
+        "Also return the posterior standard deviations of the latent (noise-free) outputs.",
+    ),
+    "predict_returns": (
+        """mean : ndarray of shape (k,)
+    Posterior mean m(d) at each test point.
+std : ndarray of shape (k,)
+    Posterior standard deviation of f (without sigma_eps); only returned if
+    ``return_std`` is True.
+
+Raises
+------
+NotFittedError
+    Before ``fit``.
+ValueError
+    If D has the wrong shape or contains NaN or inf.""",
+        """mean : ndarray of shape (k, q)
+    Posterior means, one column per output.
+std : ndarray of shape (k, q)
+    Latent posterior standard deviations; only returned if ``return_std`` is True.""",
+    ),
+    "predict_example": (
+        """>>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
+>>> print(np.round(gp.predict([[1.0], [2.0]]), 2))
+[0.84 0.91]""",
+        """>>> gp = MultiOutputGP(sigma_eps=0.01, optimizer=None).fit(D, np.column_stack([D, -D]))
+>>> mean, std = gp.predict([[1.0], [2.0]], return_std=True)
+>>> print(np.round(mean, 2))
+[[ 1. -1.]
+ [ 2. -2.]]
+>>> std.shape
+(2, 2)""",
+    ),
+    "pwg_summary": (
+        "Posterior mean and latent variance with their gradients with respect to the input.",
+        "Posterior means and latent variances of all outputs with their input gradients.",
+    ),
+    "pwg_returns": (
+        """mean : ndarray of shape (k,)
+    Posterior mean m(d).
+var : ndarray of shape (k,)
+    Latent (noise-free) posterior variance var(d).
+dmean_dd : ndarray of shape (k, n_d)
+    Gradient of the mean with respect to d, one row per point.
+dvar_dd : ndarray of shape (k, n_d)
+    Gradient of the variance with respect to d.""",
+        """mean : ndarray of shape (k, q)
+    Posterior means.
+var : ndarray of shape (k, q)
+    Latent (noise-free) posterior variances.
+dmean_dd : ndarray of shape (k, q, n_d)
+    Gradients of the means with respect to d: [i, o, :] belongs to point i, output o.
+dvar_dd : ndarray of shape (k, q, n_d)
+    Gradients of the variances with respect to d.""",
+    ),
+    "pwg_example": (
+        """The gradient of a GP fitted to sin approximates cos:
+
+>>> import numpy as np
+>>> from gpmhe import GaussianProcess
+>>> D = np.linspace(0.0, 5.0, 20)[:, None]
+>>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
+>>> mean, var, dmean, dvar = gp.predict_with_gradients([[1.0]])
+>>> print(np.round(dmean, 2), np.round(np.cos(1.0), 2))
+[[0.54]] 0.54""",
+        """>>> import numpy as np
+>>> from gpmhe import MultiOutputGP
+>>> D = np.random.default_rng(1).uniform(-1.0, 1.0, size=(40, 2))
+>>> Y = np.column_stack([np.sin(D[:, 0]), D[:, 0] * D[:, 1]])
+>>> gp = MultiOutputGP(sigma_eps=0.01).fit(D, Y)
+>>> mean, var, dmean, dvar = gp.predict_with_gradients([[0.5, 0.2]])
+>>> dmean.shape
+(1, 2, 2)
+>>> print(round(float(dmean[0, 0, 0]), 2), round(float(np.cos(0.5)), 2))  # d sin(d1)/d d1
+0.88 0.88
+>>> print(np.round(dmean[0, 1], 2))  # gradient of d1 d2 at (0.5, 0.2)
+[0.2 0.5]""",
+    ),
+    "load_example": (
+        "GaussianProcess(sigma_f=2.0, optimizer=None).fit(D, np.sin(D[:, 0])).save(buf)",
+        "MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2])).save(buf)",
+    ),
+    "load_repr": (
+        "GaussianProcess(sigma_f=2, lengthscales=[1.], sigma_eps=0.1, fitted)",
+        "MultiOutputGP(q=2, n_d=1, N=20, fitted)",
+    ),
+}
+
+
+def _documented(which: int) -> Any:
+    """Class decorator: gives the class its own copy of each `_ExactGP` method and property in
+    ``_DOCS`` (or keeps the one it defines), its docstring filled in with text ``which`` of each
+    field (0: GaussianProcess, 1: MultiOutputGP). The copies are the class's own members, so the
+    API reference and the doctests see them on the class."""
+
+    def decorate(cls: type) -> type:
+        fields = {key: texts[which] for key, texts in _DOC_FIELDS.items()}
+        for name, template in _DOCS.items():
+            doc = template.format(**fields)
+            if name in cls.__dict__:
+                cls.__dict__[name].__doc__ = doc
+                continue
+            member = _ExactGP.__dict__[name]
+            if isinstance(member, property):
+                setattr(cls, name, property(member.fget, member.fset, member.fdel, doc))
+                continue
+            f = member.__func__ if isinstance(member, classmethod) else member
+            g = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
+            g.__kwdefaults__, g.__module__, g.__doc__ = f.__kwdefaults__, f.__module__, doc
+            g.__qualname__ = f"{cls.__name__}.{name}"
+            g.__annotations__ = {k: (f"'{cls.__name__}'" if v == "'_ExactGP'" else v) for k, v in f.__annotations__.items()}
+            setattr(cls, name, classmethod(g) if isinstance(member, classmethod) else g)
+        return cls
+
+    return decorate
+
+
 # ----------------------------------------------------------------------------- single output
 
 
+@_documented(0)
 class GaussianProcess(_ExactGP):
     """Exact GP regression of one output with the SE-ARD kernel.
 
@@ -483,24 +812,13 @@ class GaussianProcess(_ExactGP):
     _target = "y"
     _squeeze = True
 
-    def __init__(
-        self,
-        sigma_f: float = 1.0,
-        lengthscales: Union[float, Sequence[float], np.ndarray] = 1.0,
-        sigma_eps: float = 0.1,
-        optimizer: Optional[str] = "L-BFGS-B",
-        n_restarts: int = 0,
-        bounds: Any = DEFAULT_BOUNDS,
-        random_state: Union[None, int, np.random.Generator] = None,
-        maxiter: int = 15000,
-    ) -> None:
+    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
         self.sigma_f = positive_scalar("sigma_f", sigma_f)
         ls = positive("lengthscales", lengthscales)
         if ls.ndim > 1 or ls.size == 0:
             raise ValueError("lengthscales: must be a positive scalar or a 1-D array")
         self.lengthscales = ls.copy() if ls.ndim == 1 else float(ls)
         self.sigma_eps = positive_scalar("sigma_eps", sigma_eps)
-        self._init_settings(optimizer, n_restarts, bounds, random_state, maxiter)
 
     def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
         self.sigma_f, self.lengthscales, self.sigma_eps = float(sigma_f[0]), lengthscales[0], float(sigma_eps[0])
@@ -532,24 +850,6 @@ class GaussianProcess(_ExactGP):
         self._store(*_Theta.to_natural(theta[None, :]))
 
     @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        self._model()
-        return self._D.copy()
-
-    @property
-    def y_train(self) -> np.ndarray:
-        """Training targets, shape (N,).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        self._model()
-        return self._Y[:, 0].copy()
-
-    @property
     def jitter(self) -> float:
         """Diagonal jitter added to K + sigma_eps^2 I to factor it.
 
@@ -565,57 +865,9 @@ class GaussianProcess(_ExactGP):
         """
         return float(self._model().log_marginal_likelihoods()[0])
 
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d of the fitted model.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return self._model().dim
-
     # -- fitting -----------------------------------------------------------------------------
 
     def fit(self, D: Any, y: Any) -> "GaussianProcess":
-        """Fit the GP to training data, optimising the hyperparameters if an optimizer is set.
-
-        Parameters
-        ----------
-        D : array_like of shape (N, n_d)
-            Training inputs, N >= 2 finite rows.
-        y : array_like of shape (N,)
-            Training targets.
-
-        Returns
-        -------
-        GaussianProcess
-            ``self``, fitted.
-
-        Raises
-        ------
-        ValueError
-            If D or y have the wrong shape or contain NaN or inf.
-        gpmhe.NumericalError
-            If no optimiser run reached a finite log marginal likelihood, or the kernel matrix
-            cannot be factored even with jitter.
-
-        Warns
-        -----
-        ConvergenceWarning
-            If the best optimiser run stopped without converging.
-
-        Notes
-        -----
-        A failed fit leaves the model unchanged.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> gp.D_train.shape, gp.dim
-        ((20, 1), 1)
-        """
         return self._fit(D, y, 1)
 
     def log_marginal_likelihood(
@@ -656,139 +908,7 @@ class GaussianProcess(_ExactGP):
 
     # -- prediction --------------------------------------------------------------------------
 
-    def predict(self, D: Any, return_std: bool = False):
-        """Posterior mean, and optionally standard deviation, of the latent f at test points.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-        return_std : bool, default False
-            Also return the posterior standard deviation of the latent (noise-free) f.
-
-        Returns
-        -------
-        mean : ndarray of shape (k,)
-            Posterior mean m(d) at each test point.
-        std : ndarray of shape (k,)
-            Posterior standard deviation of f (without sigma_eps); only returned if
-            ``return_std`` is True.
-
-        Raises
-        ------
-        NotFittedError
-            Before ``fit``.
-        ValueError
-            If D has the wrong shape or contains NaN or inf.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> print(np.round(gp.predict([[1.0], [2.0]]), 2))
-        [0.84 0.91]
-        """
-        return self._predict(D, return_std)
-
-    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Posterior mean and latent variance with their gradients with respect to the input.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-
-        Returns
-        -------
-        mean : ndarray of shape (k,)
-            Posterior mean m(d).
-        var : ndarray of shape (k,)
-            Latent (noise-free) posterior variance var(d).
-        dmean_dd : ndarray of shape (k, n_d)
-            Gradient of the mean with respect to d, one row per point.
-        dvar_dd : ndarray of shape (k, n_d)
-            Gradient of the variance with respect to d.
-
-        Examples
-        --------
-        The gradient of a GP fitted to sin approximates cos:
-
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> mean, var, dmean, dvar = gp.predict_with_gradients([[1.0]])
-        >>> print(np.round(dmean, 2), np.round(np.cos(1.0), 2))
-        [[0.54]] 0.54
-        """
-        return self._predict_with_gradients(D)
-
     # -- persistence -------------------------------------------------------------------------
-
-    def save(self, path: Union[str, os.PathLike]) -> None:
-        """Save the fitted model and its settings to an ``.npz`` file (no pickle).
-
-        The training data, theta and the optimiser settings are stored; ``random_state`` is not.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
-            it).
-
-        See Also
-        --------
-        load : Read the file back.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> buf = io.BytesIO()
-        >>> gp.save(buf)
-        >>> _ = buf.seek(0)
-        >>> bool(np.array_equal(GaussianProcess.load(buf).predict(D), gp.predict(D)))
-        True
-        """
-        self._save(path)
-
-    @classmethod
-    def load(cls, path: Union[str, os.PathLike]) -> "GaussianProcess":
-        """Load a model written by ``save``.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            The ``.npz`` file.
-
-        Returns
-        -------
-        GaussianProcess
-            The fitted model, with the saved settings (``random_state`` None).
-
-        Raises
-        ------
-        ValueError
-            If the file is not a saved `GaussianProcess` or was written by a newer gpmhe.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> buf = io.BytesIO()
-        >>> GaussianProcess(sigma_f=2.0, optimizer=None).fit(D, np.sin(D[:, 0])).save(buf)
-        >>> _ = buf.seek(0)
-        >>> GaussianProcess.load(buf)
-        GaussianProcess(sigma_f=2, lengthscales=[1.], sigma_eps=0.1, fitted)
-        """
-        return cls._load(path)
 
     def __repr__(self) -> str:
         state = "fitted" if self._core_model is not None else "not fitted"
@@ -801,6 +921,7 @@ class GaussianProcess(_ExactGP):
 # ----------------------------------------------------------------------------- multi output
 
 
+@_documented(1)
 class MultiOutputGP(_ExactGP):
     """Independent SE-ARD GPs, one per output column, on shared inputs.
 
@@ -876,23 +997,12 @@ class MultiOutputGP(_ExactGP):
 
     _kind = "MultiOutputGP"
 
-    def __init__(
-        self,
-        sigma_f: Union[float, np.ndarray] = 1.0,
-        lengthscales: Union[float, np.ndarray] = 1.0,
-        sigma_eps: Union[float, np.ndarray] = 0.1,
-        optimizer: Optional[str] = "L-BFGS-B",
-        n_restarts: int = 0,
-        bounds: Any = DEFAULT_BOUNDS,
-        random_state: Union[None, int, np.random.Generator] = None,
-        maxiter: int = 15000,
-    ) -> None:
+    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
         self.sigma_f = positive("sigma_f", sigma_f)
         self.lengthscales = positive("lengthscales", lengthscales)
         self.sigma_eps = positive("sigma_eps", sigma_eps)
         if self.sigma_f.ndim > 1 or self.sigma_eps.ndim > 1 or self.lengthscales.ndim > 2:
             raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
-        self._init_settings(optimizer, n_restarts, bounds, random_state, maxiter)
 
     def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
         self.sigma_f, self.lengthscales, self.sigma_eps = sigma_f, lengthscales, sigma_eps
@@ -904,14 +1014,6 @@ class MultiOutputGP(_ExactGP):
         The number of columns of the training targets; raises `NotFittedError` before ``fit``.
         """
         return self._model().n_outputs
-
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return self._model().dim
 
     @property
     def theta(self) -> np.ndarray:
@@ -927,24 +1029,6 @@ class MultiOutputGP(_ExactGP):
         self._refactor(value)
 
     @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        self._model()
-        return self._D.copy()
-
-    @property
-    def y_train(self) -> np.ndarray:
-        """Training targets, shape (N, q).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        self._model()
-        return self._Y.copy()
-
-    @property
     def jitter(self) -> np.ndarray:
         """Diagonal jitter of each output's kernel factorisation, shape (q,).
 
@@ -953,45 +1037,6 @@ class MultiOutputGP(_ExactGP):
         return self._model().jitters
 
     def fit(self, D: Any, Y: Any) -> "MultiOutputGP":
-        """Fit one GP per output column, optimising each output's hyperparameters if set.
-
-        Parameters
-        ----------
-        D : array_like of shape (N, n_d)
-            Training inputs, N >= 2 finite rows.
-        Y : array_like of shape (N, q) or (N,)
-            Training targets, one column per output (a 1-D Y is one output).
-
-        Returns
-        -------
-        MultiOutputGP
-            ``self``, fitted.
-
-        Raises
-        ------
-        ValueError
-            If D or Y have the wrong shape or contain NaN or inf.
-        gpmhe.NumericalError
-            If an output's fit failed numerically (see `GaussianProcess.fit`).
-
-        Warns
-        -----
-        ConvergenceWarning
-            If the optimiser did not converge for some output.
-
-        Notes
-        -----
-        A failed fit leaves the model unchanged.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.random.default_rng(0).uniform(size=(10, 3))
-        >>> gp = MultiOutputGP(optimizer=None).fit(D, D[:, :2] ** 2)
-        >>> gp.n_outputs, gp.dim, gp.lengthscales.shape
-        (2, 3, (2, 3))
-        """
         return self._fit(D, Y, 1 if np.ndim(Y) == 1 else 2)
 
     def log_marginal_likelihood(self, theta: Any = None, eval_gradient: bool = False):
@@ -1023,137 +1068,6 @@ class MultiOutputGP(_ExactGP):
         """
         lml, grad = self._log_marginal_likelihood(theta, eval_gradient)
         return (lml, grad) if eval_gradient else lml
-
-    def predict(self, D: Any, return_std: bool = False):
-        """Posterior means, and optionally latent standard deviations, of all outputs.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-        return_std : bool, default False
-            Also return the posterior standard deviations of the latent (noise-free) outputs.
-
-        Returns
-        -------
-        mean : ndarray of shape (k, q)
-            Posterior means, one column per output.
-        std : ndarray of shape (k, q)
-            Latent posterior standard deviations; only returned if ``return_std`` is True.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = MultiOutputGP(sigma_eps=0.01, optimizer=None).fit(D, np.column_stack([D, -D]))
-        >>> mean, std = gp.predict([[1.0], [2.0]], return_std=True)
-        >>> print(np.round(mean, 2))
-        [[ 1. -1.]
-         [ 2. -2.]]
-        >>> std.shape
-        (2, 2)
-        """
-        return self._predict(D, return_std)
-
-    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Posterior means and latent variances of all outputs with their input gradients.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-
-        Returns
-        -------
-        mean : ndarray of shape (k, q)
-            Posterior means.
-        var : ndarray of shape (k, q)
-            Latent (noise-free) posterior variances.
-        dmean_dd : ndarray of shape (k, q, n_d)
-            Gradients of the means with respect to d: [i, o, :] belongs to point i, output o.
-        dvar_dd : ndarray of shape (k, q, n_d)
-            Gradients of the variances with respect to d.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.random.default_rng(1).uniform(-1.0, 1.0, size=(40, 2))
-        >>> Y = np.column_stack([np.sin(D[:, 0]), D[:, 0] * D[:, 1]])
-        >>> gp = MultiOutputGP(sigma_eps=0.01).fit(D, Y)
-        >>> mean, var, dmean, dvar = gp.predict_with_gradients([[0.5, 0.2]])
-        >>> dmean.shape
-        (1, 2, 2)
-        >>> print(round(float(dmean[0, 0, 0]), 2), round(float(np.cos(0.5)), 2))  # d sin(d1)/d d1
-        0.88 0.88
-        >>> print(np.round(dmean[0, 1], 2))  # gradient of d1 d2 at (0.5, 0.2)
-        [0.2 0.5]
-        """
-        return self._predict_with_gradients(D)
-
-    def save(self, path: Union[str, os.PathLike]) -> None:
-        """Save the fitted model and its settings to an ``.npz`` file (no pickle).
-
-        The training data, theta and the optimiser settings are stored; ``random_state`` is not.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
-            it).
-
-        See Also
-        --------
-        load : Read the file back.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2]))
-        >>> buf = io.BytesIO()
-        >>> gp.save(buf)
-        >>> _ = buf.seek(0)
-        >>> bool(np.array_equal(MultiOutputGP.load(buf).predict(D), gp.predict(D)))
-        True
-        """
-        self._save(path)
-
-    @classmethod
-    def load(cls, path: Union[str, os.PathLike]) -> "MultiOutputGP":
-        """Load a model written by ``save``.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            The ``.npz`` file.
-
-        Returns
-        -------
-        MultiOutputGP
-            The fitted model, with the saved settings (``random_state`` None).
-
-        Raises
-        ------
-        ValueError
-            If the file is not a saved `MultiOutputGP` or was written by a newer gpmhe.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> buf = io.BytesIO()
-        >>> MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2])).save(buf)
-        >>> _ = buf.seek(0)
-        >>> MultiOutputGP.load(buf)
-        MultiOutputGP(q=2, n_d=1, N=20, fitted)
-        """
-        return cls._load(path)
 
     def __repr__(self) -> str:
         if self._core_model is None:
