@@ -684,26 +684,31 @@ dvar_dd : ndarray of shape (k, q, n_d)
 def _documented(which: int) -> Any:
     """Class decorator: gives the class its own copy of each `_ExactGP` method and property in
     ``_DOCS`` (or keeps the one it defines), its docstring filled in with text ``which`` of each
-    field (0: GaussianProcess, 1: MultiOutputGP). The copies are the class's own members, so the
-    API reference and the doctests see them on the class."""
+    field (0: GaussianProcess, 1: MultiOutputGP), and its own ``__init__``. The copies are the
+    class's own members, so the API reference, its docstring checks (which look up the class of
+    ``__init__`` by its qualified name) and the doctests see them on the class."""
+
+    def own_copy(cls: type, f: Any, doc: Optional[str]) -> Any:
+        g = types.FunctionType(f.__code__, f.__globals__, f.__name__, f.__defaults__, f.__closure__)
+        g.__kwdefaults__, g.__module__, g.__doc__ = f.__kwdefaults__, f.__module__, doc
+        g.__qualname__ = f"{cls.__name__}.{f.__name__}"
+        g.__annotations__ = {k: (f"'{cls.__name__}'" if v == "'_ExactGP'" else v) for k, v in f.__annotations__.items()}
+        return g
 
     def decorate(cls: type) -> type:
+        cls.__init__ = own_copy(cls, _ExactGP.__init__, None)
         fields = {key: texts[which] for key, texts in _DOC_FIELDS.items()}
         for name, template in _DOCS.items():
             doc = template.format(**fields)
-            if name in cls.__dict__:
-                cls.__dict__[name].__doc__ = doc
-                continue
-            member = _ExactGP.__dict__[name]
+            member = cls.__dict__[name] if name in cls.__dict__ else _ExactGP.__dict__[name]
             if isinstance(member, property):
                 setattr(cls, name, property(member.fget, member.fset, member.fdel, doc))
-                continue
-            f = member.__func__ if isinstance(member, classmethod) else member
-            g = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
-            g.__kwdefaults__, g.__module__, g.__doc__ = f.__kwdefaults__, f.__module__, doc
-            g.__qualname__ = f"{cls.__name__}.{name}"
-            g.__annotations__ = {k: (f"'{cls.__name__}'" if v == "'_ExactGP'" else v) for k, v in f.__annotations__.items()}
-            setattr(cls, name, classmethod(g) if isinstance(member, classmethod) else g)
+            elif isinstance(member, classmethod):
+                setattr(cls, name, classmethod(own_copy(cls, member.__func__, doc)))
+            elif name in cls.__dict__:
+                member.__doc__ = doc
+            else:
+                setattr(cls, name, own_copy(cls, member, doc))
         return cls
 
     return decorate
