@@ -177,17 +177,18 @@ def test_multi_output_errors(data):
 def test_core_rejects_non_contiguous_and_mismatched_arrays(data):
     D, y = data
     theta = np.log([1.0, 1.0, 1.0, 0.1])
+    Y, thetas = y[:, None].copy(), theta[None, :].copy()
     with pytest.raises(ValueError, match="x"):
-        _core.GP(np.asfortranarray(D), y, theta)
+        _core.MultiGP(np.asfortranarray(D), Y, thetas)
     with pytest.raises(ValueError, match="x"):
-        _core.GP(D, y, np.log([1.0, 1.0, 0.1]))
+        _core.log_marginal_likelihood(D, y, np.log([1.0, 1.0, 0.1]))
     with pytest.raises(ValueError, match="y"):
-        _core.MultiGP(D, y[:-1, None].copy(), theta[None, :].copy())
+        _core.MultiGP(D, y[:-1, None].copy(), thetas)
     with pytest.raises(ValueError, match="thetas"):
-        _core.MultiGP(D, y[:, None].copy(), theta[None, :3].copy())
+        _core.MultiGP(D, Y, theta[None, :3].copy())
     with pytest.raises(TypeError):
-        _core.GP(D.astype(np.float32), y, theta)
-    gp = _core.GP(D, y, theta)
+        _core.MultiGP(D.astype(np.float32), Y, thetas)
+    gp = _core.MultiGP(D, Y, thetas)
     with pytest.raises(ValueError, match="D"):
         gp.predict(np.zeros((2, 3)))
 
@@ -197,3 +198,21 @@ def test_load_rejects_other_files(tmp_path):
     np.savez(path, a=np.zeros(3))
     with pytest.raises(ValueError, match="path"):
         GaussianProcess.load(path)
+
+
+def test_input_error_in_the_fit_is_raised_not_counted_as_a_bad_theta(data, monkeypatch):
+    # The optimiser's objective counts numerical failures and a trial theta the core cannot
+    # represent as +inf, but a genuine input error surfaces as the ValueError naming the argument.
+    D, y = data
+
+    def refuses(message):
+        def core(*args, **kwargs):
+            raise ValueError(message)
+        return core
+
+    monkeypatch.setattr(gpmhe.gp._core, "log_marginal_likelihood", refuses("y: simulated input error"))
+    with pytest.raises(ValueError, match="^y: simulated"):
+        GaussianProcess().fit(D, y)
+    monkeypatch.setattr(gpmhe.gp._core, "log_marginal_likelihood", refuses("theta: exp(theta[0]) overflows"))
+    with pytest.raises(NumericalError, match="fit"):
+        GaussianProcess().fit(D, y)

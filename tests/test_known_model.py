@@ -12,55 +12,11 @@ import pytest
 from gpmhe import GPMHE, KnownModel
 from gpmhe.systems import batch_reactor as br
 
-
-# ---- a synthetic system with m = 1, p = 2, per point and vectorised --------------------------
-def f3(x, u):
-    return np.array([0.9 * x[0] + 0.1 * x[1] + 0.1 * u[0],
-                     -0.1 * np.sin(x[0]) + 0.95 * x[1] + 0.05 * u[0]])
+from conftest import f3, f3_jac, f3_jac_v, f3_v, h3, h3_jac, h3_jac_v, h3_v, reactor_known_model
 
 
-def f3_jac(x, u):
-    return np.array([[0.9, 0.1], [-0.1 * np.cos(x[0]), 0.95]])
-
-
-def h3(x, u):
-    return np.array([x[0], x[0] * x[1] + 0.2 * u[0]])
-
-
-def h3_jac(x, u):
-    return np.array([[1.0, 0.0], [x[1], x[0]]])
-
-
-def f3_v(X, U):
-    return np.column_stack([0.9 * X[:, 0] + 0.1 * X[:, 1] + 0.1 * U[:, 0],
-                            -0.1 * np.sin(X[:, 0]) + 0.95 * X[:, 1] + 0.05 * U[:, 0]])
-
-
-def f3_jac_v(X, U):
-    J = np.zeros((len(X), 2, 2))
-    J[:, 0, 0], J[:, 0, 1] = 0.9, 0.1
-    J[:, 1, 0], J[:, 1, 1] = -0.1 * np.cos(X[:, 0]), 0.95
-    return J
-
-
-def h3_v(X, U):
-    return np.column_stack([X[:, 0], X[:, 0] * X[:, 1] + 0.2 * U[:, 0]])
-
-
-def h3_jac_v(X, U):
-    J = np.zeros((len(X), 2, 2))
-    J[:, 0, 0] = 1.0
-    J[:, 1, 0], J[:, 1, 1] = X[:, 1], X[:, 0]
-    return J
-
-
-def reactor(vectorized, jacobians=True):
-    if vectorized:
-        fns = (br.f_batch, br.h_batch, br.f_jacobian_batch, br.h_jacobian_batch)
-    else:
-        fns = (br.f, br.h, br.f_jacobian, br.h_jacobian)
-    jac = dict(f_jacobian=fns[2], h_jacobian=fns[3]) if jacobians else {}
-    return KnownModel(fns[0], fns[1], 2, 1, vectorized=vectorized, **jac)
+# ---- the reactor and the synthetic system with m = 1, p = 2 (tests/conftest.py) -------------
+reactor = reactor_known_model
 
 
 def synthetic(vectorized, jacobians=True):

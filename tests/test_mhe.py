@@ -2,8 +2,6 @@
 fails), both forms, missing outputs, a system with inputs and two outputs, bad input, solver
 failure, filterpy's Saver, and that estimates are never NaN and stay inside the bounds."""
 
-import warnings
-
 import numpy as np
 import pytest
 
@@ -11,20 +9,21 @@ from gpmhe import GPMHE, KnownModel, LearnedModel
 from gpmhe.baselines import GPEKF, ExactEKF
 from gpmhe.systems import batch_reactor as br
 
+from conftest import f3_coupled as f3
+from conftest import fitted_reactor_model, reactor_known_model
+from conftest import h3_no_feedthrough as h3
+
 SEEDS = (0, 1, 2)
 
 
 @pytest.fixture(scope="module")
 def gp5():
-    states, outputs = br.training_data(5, rng=100)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return LearnedModel.from_trajectories(states, outputs, n_restarts=2, random_state=0)
+    return fitted_reactor_model(100, n_restarts=2)
 
 
 @pytest.fixture(scope="module")
 def known():
-    return KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
+    return reactor_known_model()
 
 
 def run(model, y, form="prediction", **kw):
@@ -104,15 +103,6 @@ def test_missing_outputs(gp5):
     assert rmse(xs[29:], x[30:61]) < 0.6
     # window after t = 59: 15 stages (times 45..59), outputs missing at t % 3 == 1 (5 of them)
     assert est._core.window.n_residuals == 2 + 15 * 2 + 10
-
-
-def f3(x, u):
-    return np.array([0.9 * x[0] + 0.2 * x[1] + 0.1 * u[0],
-                     -0.1 * np.sin(x[0]) + 0.9 * x[1] + 0.1 * u[0]])
-
-
-def h3(x, u):
-    return np.array([x[0], x[0] * x[1]])
 
 
 def simulate3(x0, steps, rng, sw=0.01, sv=0.02):

@@ -5,29 +5,15 @@ other on single windows (with and without active bounds)."""
 import numpy as np
 import pytest
 
-from gpmhe import GPMHE, KnownModel, LearnedModel, MultiOutputGP
+from gpmhe import GPMHE, KnownModel
 from gpmhe.systems import batch_reactor as br
 
-
-def f3(x, u):
-    return np.array([0.9 * x[0] + 0.1 * x[1] + 0.1 * u[0], -0.1 * np.sin(x[0]) + 0.95 * x[1] + 0.05 * u[0]])
-
-
-def h3(x, u):
-    return np.array([x[0], x[0] * x[1] + 0.2 * u[0]])
+from conftest import f3, h3, synthetic_learned_model
 
 
 def synthetic_learned(f_residual):
     """GPs (fixed hyperparameters, no optimisation) on a 2-state, 1-input, 2-output system."""
-    rng = np.random.default_rng(3)
-    D = rng.uniform(-1.5, 1.5, size=(60, 3))
-    Xn = np.array([f3(d[:2], d[2:]) for d in D])
-    Y = np.array([h3(d[:2], d[2:]) for d in D])
-    target = Xn - D[:, :2] if f_residual else Xn
-    opts = dict(sigma_f=1.0, lengthscales=[0.8, 0.9, 1.1], sigma_eps=0.05, optimizer=None)
-    fg = MultiOutputGP(**opts).fit(D, target)
-    hg = MultiOutputGP(**opts).fit(D, Y)
-    return LearnedModel(fg, hg, dim_u=1, f_residual=f_residual)
+    return synthetic_learned_model(60, f_residual)
 
 
 def numpy_cost(model, z, u, y, present, x_prior, P2, q0, r0, eta, form):
@@ -250,12 +236,6 @@ def test_update_is_prepare_then_solve_then_commit():
             np.testing.assert_array_equal(x_prior, expect)
             next_priors.append(w1.predict_next(x_window[-1], u))
             estimates.append(x_window[-1])
-
-
-@pytest.fixture(scope="module")
-def reactor_model():
-    states, outputs = br.training_data(5, rng=11)
-    return LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
 
 
 @pytest.mark.parametrize("bounds", ["paper", "active"])

@@ -14,34 +14,19 @@ from scipy.optimize import Bounds, least_squares, minimize
 from gpmhe import GPMHE, KnownModel, LearnedModel, MultiOutputGP, _core
 from gpmhe.systems import batch_reactor as br
 
-
-def f3(x, u):
-    return np.array([0.9 * x[0] + 0.1 * x[1] + 0.1 * u[0],
-                     -0.1 * np.sin(x[0]) + 0.95 * x[1] + 0.05 * u[0]])
+from conftest import f3, h3, reactor_known_model, synthetic_learned_model
 
 
-def h3(x, u):
-    return np.array([x[0], x[0] * x[1] + 0.2 * u[0]])
-
-
-@pytest.fixture(scope="module")
-def reactor_gp():
-    states, outputs = br.training_data(5, rng=11)
-    return LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
+# reactor_gp: the fixture in tests/conftest.py
 
 
 @pytest.fixture(scope="module")
 def synthetic_gp():
     """GPs with fixed hyperparameters on a system with m = 1 input and p = 2 outputs."""
-    rng = np.random.default_rng(3)
-    D = rng.uniform(-1.5, 1.5, size=(80, 3))
-    Xn = np.array([f3(d[:2], d[2:]) for d in D])
-    Y = np.array([h3(d[:2], d[2:]) for d in D])
-    opts = dict(sigma_f=1.0, lengthscales=[0.8, 0.9, 1.1], sigma_eps=0.05, optimizer=None)
-    return LearnedModel(MultiOutputGP(**opts).fit(D, Xn), MultiOutputGP(**opts).fit(D, Y), dim_u=1)
+    return synthetic_learned_model(80)
 
 
-reactor_known = KnownModel(br.f, br.h, 2, 1, f_jacobian=br.f_jacobian, h_jacobian=br.h_jacobian)
+reactor_known = reactor_known_model()
 
 
 def reactor_window(model, rng, nodes, upper):

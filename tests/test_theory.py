@@ -6,15 +6,14 @@ variance and Lipschitz bounds against dense sampling, and bad input."""
 
 import math
 import sys
-import warnings
-
 import numpy as np
 import pytest
 
 pytest.importorskip("cvxpy")
 
-from gpmhe import GPMHE, KnownModel, LearnedModel  # noqa: E402
+from gpmhe import GPMHE, KnownModel  # noqa: E402
 from gpmhe.systems import batch_reactor as br  # noqa: E402
+from conftest import fitted_reactor_model, reactor_known_model  # noqa: E402
 from gpmhe.theory import (  # noqa: E402
     Certificate,
     certify_ioss,
@@ -38,15 +37,11 @@ def linear_model(A, C):
 
 @pytest.fixture(scope="module")
 def exact():
-    return KnownModel(br.f_batch, br.h_batch, 2, 1, f_jacobian=br.f_jacobian_batch,
-                      h_jacobian=br.h_jacobian_batch, vectorized=True)
+    return reactor_known_model(vectorized=True)
 
 
 def fit_gp(n_trajectories):
-    states, outputs = br.training_data(n_trajectories, rng=100)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
+    return fitted_reactor_model(100, n_restarts=1, n_trajectories=n_trajectories)
 
 
 @pytest.fixture(scope="module")

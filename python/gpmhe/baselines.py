@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from gpmhe._validation import float_array
+
 __all__ = ["ExactEKF", "GPEKF"]
 
 
@@ -120,13 +122,9 @@ def ExactEKF(f, f_jacobian, h, h_jacobian, x0, P0, Q, R):
                 lambda x: np.asarray(h(x.ravel()), dtype=float).reshape(-1, 1), R=R,
                 args=args, hx_args=hx_args, residual=residual)
 
-    x0 = np.asarray(x0, dtype=float).reshape(-1)
-    R = np.atleast_2d(np.asarray(R, dtype=float))
+    x0, P0, Q, R = _initial_values(x0, P0, Q, R)
     ekf = _ExactEKF(dim_x=x0.size, dim_z=R.shape[0])
-    ekf.x = x0.reshape(-1, 1).copy()
-    ekf.P = np.asarray(P0, dtype=float).copy()
-    ekf.Q = np.asarray(Q, dtype=float).copy()
-    ekf.R = R.copy()
+    ekf.x, ekf.P, ekf.Q, ekf.R = x0.reshape(-1, 1), P0, Q, R
     return ekf
 
 
@@ -229,11 +227,14 @@ def GPEKF(model, x0, P0, Q, R):
             return super().update(np.atleast_1d(z), lambda x: H, lambda x: my[0].reshape(-1, 1),
                                   R=R_eff)
 
-    x0 = np.asarray(x0, dtype=float).reshape(-1)
-    R = np.atleast_2d(np.asarray(R, dtype=float))
+    x0, P0, Q, R = _initial_values(x0, P0, Q, R)
     ekf = _GPEKF(dim_x=n, dim_z=R.shape[0])
-    ekf.x = x0.reshape(-1, 1).copy()
-    ekf.P = np.asarray(P0, dtype=float).copy()
-    ekf.Q = np.asarray(Q, dtype=float).copy()
-    ekf.R = R.copy()
+    ekf.x, ekf.P, ekf.Q, ekf.R = x0.reshape(-1, 1), P0, Q, R
     return ekf
+
+
+def _initial_values(x0, P0, Q, R):
+    """x0 flattened, P0, Q and R as 2-D (a scalar R is 1 x 1): finite float64 copies."""
+    x0 = float_array("x0", x0, copy=True).reshape(-1)
+    P0, Q = float_array("P0", P0, copy=True), float_array("Q", Q, copy=True)
+    return x0, P0, Q, np.atleast_2d(float_array("R", R, copy=True))

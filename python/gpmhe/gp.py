@@ -24,6 +24,7 @@ it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.
 from __future__ import annotations
 
 import os
+import types
 import warnings
 from typing import Any, Optional, Sequence, Tuple, Union
 
@@ -32,6 +33,7 @@ import scipy.optimize
 
 from gpmhe import _core
 from gpmhe._core import NumericalError
+from gpmhe._validation import float_array, integer, one_of, points, positive, positive_scalar, training_set
 
 __all__ = ["GaussianProcess", "MultiOutputGP", "ConvergenceWarning", "NotFittedError"]
 
@@ -87,97 +89,58 @@ class NotFittedError(ValueError, AttributeError):
     """
 
 
-# ----------------------------------------------------------------------------- validation
+# ----------------------------------------------------------------------------- theta
 
 
-def _as_float_array(a: Any, name: str, ndim: int) -> np.ndarray:
-    try:
-        arr = np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
-    if arr.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: contains NaN or infinite values")
-    return np.ascontiguousarray(arr)
+class _Theta:
+    """theta = log([sigma_f, lengthscales..., sigma_eps]), one row per output, in one place.
 
+    The public classes keep the hyperparameters in natural units (``sigma_f``, ``lengthscales``,
+    ``sigma_eps``), the optimiser works on theta within log-bounds, and the core takes theta as a
+    (q, n_d + 2) array: these are all of the conversions between them, and the bounds.
+    """
 
-def _check_training(D: Any, y: Any, y_ndim: int) -> Tuple[np.ndarray, np.ndarray]:
-    D = _as_float_array(D, "D", 2)
-    y = _as_float_array(y, "y", y_ndim)
-    n = D.shape[0]
-    if n < 2:
-        raise ValueError(f"D: needs at least 2 training points, got {n}")
-    if D.shape[1] < 1:
-        raise ValueError("D: needs at least one input dimension")
-    if y.shape[0] != n:
-        raise ValueError(f"y: expected {n} rows (one per row of D), got {y.shape[0]}")
-    if y_ndim == 2 and y.shape[1] < 1:
-        raise ValueError("y: needs at least one output column")
-    return D, y
-
-
-def _check_points(D: Any, nd: int) -> np.ndarray:
-    """Test points as a C-contiguous float64 (k, nd) array. The NaN/inf check is done by the Rust
-    binding (ValueError naming D), which scans the array anyway, to keep the per-call overhead of
-    one-point predictions small."""
-    if not (type(D) is np.ndarray and D.dtype == np.float64 and D.flags.c_contiguous):
+    @staticmethod
+    def from_natural(sigma_f: Any, lengthscales: Any, sigma_eps: Any, q: int, nd: int) -> np.ndarray:
+        """(q, n_d + 2) theta from natural units broadcast over q outputs and n_d inputs."""
         try:
-            D = np.ascontiguousarray(D, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"D: cannot be converted to a float64 array ({exc})") from None
-    if D.ndim != 2 or D.shape[1] != nd:
-        raise ValueError(f"D: expected shape (k, {nd}), got {D.shape}")
-    return D
+            sf = np.broadcast_to(sigma_f, (q,))
+            se = np.broadcast_to(sigma_eps, (q,))
+        except ValueError:
+            raise ValueError(f"sigma_f, sigma_eps: expected a scalar or {q} values (one per output)") from None
+        try:
+            ls = np.broadcast_to(lengthscales, (q, nd))
+        except ValueError:
+            raise ValueError(
+                f"lengthscales: expected a scalar, ({nd},) or ({q}, {nd}), got {np.shape(lengthscales)}"
+            ) from None
+        return np.log(np.column_stack([sf, ls, se]))
 
+    @staticmethod
+    def to_natural(theta: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sigma_f (q,), lengthscales (q, n_d), sigma_eps (q,)) of a (q, n_d + 2) theta."""
+        t = np.exp(theta)
+        return t[:, 0].copy(), t[:, 1:-1].copy(), t[:, -1].copy()
 
-def _positive(value: Any, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a positive number or array of them") from None
-    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise ValueError(f"{name}: must be finite and > 0, got {value!r}")
-    return arr
-
-
-def _positive_scalar(value: Any, name: str) -> float:
-    arr = _positive(value, name)
-    if arr.ndim != 0:
-        raise ValueError(f"{name}: must be a positive scalar, got shape {arr.shape}")
-    return float(arr)
-
-
-def _log_bounds(bounds: Any, nd: Optional[int]) -> np.ndarray:
-    """Natural-unit bounds -> (nd + 2, 2) bounds on theta. With nd None (n_d not known yet) only
-    the form is checked and the rows are returned as given."""
-    try:
-        b = np.asarray(bounds, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError("bounds: must be a sequence of (low, high) pairs") from None
-    rows_ok = b.ndim == 2 and (b.shape[0] == 3 or (b.shape[0] > 3 if nd is None else b.shape[0] == nd + 2))
-    if not rows_ok or b.shape[1] != 2:
-        expected = "(n_d + 2, 2)" if nd is None else f"({nd + 2}, 2)"
-        raise ValueError(
-            f"bounds: expected shape (3, 2) (sigma_f, lengthscales, sigma_eps) or {expected}, got {b.shape}"
-        )
-    if not np.all(np.isfinite(b)) or np.any(b <= 0) or np.any(b[:, 0] > b[:, 1]):
-        raise ValueError("bounds: need finite 0 < low <= high in every row")
-    if b.shape[0] == 3 and nd is not None:
-        b = np.vstack([b[0], np.repeat(b[1:2], nd, axis=0), b[2]])
-    return np.log(b)
-
-
-def _check_optimizer(optimizer: Optional[str]) -> Optional[str]:
-    if optimizer is not None and optimizer != "L-BFGS-B":
-        raise ValueError(f"optimizer: must be 'L-BFGS-B' or None, got {optimizer!r}")
-    return optimizer
-
-
-def _check_restarts(n_restarts: Any) -> int:
-    if isinstance(n_restarts, bool) or not isinstance(n_restarts, (int, np.integer)) or n_restarts < 0:
-        raise ValueError(f"n_restarts: must be a non-negative integer, got {n_restarts!r}")
-    return int(n_restarts)
+    @staticmethod
+    def log_bounds(bounds: Any, nd: Optional[int]) -> np.ndarray:
+        """Natural-unit bounds -> (nd + 2, 2) bounds on theta. With nd None (n_d not known yet)
+        only the form is checked and the rows are returned as given."""
+        try:
+            b = np.asarray(bounds, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("bounds: must be a sequence of (low, high) pairs") from None
+        rows_ok = b.ndim == 2 and (b.shape[0] == 3 or (b.shape[0] > 3 if nd is None else b.shape[0] == nd + 2))
+        if not rows_ok or b.shape[1] != 2:
+            expected = "(n_d + 2, 2)" if nd is None else f"({nd + 2}, 2)"
+            raise ValueError(
+                f"bounds: expected shape (3, 2) (sigma_f, lengthscales, sigma_eps) or {expected}, got {b.shape}"
+            )
+        if not np.all(np.isfinite(b)) or np.any(b <= 0) or np.any(b[:, 0] > b[:, 1]):
+            raise ValueError("bounds: need finite 0 < low <= high in every row")
+        if b.shape[0] == 3 and nd is not None:
+            b = np.vstack([b[0], np.repeat(b[1:2], nd, axis=0), b[2]])
+        return np.log(b)
 
 
 # ----------------------------------------------------------------------------- optimisation
@@ -194,16 +157,24 @@ def _maximise_lml(
 ) -> Tuple[np.ndarray, float]:
     """Best (theta, lml) over L-BFGS-B runs from theta0 and n_restarts uniform random starts.
 
-    Raises NumericalError if no run produced a finite log marginal likelihood.
+    D and y must be validated (``training_set``): the objective hands them to the core as they
+    are. Raises NumericalError if no run produced a finite log marginal likelihood.
     """
 
     def objective(theta: np.ndarray) -> Tuple[float, np.ndarray]:
         try:
             lml, grad = _core.log_marginal_likelihood(D, y, np.ascontiguousarray(theta), True)
-        except (NumericalError, ValueError):
+        except NumericalError:
             # Outside the numerically usable region: report it as infinitely bad so the line
             # search backs off.
             return np.inf, np.zeros_like(theta)
+        except ValueError as err:
+            # D and y are valid, so the only input the core can refuse here is a trial theta
+            # beyond what float64 represents (exp(theta) or sigma^2 overflowing): as bad as a
+            # numerical failure. Any other ValueError is a genuine input error and surfaces.
+            if str(err).startswith("theta"):
+                return np.inf, np.zeros_like(theta)
+            raise
         return -lml, -grad
 
     starts = [np.clip(theta0, log_bounds[:, 0], log_bounds[:, 1])]
@@ -231,7 +202,7 @@ def _maximise_lml(
             "fit: L-BFGS-B stopped before convergence (iteration limit, or a failed line search "
             "with a large projected gradient); the best hyperparameters found are used",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,  # _maximise_lml <- _ExactGP._fit <- fit <- the caller of fit
         )
     return best[0], best[1]
 
@@ -250,10 +221,504 @@ def _converged(res: Any, log_bounds: np.ndarray) -> bool:
     return bool(np.max(np.abs(projected)) <= 1e-3 * max(1.0, abs(res.fun)))
 
 
+# ----------------------------------------------------------------------------- persistence
+
+
+def _settings(est: Any) -> dict:
+    return dict(
+        optimizer="" if est.optimizer is None else est.optimizer,
+        n_restarts=est.n_restarts,
+        bounds=np.asarray(est.bounds, dtype=np.float64),
+        maxiter=est.maxiter,
+    )
+
+
+def _settings_from(f: Any) -> dict:
+    opt = str(f["optimizer"])
+    return dict(
+        optimizer=None if opt == "" else opt,
+        n_restarts=int(f["n_restarts"]),
+        bounds=f["bounds"],
+        maxiter=int(f["maxiter"]),
+    )
+
+
+def _check_kind(f: Any, kind: str) -> None:
+    if "kind" not in f or str(f["kind"]) != kind:
+        raise ValueError(f"path: not a saved {kind} file")
+    if int(f["format_version"]) > _FORMAT_VERSION:
+        raise ValueError("path: saved by a newer gpmhe (format version too high)")
+
+
+# ----------------------------------------------------------------------------- the implementation
+
+
+class _ExactGP:
+    """The one implementation behind `GaussianProcess` and `MultiOutputGP`.
+
+    q independent SE-ARD GPs on shared inputs in one ``_core.MultiGP``; the training data are kept
+    as (N, n_d) and (N, q) arrays and theta as (q, n_d + 2). `GaussianProcess` is the q = 1 case:
+    with ``_squeeze`` its results drop the output axis. The subclasses add the natural-unit
+    attributes (``_check_hyperparameters``, ``_store``), what differs in their API (``fit``'s
+    argument name, the shapes of theta, the LML and the jitter, the properties) and ``__repr__``;
+    `_documented` gives each its own copies of the shared methods with its docstrings.
+    """
+
+    #: The class name, in messages and as the ``kind`` of saved files.
+    _kind = "_ExactGP"
+    #: The target's name in ``fit`` (for messages).
+    _target = "Y"
+    #: One output: drop the output axis of predictions, theta, the LML and the saved targets.
+    _squeeze = False
+
+    def __init__(
+        self,
+        sigma_f: Union[float, np.ndarray] = 1.0,
+        lengthscales: Union[float, Sequence[float], np.ndarray] = 1.0,
+        sigma_eps: Union[float, np.ndarray] = 0.1,
+        optimizer: Optional[str] = "L-BFGS-B",
+        n_restarts: int = 0,
+        bounds: Any = DEFAULT_BOUNDS,
+        random_state: Union[None, int, np.random.Generator] = None,
+        maxiter: int = 15000,
+    ) -> None:
+        self._check_hyperparameters(sigma_f, lengthscales, sigma_eps)
+        self.optimizer = one_of("optimizer", optimizer, ("L-BFGS-B", None))
+        self.n_restarts = integer("n_restarts", n_restarts)
+        _Theta.log_bounds(bounds, None)  # validate the form now; expanded once n_d is known
+        self.bounds = bounds
+        self.random_state = random_state
+        self.maxiter = int(maxiter)
+        self._core_model: Optional[_core.MultiGP] = None
+        self._D: Optional[np.ndarray] = None
+        self._Y: Optional[np.ndarray] = None
+
+    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
+        """Set sigma_f, lengthscales and sigma_eps (natural units) from the constructor's values."""
+        raise NotImplementedError
+
+    def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
+        """Set sigma_f, lengthscales and sigma_eps from their (q,), (q, n_d), (q,) values."""
+        raise NotImplementedError
+
+    # -- state -------------------------------------------------------------------------------
+
+    def _set_model(self, model: "_core.MultiGP", D: np.ndarray, Y: np.ndarray) -> None:
+        self._core_model, self._D, self._Y = model, D, Y
+        self._store(*_Theta.to_natural(model.thetas))
+
+    def _model(self) -> "_core.MultiGP":
+        if self._core_model is None:
+            raise NotFittedError(f"this {self._kind} is not fitted yet; call fit(D, {self._target}) first")
+        return self._core_model
+
+    def _theta_rows(self, value: Any) -> np.ndarray:
+        """A theta argument of the fitted model (n_d + 2,) or (q, n_d + 2) as (q, n_d + 2)."""
+        m = self._model()
+        theta = float_array("theta", value, 1 if self._squeeze else 2)
+        shape = (m.dim + 2,) if self._squeeze else (m.n_outputs, m.dim + 2)
+        if theta.shape != shape:
+            raise ValueError(f"theta: expected shape {shape}, got {theta.shape}")
+        return theta.reshape(m.n_outputs, m.dim + 2)
+
+    def _refactor(self, theta: Any) -> None:
+        """Factor the fitted model again at a new theta (the ``theta`` setter)."""
+        self._set_model(_core.MultiGP(self._D, self._Y, self._theta_rows(theta)), self._D, self._Y)
+
+    @property
+    def dim(self) -> int:
+        return self._model().dim
+
+    @property
+    def D_train(self) -> np.ndarray:
+        self._model()
+        return self._D.copy()
+
+    @property
+    def y_train(self) -> np.ndarray:
+        self._model()
+        return self._out(self._Y).copy()
+
+    def _out(self, a: np.ndarray) -> np.ndarray:
+        """A per-point result (k, q, ...) as it is returned: (k, ...) for one output."""
+        return a.reshape(a.shape[:1] + a.shape[2:]) if self._squeeze else a
+
+    # -- fitting -----------------------------------------------------------------------------
+
+    def _fit(self, D: Any, Y: Any, y_ndim: int) -> "_ExactGP":
+        D, Y = training_set(D, Y, y_ndim)
+        if y_ndim == 1:
+            Y = Y.reshape(-1, 1)
+        q, nd = Y.shape[1], D.shape[1]
+        theta = _Theta.from_natural(self.sigma_f, self.lengthscales, self.sigma_eps, q, nd)
+        if self.optimizer is not None:
+            log_bounds = _Theta.log_bounds(self.bounds, nd)
+            rng = np.random.default_rng(self.random_state)
+            rows = []
+            for o in range(q):  # a loop, not a comprehension: the warning's stacklevel counts frames
+                y = np.ascontiguousarray(Y[:, o])
+                rows.append(_maximise_lml(D, y, theta[o], log_bounds, self.n_restarts, rng, self.maxiter)[0])
+            theta = np.array(rows)
+        self._set_model(_core.MultiGP(D, Y, np.ascontiguousarray(theta)), D, Y)
+        return self
+
+    def _log_marginal_likelihood(self, theta: Any, eval_gradient: bool) -> Tuple[np.ndarray, np.ndarray]:
+        """(lml (q,), grad (q, n_d + 2) or None) at theta, None for the current one."""
+        m = self._model()
+        if theta is None:
+            lml = m.log_marginal_likelihoods()
+            return lml, (m.log_marginal_likelihood_gradients() if eval_gradient else None)
+        theta = self._theta_rows(theta)
+        res = [
+            _core.log_marginal_likelihood(
+                self._D, np.ascontiguousarray(self._Y[:, o]), np.ascontiguousarray(theta[o]), bool(eval_gradient)
+            )
+            for o in range(m.n_outputs)
+        ]
+        return np.array([r[0] for r in res]), np.array([r[1] for r in res])
+
+    # -- prediction --------------------------------------------------------------------------
+
+    def predict(self, D: Any, return_std: bool = False):
+        m = self._model()
+        D = points("D", D, m.dim, check_finite=False)  # the core scans D for NaN/inf
+        if not return_std:
+            return self._out(m.predict_mean(D))
+        mean, var = m.predict(D)
+        return self._out(mean), np.sqrt(self._out(var))
+
+    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        m = self._model()
+        mean, var, dmean, dvar = m.predict_with_gradients(points("D", D, m.dim, check_finite=False))
+        return self._out(mean), self._out(var), self._out(dmean), self._out(dvar)
+
+    # -- persistence -------------------------------------------------------------------------
+
+    def save(self, path: Union[str, os.PathLike]) -> None:
+        theta, Y = self._model().thetas, self._Y
+        if self._squeeze:
+            theta, Y = theta[0], Y[:, 0]
+        np.savez(path, format_version=_FORMAT_VERSION, kind=self._kind, D=self._D, y=Y, theta=theta, **_settings(self))
+
+    @classmethod
+    def load(cls, path: Union[str, os.PathLike]) -> "_ExactGP":
+        with np.load(path, allow_pickle=False) as f:
+            _check_kind(f, cls._kind)
+            gp = cls(**_settings_from(f))
+            D, Y, theta = (np.ascontiguousarray(f[key]) for key in ("D", "y", "theta"))
+        if cls._squeeze:
+            Y, theta = Y.reshape(-1, 1), theta.reshape(1, -1)
+        gp._set_model(_core.MultiGP(D, Y, theta), D, Y)
+        return gp
+
+
+# ----------------------------------------------------------------------------- docstrings
+
+# The docstrings of the methods both public classes have, written once: `_documented` fills them
+# in for each class with the fields below (its name, shapes, wording and examples).
+_TEST_POINTS = """Parameters
+----------
+D : array_like of shape (k, n_d)
+    Test points."""
+_FILE_EXAMPLE = """Examples
+--------
+>>> import io
+>>> import numpy as np
+>>> from gpmhe import {cls}
+>>> D = np.linspace(0.0, 5.0, 20)[:, None]"""
+_DOCS = {
+    "dim": """{dim_summary}
+
+The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
+""",
+    "D_train": """Training inputs, shape (N, n_d).
+
+Those of the last successful ``fit``; raises `NotFittedError` before it.
+""",
+    "y_train": """Training targets, shape {y_shape}.
+
+Those of the last successful ``fit``; raises `NotFittedError` before it.
+""",
+    "fit": """{fit_summary}
+
+Parameters
+----------
+D : array_like of shape (N, n_d)
+    Training inputs, N >= 2 finite rows.
+{target}
+
+Returns
+-------
+{cls}
+    ``self``, fitted.
+
+Raises
+------
+ValueError
+    If D or {y} have the wrong shape or contain NaN or inf.
+gpmhe.NumericalError
+    {fit_numerical}
+
+Warns
+-----
+ConvergenceWarning
+    {fit_warns}
+
+Notes
+-----
+A failed fit leaves the model unchanged.
+
+Examples
+--------
+>>> import numpy as np
+>>> from gpmhe import {cls}
+{fit_example}
+""",
+    "predict": """{predict_summary}
+
+""" + _TEST_POINTS + """
+return_std : bool, default False
+    {return_std}
+
+Returns
+-------
+{predict_returns}
+
+Examples
+--------
+>>> import numpy as np
+>>> from gpmhe import {cls}
+>>> D = np.linspace(0.0, 5.0, 20)[:, None]
+{predict_example}
+""",
+    "predict_with_gradients": """{pwg_summary}
+
+""" + _TEST_POINTS + """
+
+Returns
+-------
+{pwg_returns}
+
+Examples
+--------
+{pwg_example}
+""",
+    "save": """Save the fitted model and its settings to an ``.npz`` file (no pickle).
+
+The training data, theta and the optimiser settings are stored; ``random_state`` is not.
+
+Parameters
+----------
+path : str, os.PathLike or file-like object
+    Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
+    it).
+
+See Also
+--------
+load : Read the file back.
+
+""" + _FILE_EXAMPLE + """
+>>> gp = {cls}(optimizer=None).fit(D, {example_targets})
+>>> buf = io.BytesIO()
+>>> gp.save(buf)
+>>> _ = buf.seek(0)
+>>> bool(np.array_equal({cls}.load(buf).predict(D), gp.predict(D)))
+True
+""",
+    "load": """Load a model written by ``save``.
+
+Parameters
+----------
+path : str, os.PathLike or file-like object
+    The ``.npz`` file.
+
+Returns
+-------
+{cls}
+    The fitted model, with the saved settings (``random_state`` None).
+
+Raises
+------
+ValueError
+    If the file is not a saved `{cls}` or was written by a newer gpmhe.
+
+""" + _FILE_EXAMPLE + """
+>>> buf = io.BytesIO()
+>>> {load_example}
+>>> _ = buf.seek(0)
+>>> {cls}.load(buf)
+{load_repr}
+""",
+}
+
+# Each field's text for GaussianProcess, then for MultiOutputGP.
+_DOC_FIELDS = {
+    "cls": ("GaussianProcess", "MultiOutputGP"),
+    "dim_summary": ("Input dimension n_d of the fitted model.", "Input dimension n_d."),
+    "y_shape": ("(N,)", "(N, q)"),
+    "y": ("y", "Y"),
+    "example_targets": ("np.sin(D[:, 0])", "np.column_stack([D, D ** 2])"),
+    "fit_summary": (
+        "Fit the GP to training data, optimising the hyperparameters if an optimizer is set.",
+        "Fit one GP per output column, optimising each output's hyperparameters if set.",
+    ),
+    "target": (
+        """y : array_like of shape (N,)
+    Training targets.""",
+        """Y : array_like of shape (N, q) or (N,)
+    Training targets, one column per output (a 1-D Y is one output).""",
+    ),
+    "fit_numerical": (
+        """If no optimiser run reached a finite log marginal likelihood, or the kernel matrix
+    cannot be factored even with jitter.""",
+        "If an output's fit failed numerically (see `GaussianProcess.fit`).",
+    ),
+    "fit_warns": (
+        "If the best optimiser run stopped without converging.",
+        "If the optimiser did not converge for some output.",
+    ),
+    "fit_example": (
+        """>>> D = np.linspace(0.0, 5.0, 20)[:, None]
+>>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
+>>> gp.D_train.shape, gp.dim
+((20, 1), 1)""",
+        """>>> D = np.random.default_rng(0).uniform(size=(10, 3))
+>>> gp = MultiOutputGP(optimizer=None).fit(D, D[:, :2] ** 2)
+>>> gp.n_outputs, gp.dim, gp.lengthscales.shape
+(2, 3, (2, 3))""",
+    ),
+    "predict_summary": (
+        "Posterior mean, and optionally standard deviation, of the latent f at test points.",
+        "Posterior means, and optionally latent standard deviations, of all outputs.",
+    ),
+    "return_std": (
+        "Also return the posterior standard deviation of the latent (noise-free) f.",
+        "Also return the posterior standard deviations of the latent (noise-free) outputs.",
+    ),
+    "predict_returns": (
+        """mean : ndarray of shape (k,)
+    Posterior mean m(d) at each test point.
+std : ndarray of shape (k,)
+    Posterior standard deviation of f (without sigma_eps); only returned if
+    ``return_std`` is True.
+
+Raises
+------
+NotFittedError
+    Before ``fit``.
+ValueError
+    If D has the wrong shape or contains NaN or inf.""",
+        """mean : ndarray of shape (k, q)
+    Posterior means, one column per output.
+std : ndarray of shape (k, q)
+    Latent posterior standard deviations; only returned if ``return_std`` is True.""",
+    ),
+    "predict_example": (
+        """>>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
+>>> print(np.round(gp.predict([[1.0], [2.0]]), 2))
+[0.84 0.91]""",
+        """>>> gp = MultiOutputGP(sigma_eps=0.01, optimizer=None).fit(D, np.column_stack([D, -D]))
+>>> mean, std = gp.predict([[1.0], [2.0]], return_std=True)
+>>> print(np.round(mean, 2))
+[[ 1. -1.]
+ [ 2. -2.]]
+>>> std.shape
+(2, 2)""",
+    ),
+    "pwg_summary": (
+        "Posterior mean and latent variance with their gradients with respect to the input.",
+        "Posterior means and latent variances of all outputs with their input gradients.",
+    ),
+    "pwg_returns": (
+        """mean : ndarray of shape (k,)
+    Posterior mean m(d).
+var : ndarray of shape (k,)
+    Latent (noise-free) posterior variance var(d).
+dmean_dd : ndarray of shape (k, n_d)
+    Gradient of the mean with respect to d, one row per point.
+dvar_dd : ndarray of shape (k, n_d)
+    Gradient of the variance with respect to d.""",
+        """mean : ndarray of shape (k, q)
+    Posterior means.
+var : ndarray of shape (k, q)
+    Latent (noise-free) posterior variances.
+dmean_dd : ndarray of shape (k, q, n_d)
+    Gradients of the means with respect to d: [i, o, :] belongs to point i, output o.
+dvar_dd : ndarray of shape (k, q, n_d)
+    Gradients of the variances with respect to d.""",
+    ),
+    "pwg_example": (
+        """The gradient of a GP fitted to sin approximates cos:
+
+>>> import numpy as np
+>>> from gpmhe import GaussianProcess
+>>> D = np.linspace(0.0, 5.0, 20)[:, None]
+>>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
+>>> mean, var, dmean, dvar = gp.predict_with_gradients([[1.0]])
+>>> print(np.round(dmean, 2), np.round(np.cos(1.0), 2))
+[[0.54]] 0.54""",
+        """>>> import numpy as np
+>>> from gpmhe import MultiOutputGP
+>>> D = np.random.default_rng(1).uniform(-1.0, 1.0, size=(40, 2))
+>>> Y = np.column_stack([np.sin(D[:, 0]), D[:, 0] * D[:, 1]])
+>>> gp = MultiOutputGP(sigma_eps=0.01).fit(D, Y)
+>>> mean, var, dmean, dvar = gp.predict_with_gradients([[0.5, 0.2]])
+>>> dmean.shape
+(1, 2, 2)
+>>> print(round(float(dmean[0, 0, 0]), 2), round(float(np.cos(0.5)), 2))  # d sin(d1)/d d1
+0.88 0.88
+>>> print(np.round(dmean[0, 1], 2))  # gradient of d1 d2 at (0.5, 0.2)
+[0.2 0.5]""",
+    ),
+    "load_example": (
+        "GaussianProcess(sigma_f=2.0, optimizer=None).fit(D, np.sin(D[:, 0])).save(buf)",
+        "MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2])).save(buf)",
+    ),
+    "load_repr": (
+        "GaussianProcess(sigma_f=2, lengthscales=[1.], sigma_eps=0.1, fitted)",
+        "MultiOutputGP(q=2, n_d=1, N=20, fitted)",
+    ),
+}
+
+
+def _documented(which: int) -> Any:
+    """Class decorator: gives the class its own copy of each `_ExactGP` method and property in
+    ``_DOCS`` (or keeps the one it defines), its docstring filled in with text ``which`` of each
+    field (0: GaussianProcess, 1: MultiOutputGP), and its own ``__init__``. The copies are the
+    class's own members, so the API reference, its docstring checks (which look up the class of
+    ``__init__`` by its qualified name) and the doctests see them on the class."""
+
+    def own_copy(cls: type, f: Any, doc: Optional[str]) -> Any:
+        g = types.FunctionType(f.__code__, f.__globals__, f.__name__, f.__defaults__, f.__closure__)
+        g.__kwdefaults__, g.__module__, g.__doc__ = f.__kwdefaults__, f.__module__, doc
+        g.__qualname__ = f"{cls.__name__}.{f.__name__}"
+        g.__annotations__ = {k: (f"'{cls.__name__}'" if v == "'_ExactGP'" else v) for k, v in f.__annotations__.items()}
+        return g
+
+    def decorate(cls: type) -> type:
+        cls.__init__ = own_copy(cls, _ExactGP.__init__, None)
+        fields = {key: texts[which] for key, texts in _DOC_FIELDS.items()}
+        for name, template in _DOCS.items():
+            doc = template.format(**fields)
+            member = cls.__dict__[name] if name in cls.__dict__ else _ExactGP.__dict__[name]
+            if isinstance(member, property):
+                setattr(cls, name, property(member.fget, member.fset, member.fdel, doc))
+            elif isinstance(member, classmethod):
+                setattr(cls, name, classmethod(own_copy(cls, member.__func__, doc)))
+            elif name in cls.__dict__:
+                member.__doc__ = doc
+            else:
+                setattr(cls, name, own_copy(cls, member, doc))
+        return cls
+
+    return decorate
+
+
 # ----------------------------------------------------------------------------- single output
 
 
-class GaussianProcess:
+@_documented(0)
+class GaussianProcess(_ExactGP):
     """Exact GP regression of one output with the SE-ARD kernel.
 
     Model, for training inputs d_i (rows of D, n_d columns) and targets y_i::
@@ -348,52 +813,22 @@ class GaussianProcess:
     True
     """
 
-    def __init__(
-        self,
-        sigma_f: float = 1.0,
-        lengthscales: Union[float, Sequence[float], np.ndarray] = 1.0,
-        sigma_eps: float = 0.1,
-        optimizer: Optional[str] = "L-BFGS-B",
-        n_restarts: int = 0,
-        bounds: Any = DEFAULT_BOUNDS,
-        random_state: Union[None, int, np.random.Generator] = None,
-        maxiter: int = 15000,
-    ) -> None:
-        self.sigma_f = _positive_scalar(sigma_f, "sigma_f")
-        ls = _positive(lengthscales, "lengthscales")
+    _kind = "GaussianProcess"
+    _target = "y"
+    _squeeze = True
+
+    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
+        self.sigma_f = positive_scalar("sigma_f", sigma_f)
+        ls = positive("lengthscales", lengthscales)
         if ls.ndim > 1 or ls.size == 0:
             raise ValueError("lengthscales: must be a positive scalar or a 1-D array")
         self.lengthscales = ls.copy() if ls.ndim == 1 else float(ls)
-        self.sigma_eps = _positive_scalar(sigma_eps, "sigma_eps")
-        self.optimizer = _check_optimizer(optimizer)
-        self.n_restarts = _check_restarts(n_restarts)
-        _log_bounds(bounds, None)  # validate the form now; expanded once n_d is known
-        self.bounds = bounds
-        self.random_state = random_state
-        self.maxiter = int(maxiter)
-        self._core_model: Optional[_core.GP] = None
+        self.sigma_eps = positive_scalar("sigma_eps", sigma_eps)
+
+    def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
+        self.sigma_f, self.lengthscales, self.sigma_eps = float(sigma_f[0]), lengthscales[0], float(sigma_eps[0])
 
     # -- state -------------------------------------------------------------------------------
-
-    def _theta_for(self, nd: int) -> np.ndarray:
-        ls = np.asarray(self.lengthscales, dtype=np.float64)
-        if ls.ndim == 0:
-            ls = np.full(nd, float(ls))
-        if ls.shape != (nd,):
-            raise ValueError(f"lengthscales: expected {nd} values (one per input), got {ls.shape[0]}")
-        return np.log(np.concatenate([[self.sigma_f], ls, [self.sigma_eps]]))
-
-    def _set_model(self, model: "_core.GP") -> None:
-        self._core_model = model
-        t = np.exp(model.theta)
-        self.sigma_f = float(t[0])
-        self.lengthscales = t[1:-1].copy()
-        self.sigma_eps = float(t[-1])
-
-    def _model(self) -> "_core.GP":
-        if self._core_model is None:
-            raise NotFittedError("this GaussianProcess is not fitted yet; call fit(D, y) first")
-        return self._core_model
 
     @property
     def theta(self) -> np.ndarray:
@@ -403,40 +838,21 @@ class GaussianProcess:
         unfitted GP it sets the initial values ``sigma_f``, ``lengthscales`` and ``sigma_eps``.
         """
         if self._core_model is not None:
-            return self._core_model.theta
-        return self._theta_for(np.size(self.lengthscales))
+            return self._core_model.thetas[0]
+        return _Theta.from_natural(self.sigma_f, self.lengthscales, self.sigma_eps, 1, np.size(self.lengthscales))[0]
 
     @theta.setter
     def theta(self, value: Any) -> None:
-        theta = _as_float_array(value, "theta", 1)
+        if self._core_model is not None:
+            self._refactor(value)
+            return
+        theta = float_array("theta", value, 1)
         if theta.size < 3:
             raise ValueError(f"theta: needs n_d + 2 >= 3 values, got {theta.size}")
-        if self._core_model is not None:
-            m = self._core_model
-            if theta.size != m.dim + 2:
-                raise ValueError(f"theta: expected {m.dim + 2} values, got {theta.size}")
-            self._set_model(_core.GP(m.x_train, m.y_train, theta))
-        else:
-            p = np.exp(theta)
-            if not np.all(np.isfinite(p)):
-                raise ValueError("theta: exp(theta) overflows")
-            self.sigma_f, self.lengthscales, self.sigma_eps = float(p[0]), p[1:-1].copy(), float(p[-1])
-
-    @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return self._model().x_train
-
-    @property
-    def y_train(self) -> np.ndarray:
-        """Training targets, shape (N,).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return self._model().y_train
+        p = np.exp(theta)
+        if not np.all(np.isfinite(p)):
+            raise ValueError("theta: exp(theta) overflows")
+        self._store(*_Theta.to_natural(theta[None, :]))
 
     @property
     def jitter(self) -> float:
@@ -444,7 +860,7 @@ class GaussianProcess:
 
         Normally 0; positive when the kernel matrix was numerically singular.
         """
-        return self._model().jitter
+        return float(self._model().jitters[0])
 
     @property
     def log_marginal_likelihood_value(self) -> float:
@@ -452,70 +868,12 @@ class GaussianProcess:
 
         Equal to ``log_marginal_likelihood()``; raises `NotFittedError` before ``fit``.
         """
-        return self._model().log_marginal_likelihood(False)[0]
-
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d of the fitted model.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return self._model().dim
+        return float(self._model().log_marginal_likelihoods()[0])
 
     # -- fitting -----------------------------------------------------------------------------
 
     def fit(self, D: Any, y: Any) -> "GaussianProcess":
-        """Fit the GP to training data, optimising the hyperparameters if an optimizer is set.
-
-        Parameters
-        ----------
-        D : array_like of shape (N, n_d)
-            Training inputs, N >= 2 finite rows.
-        y : array_like of shape (N,)
-            Training targets.
-
-        Returns
-        -------
-        GaussianProcess
-            ``self``, fitted.
-
-        Raises
-        ------
-        ValueError
-            If D or y have the wrong shape or contain NaN or inf.
-        gpmhe.NumericalError
-            If no optimiser run reached a finite log marginal likelihood, or the kernel matrix
-            cannot be factored even with jitter.
-
-        Warns
-        -----
-        ConvergenceWarning
-            If the best optimiser run stopped without converging.
-
-        Notes
-        -----
-        A failed fit leaves the model unchanged.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> gp.D_train.shape, gp.dim
-        ((20, 1), 1)
-        """
-        D, y = _check_training(D, y, 1)
-        nd = D.shape[1]
-        theta0 = self._theta_for(nd)
-        if self.optimizer is None:
-            theta = theta0
-        else:
-            log_bounds = _log_bounds(self.bounds, nd)
-            rng = np.random.default_rng(self.random_state)
-            theta, _ = _maximise_lml(D, y, theta0, log_bounds, self.n_restarts, rng, self.maxiter)
-        self._set_model(_core.GP(D, y, np.ascontiguousarray(theta)))
-        return self
+        return self._fit(D, y, 1)
 
     def log_marginal_likelihood(
         self, theta: Any = None, eval_gradient: bool = False
@@ -550,169 +908,12 @@ class GaussianProcess:
         >>> bool(np.max(np.abs(grad)) < 1e-3), bool(lml > gp.log_marginal_likelihood([0, 0, -1]))
         (True, True)
         """
-        m = self._model()
-        if theta is None:
-            lml, grad = m.log_marginal_likelihood(bool(eval_gradient))
-        else:
-            theta = _as_float_array(theta, "theta", 1)
-            if theta.size != m.dim + 2:
-                raise ValueError(f"theta: expected {m.dim + 2} values, got {theta.size}")
-            lml, grad = _core.log_marginal_likelihood(m.x_train, m.y_train, theta, bool(eval_gradient))
-        return (lml, grad) if eval_gradient else lml
+        lml, grad = self._log_marginal_likelihood(theta, eval_gradient)
+        return (float(lml[0]), grad[0]) if eval_gradient else float(lml[0])
 
     # -- prediction --------------------------------------------------------------------------
 
-    def predict(self, D: Any, return_std: bool = False):
-        """Posterior mean, and optionally standard deviation, of the latent f at test points.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-        return_std : bool, default False
-            Also return the posterior standard deviation of the latent (noise-free) f.
-
-        Returns
-        -------
-        mean : ndarray of shape (k,)
-            Posterior mean m(d) at each test point.
-        std : ndarray of shape (k,)
-            Posterior standard deviation of f (without sigma_eps); only returned if
-            ``return_std`` is True.
-
-        Raises
-        ------
-        NotFittedError
-            Before ``fit``.
-        ValueError
-            If D has the wrong shape or contains NaN or inf.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> print(np.round(gp.predict([[1.0], [2.0]]), 2))
-        [0.84 0.91]
-        """
-        m = self._model()
-        if not return_std:
-            return m.predict_mean(_check_points(D, m.dim))
-        mean, var = m.predict(_check_points(D, m.dim))
-        return mean, np.sqrt(var)
-
-    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Posterior mean and latent variance with their gradients with respect to the input.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-
-        Returns
-        -------
-        mean : ndarray of shape (k,)
-            Posterior mean m(d).
-        var : ndarray of shape (k,)
-            Latent (noise-free) posterior variance var(d).
-        dmean_dd : ndarray of shape (k, n_d)
-            Gradient of the mean with respect to d, one row per point.
-        dvar_dd : ndarray of shape (k, n_d)
-            Gradient of the variance with respect to d.
-
-        Examples
-        --------
-        The gradient of a GP fitted to sin approximates cos:
-
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(sigma_eps=0.01, optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> mean, var, dmean, dvar = gp.predict_with_gradients([[1.0]])
-        >>> print(np.round(dmean, 2), np.round(np.cos(1.0), 2))
-        [[0.54]] 0.54
-        """
-        m = self._model()
-        return m.predict_with_gradients(_check_points(D, m.dim))
-
     # -- persistence -------------------------------------------------------------------------
-
-    def save(self, path: Union[str, os.PathLike]) -> None:
-        """Save the fitted model and its settings to an ``.npz`` file (no pickle).
-
-        The training data, theta and the optimiser settings are stored; ``random_state`` is not.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
-            it).
-
-        See Also
-        --------
-        load : Read the file back.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = GaussianProcess(optimizer=None).fit(D, np.sin(D[:, 0]))
-        >>> buf = io.BytesIO()
-        >>> gp.save(buf)
-        >>> _ = buf.seek(0)
-        >>> bool(np.array_equal(GaussianProcess.load(buf).predict(D), gp.predict(D)))
-        True
-        """
-        m = self._model()
-        np.savez(
-            path,
-            format_version=_FORMAT_VERSION,
-            kind="GaussianProcess",
-            D=m.x_train,
-            y=m.y_train,
-            theta=m.theta,
-            **_settings(self),
-        )
-
-    @classmethod
-    def load(cls, path: Union[str, os.PathLike]) -> "GaussianProcess":
-        """Load a model written by ``save``.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            The ``.npz`` file.
-
-        Returns
-        -------
-        GaussianProcess
-            The fitted model, with the saved settings (``random_state`` None).
-
-        Raises
-        ------
-        ValueError
-            If the file is not a saved `GaussianProcess` or was written by a newer gpmhe.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import GaussianProcess
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> buf = io.BytesIO()
-        >>> GaussianProcess(sigma_f=2.0, optimizer=None).fit(D, np.sin(D[:, 0])).save(buf)
-        >>> _ = buf.seek(0)
-        >>> GaussianProcess.load(buf)
-        GaussianProcess(sigma_f=2, lengthscales=[1.], sigma_eps=0.1, fitted)
-        """
-        with np.load(path, allow_pickle=False) as f:
-            _check_kind(f, "GaussianProcess")
-            gp = cls(**_settings_from(f))
-            gp._set_model(_core.GP(f["D"], f["y"], f["theta"]))
-        return gp
 
     def __repr__(self) -> str:
         state = "fitted" if self._core_model is not None else "not fitted"
@@ -722,36 +923,11 @@ class GaussianProcess:
         )
 
 
-def _settings(est: Any) -> dict:
-    return dict(
-        optimizer="" if est.optimizer is None else est.optimizer,
-        n_restarts=est.n_restarts,
-        bounds=np.asarray(est.bounds, dtype=np.float64),
-        maxiter=est.maxiter,
-    )
-
-
-def _settings_from(f: Any) -> dict:
-    opt = str(f["optimizer"])
-    return dict(
-        optimizer=None if opt == "" else opt,
-        n_restarts=int(f["n_restarts"]),
-        bounds=f["bounds"],
-        maxiter=int(f["maxiter"]),
-    )
-
-
-def _check_kind(f: Any, kind: str) -> None:
-    if "kind" not in f or str(f["kind"]) != kind:
-        raise ValueError(f"path: not a saved {kind} file")
-    if int(f["format_version"]) > _FORMAT_VERSION:
-        raise ValueError("path: saved by a newer gpmhe (format version too high)")
-
-
 # ----------------------------------------------------------------------------- multi output
 
 
-class MultiOutputGP:
+@_documented(1)
+class MultiOutputGP(_ExactGP):
     """Independent SE-ARD GPs, one per output column, on shared inputs.
 
     Each output o = 1..q is a `GaussianProcess` model of its own (Y[:, o] = f_o(D) + eps_o,
@@ -824,55 +1000,17 @@ class MultiOutputGP:
     [[0.84 0.54]] [0.84 0.54]
     """
 
-    def __init__(
-        self,
-        sigma_f: Union[float, np.ndarray] = 1.0,
-        lengthscales: Union[float, np.ndarray] = 1.0,
-        sigma_eps: Union[float, np.ndarray] = 0.1,
-        optimizer: Optional[str] = "L-BFGS-B",
-        n_restarts: int = 0,
-        bounds: Any = DEFAULT_BOUNDS,
-        random_state: Union[None, int, np.random.Generator] = None,
-        maxiter: int = 15000,
-    ) -> None:
-        self.sigma_f = _positive(sigma_f, "sigma_f")
-        self.lengthscales = _positive(lengthscales, "lengthscales")
-        self.sigma_eps = _positive(sigma_eps, "sigma_eps")
+    _kind = "MultiOutputGP"
+
+    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
+        self.sigma_f = positive("sigma_f", sigma_f)
+        self.lengthscales = positive("lengthscales", lengthscales)
+        self.sigma_eps = positive("sigma_eps", sigma_eps)
         if self.sigma_f.ndim > 1 or self.sigma_eps.ndim > 1 or self.lengthscales.ndim > 2:
             raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
-        self.optimizer = _check_optimizer(optimizer)
-        self.n_restarts = _check_restarts(n_restarts)
-        _log_bounds(bounds, None)
-        self.bounds = bounds
-        self.random_state = random_state
-        self.maxiter = int(maxiter)
-        self._core_model: Optional[_core.MultiGP] = None
 
-    def _thetas_for(self, q: int, nd: int) -> np.ndarray:
-        try:
-            sf = np.broadcast_to(self.sigma_f, (q,))
-            se = np.broadcast_to(self.sigma_eps, (q,))
-        except ValueError:
-            raise ValueError(f"sigma_f, sigma_eps: expected a scalar or {q} values (one per output)") from None
-        try:
-            ls = np.broadcast_to(self.lengthscales, (q, nd))
-        except ValueError:
-            raise ValueError(
-                f"lengthscales: expected a scalar, ({nd},) or ({q}, {nd}), got {self.lengthscales.shape}"
-            ) from None
-        return np.log(np.column_stack([sf, ls, se]))
-
-    def _set_model(self, model: "_core.MultiGP") -> None:
-        self._core_model = model
-        t = np.exp(model.thetas)
-        self.sigma_f = t[:, 0].copy()
-        self.lengthscales = t[:, 1:-1].copy()
-        self.sigma_eps = t[:, -1].copy()
-
-    def _model(self) -> "_core.MultiGP":
-        if self._core_model is None:
-            raise NotFittedError("this MultiOutputGP is not fitted yet; call fit(D, Y) first")
-        return self._core_model
+    def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
+        self.sigma_f, self.lengthscales, self.sigma_eps = sigma_f, lengthscales, sigma_eps
 
     @property
     def n_outputs(self) -> int:
@@ -881,14 +1019,6 @@ class MultiOutputGP:
         The number of columns of the training targets; raises `NotFittedError` before ``fit``.
         """
         return self._model().n_outputs
-
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return self._model().dim
 
     @property
     def theta(self) -> np.ndarray:
@@ -901,29 +1031,7 @@ class MultiOutputGP:
 
     @theta.setter
     def theta(self, value: Any) -> None:
-        m = self._model()
-        theta = _as_float_array(value, "theta", 2)
-        if theta.shape != (m.n_outputs, m.dim + 2):
-            raise ValueError(f"theta: expected shape ({m.n_outputs}, {m.dim + 2}), got {theta.shape}")
-        self._set_model(_core.MultiGP(self._D, self._Y, theta))
-
-    @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        self._model()
-        return self._D
-
-    @property
-    def y_train(self) -> np.ndarray:
-        """Training targets, shape (N, q).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        self._model()
-        return self._Y
+        self._refactor(value)
 
     @property
     def jitter(self) -> np.ndarray:
@@ -934,65 +1042,7 @@ class MultiOutputGP:
         return self._model().jitters
 
     def fit(self, D: Any, Y: Any) -> "MultiOutputGP":
-        """Fit one GP per output column, optimising each output's hyperparameters if set.
-
-        Parameters
-        ----------
-        D : array_like of shape (N, n_d)
-            Training inputs, N >= 2 finite rows.
-        Y : array_like of shape (N, q) or (N,)
-            Training targets, one column per output (a 1-D Y is one output).
-
-        Returns
-        -------
-        MultiOutputGP
-            ``self``, fitted.
-
-        Raises
-        ------
-        ValueError
-            If D or Y have the wrong shape or contain NaN or inf.
-        gpmhe.NumericalError
-            If an output's fit failed numerically (see `GaussianProcess.fit`).
-
-        Warns
-        -----
-        ConvergenceWarning
-            If the optimiser did not converge for some output.
-
-        Notes
-        -----
-        A failed fit leaves the model unchanged.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.random.default_rng(0).uniform(size=(10, 3))
-        >>> gp = MultiOutputGP(optimizer=None).fit(D, D[:, :2] ** 2)
-        >>> gp.n_outputs, gp.dim, gp.lengthscales.shape
-        (2, 3, (2, 3))
-        """
-        if np.ndim(Y) == 1:
-            Y = np.asarray(Y)[:, None]
-        D, Y = _check_training(D, Y, 2)
-        q, nd = Y.shape[1], D.shape[1]
-        thetas = self._thetas_for(q, nd)
-        if self.optimizer is not None:
-            log_bounds = _log_bounds(self.bounds, nd)
-            rng = np.random.default_rng(self.random_state)
-            thetas = np.array(
-                [
-                    _maximise_lml(
-                        D, np.ascontiguousarray(Y[:, o]), thetas[o], log_bounds, self.n_restarts, rng, self.maxiter
-                    )[0]
-                    for o in range(q)
-                ]
-            )
-        model = _core.MultiGP(D, Y, np.ascontiguousarray(thetas))
-        self._D, self._Y = D, Y
-        self._set_model(model)
-        return self
+        return self._fit(D, Y, 1 if np.ndim(Y) == 1 else 2)
 
     def log_marginal_likelihood(self, theta: Any = None, eval_gradient: bool = False):
         """Log marginal likelihood of each output's training data.
@@ -1021,170 +1071,8 @@ class MultiOutputGP:
         >>> lml.shape, grad.shape
         ((2,), (2, 3))
         """
-        m = self._model()
-        theta = m.thetas if theta is None else _as_float_array(theta, "theta", 2)
-        if theta.shape != (m.n_outputs, m.dim + 2):
-            raise ValueError(f"theta: expected shape ({m.n_outputs}, {m.dim + 2}), got {theta.shape}")
-        res = [
-            _core.log_marginal_likelihood(
-                self._D, np.ascontiguousarray(self._Y[:, o]), np.ascontiguousarray(theta[o]), bool(eval_gradient)
-            )
-            for o in range(m.n_outputs)
-        ]
-        lml = np.array([r[0] for r in res])
-        return (lml, np.array([r[1] for r in res])) if eval_gradient else lml
-
-    def predict(self, D: Any, return_std: bool = False):
-        """Posterior means, and optionally latent standard deviations, of all outputs.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-        return_std : bool, default False
-            Also return the posterior standard deviations of the latent (noise-free) outputs.
-
-        Returns
-        -------
-        mean : ndarray of shape (k, q)
-            Posterior means, one column per output.
-        std : ndarray of shape (k, q)
-            Latent posterior standard deviations; only returned if ``return_std`` is True.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = MultiOutputGP(sigma_eps=0.01, optimizer=None).fit(D, np.column_stack([D, -D]))
-        >>> mean, std = gp.predict([[1.0], [2.0]], return_std=True)
-        >>> print(np.round(mean, 2))
-        [[ 1. -1.]
-         [ 2. -2.]]
-        >>> std.shape
-        (2, 2)
-        """
-        m = self._model()
-        if not return_std:
-            return m.predict_mean(_check_points(D, m.dim))
-        mean, var = m.predict(_check_points(D, m.dim))
-        return mean, np.sqrt(var)
-
-    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Posterior means and latent variances of all outputs with their input gradients.
-
-        Parameters
-        ----------
-        D : array_like of shape (k, n_d)
-            Test points.
-
-        Returns
-        -------
-        mean : ndarray of shape (k, q)
-            Posterior means.
-        var : ndarray of shape (k, q)
-            Latent (noise-free) posterior variances.
-        dmean_dd : ndarray of shape (k, q, n_d)
-            Gradients of the means with respect to d: [i, o, :] belongs to point i, output o.
-        dvar_dd : ndarray of shape (k, q, n_d)
-            Gradients of the variances with respect to d.
-
-        Examples
-        --------
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.random.default_rng(1).uniform(-1.0, 1.0, size=(40, 2))
-        >>> Y = np.column_stack([np.sin(D[:, 0]), D[:, 0] * D[:, 1]])
-        >>> gp = MultiOutputGP(sigma_eps=0.01).fit(D, Y)
-        >>> mean, var, dmean, dvar = gp.predict_with_gradients([[0.5, 0.2]])
-        >>> dmean.shape
-        (1, 2, 2)
-        >>> print(round(float(dmean[0, 0, 0]), 2), round(float(np.cos(0.5)), 2))  # d sin(d1)/d d1
-        0.88 0.88
-        >>> print(np.round(dmean[0, 1], 2))  # gradient of d1 d2 at (0.5, 0.2)
-        [0.2 0.5]
-        """
-        m = self._model()
-        return m.predict_with_gradients(_check_points(D, m.dim))
-
-    def save(self, path: Union[str, os.PathLike]) -> None:
-        """Save the fitted model and its settings to an ``.npz`` file (no pickle).
-
-        The training data, theta and the optimiser settings are stored; ``random_state`` is not.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            Destination, passed to `numpy.savez` (which appends ``.npz`` to a file name without
-            it).
-
-        See Also
-        --------
-        load : Read the file back.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> gp = MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2]))
-        >>> buf = io.BytesIO()
-        >>> gp.save(buf)
-        >>> _ = buf.seek(0)
-        >>> bool(np.array_equal(MultiOutputGP.load(buf).predict(D), gp.predict(D)))
-        True
-        """
-        m = self._model()
-        np.savez(
-            path,
-            format_version=_FORMAT_VERSION,
-            kind="MultiOutputGP",
-            D=self._D,
-            y=self._Y,
-            theta=m.thetas,
-            **_settings(self),
-        )
-
-    @classmethod
-    def load(cls, path: Union[str, os.PathLike]) -> "MultiOutputGP":
-        """Load a model written by ``save``.
-
-        Parameters
-        ----------
-        path : str, os.PathLike or file-like object
-            The ``.npz`` file.
-
-        Returns
-        -------
-        MultiOutputGP
-            The fitted model, with the saved settings (``random_state`` None).
-
-        Raises
-        ------
-        ValueError
-            If the file is not a saved `MultiOutputGP` or was written by a newer gpmhe.
-
-        Examples
-        --------
-        >>> import io
-        >>> import numpy as np
-        >>> from gpmhe import MultiOutputGP
-        >>> D = np.linspace(0.0, 5.0, 20)[:, None]
-        >>> buf = io.BytesIO()
-        >>> MultiOutputGP(optimizer=None).fit(D, np.column_stack([D, D ** 2])).save(buf)
-        >>> _ = buf.seek(0)
-        >>> MultiOutputGP.load(buf)
-        MultiOutputGP(q=2, n_d=1, N=20, fitted)
-        """
-        with np.load(path, allow_pickle=False) as f:
-            _check_kind(f, "MultiOutputGP")
-            gp = cls(**_settings_from(f))
-            D, Y = np.ascontiguousarray(f["D"]), np.ascontiguousarray(f["y"])
-            model = _core.MultiGP(D, Y, np.ascontiguousarray(f["theta"]))
-            gp._D, gp._Y = D, Y
-            gp._set_model(model)
-        return gp
+        lml, grad = self._log_marginal_likelihood(theta, eval_gradient)
+        return (lml, grad) if eval_gradient else lml
 
     def __repr__(self) -> str:
         if self._core_model is None:

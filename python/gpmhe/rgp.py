@@ -22,47 +22,11 @@ from typing import Any, Callable, Sequence, Union
 import numpy as np
 
 from gpmhe._core import RecursiveGPCore, RGPEKFCore
+from gpmhe._validation import float_array, positive_scalar, symmetric_matrix
 
 __all__ = ["RecursiveGP", "RGPEKF"]
 
 ArrayLike = Union[float, Sequence[float], np.ndarray]
-
-
-def _finite_array(name: str, value: Any, ndim: int | None = None) -> np.ndarray:
-    try:
-        a = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{name}: must be numeric ({err})") from None
-    if ndim is not None and a.ndim != ndim:
-        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains NaN or inf")
-    return a
-
-
-def _positive(name: str, value: Any, allow_zero: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number, got {value!r}") from None
-    ok = np.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0)
-    if not ok:
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {v}")
-    return v
-
-
-def _square(name: str, value: Any, n: int) -> np.ndarray:
-    """A symmetric positive semi-definite (n, n) matrix from a matrix, or a scalar (times I)."""
-    a = _finite_array(name, value)
-    if a.ndim == 0:
-        a = a * np.eye(n)
-    if a.shape != (n, n):
-        raise ValueError(f"{name}: expected shape ({n}, {n}), got {a.shape}")
-    if not np.allclose(a, a.T, rtol=1e-10, atol=1e-14 * max(1.0, np.abs(a).max())):
-        raise ValueError(f"{name}: must be symmetric")
-    if np.linalg.eigvalsh(0.5 * (a + a.T)).min() < -1e-12 * max(1.0, np.abs(a).max()):
-        raise ValueError(f"{name}: must be positive semi-definite")
-    return np.ascontiguousarray(a)
 
 
 class RecursiveGP:
@@ -173,8 +137,8 @@ class RecursiveGP:
         sigma_r: float = 0.0,
         sigma_p: float = 0.0,
     ) -> None:
-        lo = np.atleast_1d(_finite_array("lower", lower))
-        hi = np.atleast_1d(_finite_array("upper", upper))
+        lo = np.atleast_1d(float_array("lower", lower, copy=True))
+        hi = np.atleast_1d(float_array("upper", upper, copy=True))
         if lo.ndim != 1 or lo.size == 0:
             raise ValueError(f"lower: expected a scalar or 1-D array, got shape {lo.shape}")
         if hi.shape != lo.shape:
@@ -187,10 +151,10 @@ class RecursiveGP:
         if not np.issubdtype(npts.dtype, np.integer) or np.any(npts < 2):
             raise ValueError(f"n_points: must be integers >= 2, got {n_points!r}")
         npts = np.broadcast_to(npts, lo.shape).astype(int)
-        self.sigma_K = _positive("sigma_K", sigma_K)
-        self.L = _positive("L", L)
-        self.sigma_r = _positive("sigma_r", sigma_r, allow_zero=True)
-        self.sigma_p = _positive("sigma_p", sigma_p, allow_zero=True)
+        self.sigma_K = positive_scalar("sigma_K", sigma_K)
+        self.L = positive_scalar("L", L)
+        self.sigma_r = positive_scalar("sigma_r", sigma_r, allow_zero=True)
+        self.sigma_p = positive_scalar("sigma_p", sigma_p, allow_zero=True)
         self.lower, self.upper, self.n_points = lo, hi, tuple(int(n) for n in npts)
         self.dim_zeta = lo.size
         self._core = RecursiveGPCore(
@@ -266,10 +230,10 @@ class RecursiveGP:
         >>> print(np.round(gp.predict([0.25, 0.5]), 2))
         [1. 1.]
         """
-        m = _finite_array("mean", mean, ndim=1)
+        m = float_array("mean", mean, 1, copy=True)
         if m.shape != (self.n_basis,):
             raise ValueError(f"mean: expected shape ({self.n_basis},), got {m.shape}")
-        c = _square("cov", cov, self.n_basis)
+        c = symmetric_matrix("cov", cov, self.n_basis)
         self._core.set_weights(np.ascontiguousarray(m), c)
 
     def copy(self) -> "RecursiveGP":
@@ -304,7 +268,7 @@ class RecursiveGP:
         return z
 
     def _zeta_many(self, zeta: ArrayLike) -> np.ndarray:
-        z = _finite_array("zeta", zeta)
+        z = float_array("zeta", zeta, copy=True)
         if z.ndim <= 1 and self.dim_zeta == 1:
             z = z.reshape(-1, 1)
         elif z.ndim == 1 and z.size == self.dim_zeta:
@@ -349,11 +313,11 @@ class RecursiveGP:
         2.0
         """
         if np.ndim(y) > 0:
-            ys = _finite_array("y", y, ndim=1)
+            ys = float_array("y", y, 1, copy=True)
             zs = self._zeta_many(zeta)
             if zs.shape[0] != ys.size:
                 raise ValueError(f"zeta: {zs.shape[0]} inputs for {ys.size} measurements y")
-            vs = np.atleast_1d(_finite_array("var_y", var_y))
+            vs = np.atleast_1d(float_array("var_y", var_y, copy=True))
             if vs.ndim != 1 or vs.size not in (1, ys.size) or np.any(vs < 0):
                 raise ValueError(f"var_y: expected a scalar or {ys.size} values >= 0")
             return self._core.update_many(zs, np.ascontiguousarray(ys), np.ascontiguousarray(vs))
@@ -361,7 +325,7 @@ class RecursiveGP:
         yv = float(y)
         if not np.isfinite(yv):
             raise ValueError(f"y: must be finite, got {y!r}")
-        return self._core.update(z, yv, _positive("var_y", var_y, allow_zero=True))
+        return self._core.update(z, yv, positive_scalar("var_y", var_y, allow_zero=True))
 
     def predict(
         self, zeta: ArrayLike, return_std: bool = False
@@ -433,7 +397,7 @@ def _as_fn(name: str, value: Any, shape: tuple[int, ...]) -> Callable[..., np.nd
     """A user Jacobian: a callable, or a constant array validated now."""
     if callable(value):
         return value
-    a = _finite_array(name, value)
+    a = float_array(name, value, copy=True)
     if a.size != int(np.prod(shape)):
         raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
     return np.ascontiguousarray(a.reshape(shape))
@@ -604,26 +568,26 @@ class RGPEKF:
         if not gp_list or not all(isinstance(g, RecursiveGP) for g in gp_list):
             raise ValueError("gps: expected a RecursiveGP or a non-empty sequence of them")
         q = len(gp_list)
-        x0a = _finite_array("x0", x0).reshape(-1)
+        x0a = float_array("x0", x0, copy=True).reshape(-1)
         if x0a.size != n:
             raise ValueError(f"x0: expected {n} values, got {x0a.size}")
         self.dim_x, self.dim_z = n, q
         self.f, self.h = f, h
         self._A = _as_fn("A", A, (n, n))
         self._e = _as_fn("e", e, (n, q))
-        self.Q_x = _square("Q_x", Q_x, n)
-        self.R_x = _finite_array("R_x", R_x)
+        self.Q_x = symmetric_matrix("Q_x", Q_x, n)
+        self.R_x = float_array("R_x", R_x, copy=True)
         self.dim_y: int | None = None
         if self.R_x.ndim == 2:
             self.dim_y = self.R_x.shape[0]
-            self.R_x = _square("R_x", self.R_x, self.dim_y)
+            self.R_x = symmetric_matrix("R_x", self.R_x, self.dim_y)
         elif self.R_x.ndim == 0:
-            _positive("R_x", float(self.R_x))
+            positive_scalar("R_x", float(self.R_x))
         else:
             raise ValueError(f"R_x: expected a (p, p) matrix or a scalar, got shape {self.R_x.shape}")
         self._H = H if callable(H) else None
         if not callable(H):
-            Ha = _finite_array("H", H)
+            Ha = float_array("H", H, copy=True)
             Ha = Ha.reshape(1, -1) if Ha.ndim == 1 else Ha
             if Ha.ndim != 2 or Ha.shape[1] != n:
                 raise ValueError(f"H: expected shape (p, {n}), got {Ha.shape}")
@@ -648,7 +612,7 @@ class RGPEKF:
         self.pure_prediction = bool(pure_prediction)
         self._core = RGPEKFCore(
             np.ascontiguousarray(x0a),
-            _square("P0", P0, n),
+            symmetric_matrix("P0", P0, n),
             [g._core for g in self.gps],
             not self.pure_prediction,
         )
@@ -667,7 +631,7 @@ class RGPEKF:
     @x.setter
     def x(self, value: ArrayLike) -> None:
         # Replace the state estimate (n values; ValueError and no change on bad input).
-        a = _finite_array("x", value).reshape(-1)
+        a = float_array("x", value, copy=True).reshape(-1)
         if a.size != self.dim_x:
             raise ValueError(f"x: expected {self.dim_x} values, got {a.size}")
         self._core.set_x(np.ascontiguousarray(a))
@@ -685,7 +649,7 @@ class RGPEKF:
     def P(self, value: Any) -> None:
         # Replace the state covariance (symmetric PSD (n, n) or a scalar times I; ValueError and
         # no change on bad input). The states' cross-covariance with the GP weights is reset to 0.
-        self._core.set_p(_square("P", value, self.dim_x))
+        self._core.set_p(symmetric_matrix("P", value, self.dim_x))
 
     @property
     def z_pred(self) -> np.ndarray:

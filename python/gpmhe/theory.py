@@ -21,6 +21,8 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from gpmhe._validation import in_open_interval, integer, positive_scalar, symmetric_matrix
+
 __all__ = [
     "WeightBounds",
     "weight_bounds",
@@ -63,7 +65,14 @@ def _is_learned(model):
     return hasattr(model, "f_gp")
 
 
-def _check_box(bounds, dim, name):
+def _check_spd(name, a, dim):
+    """A symmetric positive definite (dim, dim) matrix from a scalar, a (dim,) diagonal or a
+    (dim, dim) matrix, symmetrised."""
+    m = symmetric_matrix(name, a, dim, definite=True, vector_is_diagonal=True)
+    return 0.5 * (m + m.T)
+
+
+def _check_box(name, bounds, dim):
     """(lower, upper) float arrays of shape (dim,), finite, lower < upper."""
     if dim == 0:
         if bounds is not None and np.size(bounds[0]) + np.size(bounds[1]) != 0:
@@ -85,57 +94,6 @@ def _check_box(bounds, dim, name):
     if np.any(lower >= upper):
         raise ValueError(f"{name}: lower must be < upper in every component")
     return lower, upper
-
-
-def _check_spd(a, dim, name):
-    """A symmetric positive definite (dim, dim) matrix from a scalar, a (dim,) diagonal or a
-    (dim, dim) matrix."""
-    try:
-        a = np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number, a vector or a matrix") from None
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains NaN or inf")
-    if a.ndim == 0:
-        m = float(a) * np.eye(dim)
-    elif a.shape == (dim,):
-        m = np.diag(a)
-    elif a.shape == (dim, dim):
-        m = a.copy()
-    else:
-        raise ValueError(f"{name}: expected a scalar, shape ({dim},) or ({dim}, {dim}), got {a.shape}")
-    if not np.allclose(m, m.T, rtol=1e-12, atol=0.0):
-        raise ValueError(f"{name}: must be symmetric")
-    m = 0.5 * (m + m.T)
-    if dim and np.linalg.eigvalsh(m)[0] <= 0:
-        raise ValueError(f"{name}: must be positive definite")
-    return m
-
-
-def _check_eta(eta, name="eta"):
-    try:
-        eta = float(eta)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number in (0, 1), got {eta!r}") from None
-    if not (np.isfinite(eta) and 0.0 < eta < 1.0):
-        raise ValueError(f"{name}: must be in (0, 1), got {eta!r}")
-    return eta
-
-
-def _check_int(value, name, low):
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
-        raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
-    return int(value)
-
-
-def _check_positive(value, name, allow_zero=False):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number, got {value!r}") from None
-    if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
-        raise ValueError(f"{name}: must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
-    return value
 
 
 # ============================================================================ grid of the box
@@ -402,14 +360,14 @@ def weight_bounds(model, Q0, R0, variance_bound="prior", x_bounds=None, u_bounds
     """
     model = _check_model(model)
     n, p, m = model.dim_x, model.dim_y, model.dim_u
-    Q0 = _check_spd(Q0, n, "Q0")
-    R0 = _check_spd(R0, p, "R0")
+    Q0 = _check_spd("Q0", Q0, n)
+    R0 = _check_spd("R0", R0, p)
     if variance_bound not in ("prior", "posterior"):
         raise ValueError(f"variance_bound: must be 'prior' or 'posterior', got {variance_bound!r}")
     grid = None
     if variance_bound == "posterior" and _is_learned(model):
-        xl, xu = _check_box(x_bounds, n, "x_bounds")
-        ul, uu = _check_box(u_bounds, m, "u_bounds")
+        xl, xu = _check_box("x_bounds", x_bounds, n)
+        ul, uu = _check_box("u_bounds", u_bounds, m)
         grid = _Grid(np.concatenate([xl, ul]), np.concatenate([xu, uu]),
                      _check_cells(cells, n + m))
     posts = _model_posteriors(model) if grid is not None else None
@@ -437,7 +395,7 @@ def _jacobians(model, points):
     return np.asarray(out[2])[:, :, :n], np.asarray(out[6])[:, :, :n]
 
 
-def _check_pair(value, name):
+def _check_pair(name, value):
     if value is None:
         return None
     vals = np.atleast_1d(np.asarray(value, dtype=np.float64))
@@ -868,7 +826,7 @@ class Certificate:
         >>> round(Certificate(feasible=True, P=np.eye(2), eta=0.9).mu(14), 4)
         0.9937
         """
-        M = _check_int(M, "M", 1)
+        M = integer("M", M, 1)
         self._need_feasible()
         lam = float(scipy.linalg.eigh(self.P2, self.P1, eigvals_only=True)[-1])
         return (4.0 * lam) ** (1.0 / M) * self.eta
@@ -903,7 +861,7 @@ class Certificate:
         """
         self._need_feasible()
         M_bar = self.min_horizon()
-        M = M_bar if horizon is None else _check_int(horizon, "horizon", 1)
+        M = M_bar if horizon is None else integer("horizon", horizon, 1)
         if M < M_bar:
             raise ValueError(f"horizon: must be >= min_horizon() = {M_bar}, got {M}")
         return dict(horizon=M, eta=float(self.eta), P2=self.P.copy(), Q0=self.Q0.copy(),
@@ -1057,24 +1015,24 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
     """
     model = _check_model(model)
     n, p, m = model.dim_x, model.dim_y, model.dim_u
-    xl, xu = _check_box(x_bounds, n, "x_bounds")
-    ul, uu = _check_box(u_bounds, m, "u_bounds")
-    Q0 = _check_spd(Q0, n, "Q0")
-    R0 = _check_spd(R0, p, "R0")
+    xl, xu = _check_box("x_bounds", x_bounds, n)
+    ul, uu = _check_box("u_bounds", u_bounds, m)
+    Q0 = _check_spd("Q0", Q0, n)
+    R0 = _check_spd("R0", R0, p)
     if eta is not None:
-        eta = _check_eta(eta)
+        eta = in_open_interval("eta", eta, 0.0, 1.0)
     if P is not None:
-        P = _check_spd(P, n, "P")
+        P = _check_spd("P", P, n)
     if variance_bound not in ("prior", "posterior"):
         raise ValueError(f"variance_bound: must be 'prior' or 'posterior', got {variance_bound!r}")
-    lip = _check_pair(jacobian_lipschitz, "jacobian_lipschitz")
-    curv = _check_pair(jacobian_curvature, "jacobian_curvature")
-    max_condition = _check_positive(max_condition, "max_condition")
+    lip = _check_pair("jacobian_lipschitz", jacobian_lipschitz)
+    curv = _check_pair("jacobian_curvature", jacobian_curvature)
+    max_condition = positive_scalar("max_condition", max_condition)
     if max_condition < 1:
         raise ValueError(f"max_condition: must be >= 1, got {max_condition!r}")
-    eta_tol = _check_positive(eta_tol, "eta_tol")
-    n_check = _check_int(n_check, "n_check", 0)
-    seed = _check_int(seed, "seed", 0)
+    eta_tol = positive_scalar("eta_tol", eta_tol)
+    n_check = integer("n_check", n_check, 0)
+    seed = integer("seed", seed, 0)
     if solver is not None and not isinstance(solver, str):
         raise ValueError(f"solver: must be a cvxpy solver name or None, got {solver!r}")
     _require_cvxpy()
@@ -1273,13 +1231,13 @@ def mismatch(model, f, h, x_bounds, Q0, R0, u_bounds=None, *, n_samples=4096, n_
     for name, fn in (("f", f), ("h", h)):
         if not callable(fn):
             raise ValueError(f"{name}: must be callable")
-    xl, xu = _check_box(x_bounds, n, "x_bounds")
-    ul, uu = _check_box(u_bounds, m, "u_bounds")
-    Qmax_inv = np.linalg.inv(_check_spd(Q0, n, "Q0"))
-    Rmax_inv = np.linalg.inv(_check_spd(R0, p, "R0")) if p else np.zeros((0, 0))
-    n_samples = _check_int(n_samples, "n_samples", 1)
-    n_local = _check_int(n_local, "n_local", 0)
-    seed = _check_int(seed, "seed", 0)
+    xl, xu = _check_box("x_bounds", x_bounds, n)
+    ul, uu = _check_box("u_bounds", u_bounds, m)
+    Qmax_inv = np.linalg.inv(_check_spd("Q0", Q0, n))
+    Rmax_inv = np.linalg.inv(_check_spd("R0", R0, p)) if p else np.zeros((0, 0))
+    n_samples = integer("n_samples", n_samples, 1)
+    n_local = integer("n_local", n_local, 0)
+    seed = integer("seed", seed, 0)
     if not isinstance(vectorized, (bool, np.bool_)):
         raise ValueError(f"vectorized: must be True or False, got {vectorized!r}")
     lower, upper = np.concatenate([xl, ul]), np.concatenate([xu, uu])
@@ -1373,7 +1331,7 @@ def _gradient_variation(post, grid):
     return H @ grid.half + 0.5 * scaled * (lip @ grid.half)[None, :]
 
 
-def _per_output(value, size, name):
+def _per_output(name, value, size):
     arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (size,)) if size else np.zeros(0)
     if not np.all(np.isfinite(arr)) or np.any(arr < 0):
         raise ValueError(f"{name}: must be finite and >= 0 (a number or one per component)")
@@ -1458,16 +1416,16 @@ def corollary1(model, x_bounds, Q0, R0, tau, delta, L_f, L_h, u_bounds=None, *, 
     if not _is_learned(model):
         raise ValueError("model: corollary1 needs a LearnedModel (its bounds come from the GPs)")
     n, p, m = model.dim_x, model.dim_y, model.dim_u
-    xl, xu = _check_box(x_bounds, n, "x_bounds")
-    ul, uu = _check_box(u_bounds, m, "u_bounds")
-    Qmax_inv = np.linalg.inv(_check_spd(Q0, n, "Q0"))
-    Rmax_inv = np.linalg.inv(_check_spd(R0, p, "R0")) if p else np.zeros((0, 0))
-    tau = _check_positive(tau, "tau")
-    delta = _check_positive(delta, "delta")
+    xl, xu = _check_box("x_bounds", x_bounds, n)
+    ul, uu = _check_box("u_bounds", u_bounds, m)
+    Qmax_inv = np.linalg.inv(_check_spd("Q0", Q0, n))
+    Rmax_inv = np.linalg.inv(_check_spd("R0", R0, p)) if p else np.zeros((0, 0))
+    tau = positive_scalar("tau", tau)
+    delta = positive_scalar("delta", delta)
     if not delta < 1:
         raise ValueError(f"delta: must be in (0, 1), got {delta!r}")
-    L_f = _per_output(L_f, n, "L_f")
-    L_h = _per_output(L_h, p, "L_h")
+    L_f = _per_output("L_f", L_f, n)
+    L_h = _per_output("L_h", L_h, p)
     lower, upper = np.concatenate([xl, ul]), np.concatenate([xu, uu])
     nd = lower.size
     grid = _Grid(lower, upper, _check_cells(cells, nd))
@@ -1507,7 +1465,7 @@ def corollary1(model, x_bounds, Q0, R0, tau, delta, L_f, L_h, u_bounds=None, *, 
 # ============================================================================ the error bound
 
 
-def _noise_array(a, T, dim, name):
+def _noise_array(name, a, T, dim):
     try:
         arr = np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError):
@@ -1591,7 +1549,7 @@ def error_bound(cert, M, x0_error, w, v, alpha):
     """
     if not isinstance(cert, Certificate):
         raise ValueError("cert: must be a gpmhe.theory.Certificate")
-    M = _check_int(M, "M", 1)
+    M = integer("M", M, 1)
     mu = cert.mu(M)
     if not mu < 1.0:
         raise ValueError(f"M: must be >= cert.min_horizon() = {cert.min_horizon()} (mu = {mu:.4g})")
@@ -1599,13 +1557,13 @@ def error_bound(cert, M, x0_error, w, v, alpha):
     e0 = np.asarray(x0_error, dtype=np.float64).reshape(-1) if np.ndim(x0_error) <= 1 else None
     if e0 is None or e0.shape != (n,) or not np.all(np.isfinite(e0)):
         raise ValueError(f"x0_error: must be a finite array of shape ({n},)")
-    w = _noise_array(w, None, n, "w")
+    w = _noise_array("w", w, None, n)
     T = w.shape[0]
     Qmax_inv = np.linalg.inv(cert.Q0)                      # eq. (17)
     p = cert.R0.shape[0]
     Rmax_inv = np.linalg.inv(cert.R0) if p else np.zeros((0, 0))
-    v = _noise_array(v, T, p, "v")
-    alpha = _check_positive(alpha, "alpha", allow_zero=True)
+    v = _noise_array("v", v, T, p)
+    alpha = positive_scalar("alpha", alpha, allow_zero=True)
     rho = mu ** 0.25
     gain = 12.0 / (1.0 - rho)
     nw = np.sqrt(np.maximum(np.einsum("ti,ij,tj->t", w, Qmax_inv, w), 0.0))

@@ -1,5 +1,5 @@
-//! Exact GPs (`crate::gp`): `MultiGP` (independent outputs on shared inputs; one output is the
-//! q = 1 case), `log_marginal_likelihood` and the kernel matrix. Inputs must be C-contiguous
+//! Exact GPs (`crate::gp`): `MultiGP` (independent outputs on shared inputs; gpmhe.GaussianProcess
+//! is its q = 1 case), `log_marginal_likelihood` and the kernel matrix. Inputs must be C-contiguous
 //! float64 (gpmhe/gp.py converts and validates first); the numerics run without the GIL.
 
 use numpy::{PyArray2, PyReadonlyArray1, PyReadonlyArray2};
@@ -10,7 +10,7 @@ use super::convert::{array2, slice1, slice2};
 use crate::error::Error;
 use crate::kernel::SeArd;
 
-use crate::gp::{log_marginal_likelihood, Gp, GpWorkspace, MultiGp};
+use crate::gp::{log_marginal_likelihood, GpWorkspace, MultiGp};
 use numpy::{IntoPyArray, PyArray1, PyArrayDyn};
 
 /// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
@@ -39,14 +39,11 @@ type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
 /// mean, var and, when asked for, (dmean_dd, dvar_dd).
 type Predicted<'py> = (Arr<'py>, Arr<'py>, Option<(Arr<'py>, Arr<'py>)>);
 
-/// Runs a batch prediction of `q` outputs at the points `d` with the GIL released and returns
-/// (mean, var[, dmean, dvar]) shaped (k, q...) / (k, q..., n_d); `squeeze` drops the q axis.
-/// Posterior means at the points `d`: shape (k,) with `squeeze` (one output), else (k, q).
+/// Posterior means at the points `d`, shape (k, q).
 fn mean_array<'py>(
     py: Python<'py>,
     model: &MultiGp,
     d: &PyReadonlyArray2<'py, f64>,
-    squeeze: bool,
 ) -> PyResult<Arr<'py>> {
     let (d, k, cols) = slice2("D", d)?;
     let q = model.n_outputs();
@@ -54,19 +51,16 @@ fn mean_array<'py>(
     crate::error::check_finite("D", d)?;
     let mut mean = vec![0.0; k * q];
     model.predict_mean_into(d, &mut mean, &mut GpWorkspace::default())?;
-    if squeeze {
-        array_nd(py, mean, [k])
-    } else {
-        array_nd(py, mean, [k, q])
-    }
+    array_nd(py, mean, [k, q])
 }
 
+/// Runs a batch prediction of the `q` outputs at the points `d` with the GIL released and
+/// returns (mean, var[, dmean, dvar]) shaped (k, q) / (k, q, n_d).
 fn predict_arrays<'py>(
     py: Python<'py>,
     model: &MultiGp,
     d: &PyReadonlyArray2<'py, f64>,
     gradients: bool,
-    squeeze: bool,
 ) -> PyResult<Predicted<'py>> {
     // Named "D" as in the Python API; the wrappers leave the NaN/inf scan to this O(k) check.
     let (d, k, cols) = slice2("D", d)?;
@@ -85,26 +79,18 @@ fn predict_arrays<'py>(
             Ok((m, v, Vec::new(), Vec::new()))
         }
     })?;
-    if squeeze {
-        let grads = match gradients {
-            true => Some((array_nd(py, dmean, [k, nd])?, array_nd(py, dvar, [k, nd])?)),
-            false => None,
-        };
-        Ok((array_nd(py, mean, [k])?, array_nd(py, var, [k])?, grads))
-    } else {
-        let grads = match gradients {
-            true => Some((
-                array_nd(py, dmean, [k, q, nd])?,
-                array_nd(py, dvar, [k, q, nd])?,
-            )),
-            false => None,
-        };
-        Ok((
-            array_nd(py, mean, [k, q])?,
-            array_nd(py, var, [k, q])?,
-            grads,
-        ))
-    }
+    let grads = match gradients {
+        true => Some((
+            array_nd(py, dmean, [k, q, nd])?,
+            array_nd(py, dvar, [k, q, nd])?,
+        )),
+        false => None,
+    };
+    Ok((
+        array_nd(py, mean, [k, q])?,
+        array_nd(py, var, [k, q])?,
+        grads,
+    ))
 }
 
 /// (mean, var, gradients) of the four-array prediction, as a Python tuple.
@@ -114,127 +100,6 @@ fn with_gradients<'py>(p: Predicted<'py>) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'
         _ => Err(PyRuntimeError::new_err(
             "internal: gradients were not computed",
         )),
-    }
-}
-
-/// One exact zero-mean GP with the SE-ARD kernel; the Cholesky factor is cached at construction.
-#[pyclass(name = "GP", module = "gpmhe._core", frozen)]
-pub(crate) struct PyGp {
-    /// The GP as a one-output MultiGp, so predictions share one code path (see `gp()`).
-    pub(crate) inner: MultiGp,
-}
-
-impl PyGp {
-    pub(crate) fn gp(&self) -> &Gp {
-        &self.inner.gps()[0]
-    }
-}
-
-#[pymethods]
-impl PyGp {
-    /// GP(x, y, theta): x (N, n_d), y (N,), theta = log([sigma_f, lengthscales.., sigma_eps]).
-    #[new]
-    fn py_new(
-        py: Python<'_>,
-        x: PyReadonlyArray2<'_, f64>,
-        y: PyReadonlyArray1<'_, f64>,
-        theta: PyReadonlyArray1<'_, f64>,
-    ) -> PyResult<Self> {
-        let (x, _, cols) = slice2("x", &x)?;
-        let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
-        check_cols("x", cols, theta.len().saturating_sub(2))?;
-        let gp = py.detach(|| Gp::new(x, y, theta))?;
-        Ok(Self {
-            inner: MultiGp::from_gps(vec![gp])?,
-        })
-    }
-
-    #[getter]
-    fn dim(&self) -> usize {
-        self.gp().dim()
-    }
-    #[getter]
-    fn n_train(&self) -> usize {
-        self.gp().n_train()
-    }
-    #[getter]
-    fn theta<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_vec(py, self.gp().theta())
-    }
-    #[getter]
-    fn sigma_f(&self) -> f64 {
-        self.gp().kernel().sigma_f()
-    }
-    #[getter]
-    fn lengthscales<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.gp().kernel().lengthscales())
-    }
-    #[getter]
-    fn sigma_eps(&self) -> f64 {
-        self.gp().sigma_eps()
-    }
-    #[getter]
-    fn jitter(&self) -> f64 {
-        self.gp().jitter()
-    }
-    #[getter]
-    fn alpha<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.gp().alpha())
-    }
-    #[getter]
-    fn x_train<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let g = self.gp();
-        array2(py, g.x_train().to_vec(), g.n_train(), g.dim())
-    }
-    #[getter]
-    fn y_train<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        PyArray1::from_slice(py, self.gp().y_train())
-    }
-
-    /// (lml, grad) at this GP's theta; grad is empty unless eval_gradient.
-    #[pyo3(signature = (eval_gradient=false))]
-    fn log_marginal_likelihood<'py>(
-        &self,
-        py: Python<'py>,
-        eval_gradient: bool,
-    ) -> (f64, Bound<'py, PyArray1<f64>>) {
-        let grad = if eval_gradient {
-            py.detach(|| self.gp().log_marginal_likelihood_gradient())
-        } else {
-            Vec::new()
-        };
-        (
-            self.gp().log_marginal_likelihood(),
-            PyArray1::from_vec(py, grad),
-        )
-    }
-
-    /// (mean, var) of shapes (k,), (k,) at the points d (k, n_d).
-    fn predict<'py>(
-        &self,
-        py: Python<'py>,
-        d: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<(Arr<'py>, Arr<'py>)> {
-        let (m, v, _) = predict_arrays(py, &self.inner, &d, false, true)?;
-        Ok((m, v))
-    }
-
-    /// (mean, var, dmean_dd, dvar_dd) of shapes (k,), (k,), (k, n_d), (k, n_d).
-    fn predict_with_gradients<'py>(
-        &self,
-        py: Python<'py>,
-        d: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
-        with_gradients(predict_arrays(py, &self.inner, &d, true, true)?)
-    }
-
-    /// Means only, shape (k,): O(N) per point (no triangular solve).
-    fn predict_mean<'py>(
-        &self,
-        py: Python<'py>,
-        d: PyReadonlyArray2<'py, f64>,
-    ) -> PyResult<Arr<'py>> {
-        mean_array(py, &self.inner, &d, true)
     }
 }
 
@@ -269,13 +134,6 @@ impl PyMultiGp {
             )));
         }
         let inner = py.detach(|| MultiGp::new(x, y, thetas))?;
-        Ok(Self { inner })
-    }
-
-    /// Bundles fitted GPs that share their training inputs.
-    #[staticmethod]
-    fn from_gps(gps: Vec<PyRef<'_, PyGp>>) -> PyResult<Self> {
-        let inner = MultiGp::from_gps(gps.iter().map(|g| g.gp().clone()).collect())?;
         Ok(Self { inner })
     }
 
@@ -314,13 +172,28 @@ impl PyMultiGp {
         PyArray1::from_vec(py, v)
     }
 
+    /// The gradients of each output's log marginal likelihood w.r.t. its theta, shape
+    /// (q, n_d + 2), from the cached factors (O(N³) per output for K⁻¹).
+    fn log_marginal_likelihood_gradients<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let gps = self.inner.gps();
+        let data: Vec<f64> = py.detach(|| {
+            gps.iter()
+                .flat_map(|g| g.log_marginal_likelihood_gradient())
+                .collect()
+        });
+        array2(py, data, self.inner.n_outputs(), self.inner.dim() + 2)
+    }
+
     /// (mean, var) of shapes (k, q) at the points d (k, n_d).
     fn predict<'py>(
         &self,
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>)> {
-        let (m, v, _) = predict_arrays(py, &self.inner, &d, false, false)?;
+        let (m, v, _) = predict_arrays(py, &self.inner, &d, false)?;
         Ok((m, v))
     }
 
@@ -330,7 +203,7 @@ impl PyMultiGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
-        with_gradients(predict_arrays(py, &self.inner, &d, true, false)?)
+        with_gradients(predict_arrays(py, &self.inner, &d, true)?)
     }
 
     /// Means only, shape (k, q): O(N) per point and output (no triangular solves).
@@ -339,7 +212,7 @@ impl PyMultiGp {
         py: Python<'py>,
         d: PyReadonlyArray2<'py, f64>,
     ) -> PyResult<Arr<'py>> {
-        mean_array(py, &self.inner, &d, false)
+        mean_array(py, &self.inner, &d)
     }
 }
 

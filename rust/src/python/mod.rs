@@ -16,7 +16,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("NumericalError", m.py().get_type::<error::NumericalError>())?;
     m.add_function(wrap_pyfunction!(gp::se_ard_kernel, m)?)?;
     // GP
-    m.add_class::<gp::PyGp>()?;
     m.add_class::<gp::PyMultiGp>()?;
     m.add_function(wrap_pyfunction!(gp::gp_log_marginal_likelihood, m)?)?;
     // MHE window

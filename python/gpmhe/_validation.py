@@ -1,0 +1,191 @@
+"""Input validation shared by the gpmhe modules: one set of helpers, so that a name means the same
+check everywhere.
+
+Every helper takes the argument's name first and the value second, returns the value converted
+(float64 arrays, Python floats and ints) and raises `ValueError` with a message that starts with
+the argument's name ("Q0: must be symmetric"). The modules call these where a public function or
+constructor receives its arguments, once; the Rust core checks again what it reads (a second line
+of defence that names the same arguments).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Optional, Sequence, Tuple
+
+import numpy as np
+
+__all__ = [
+    "float_array",
+    "finite_vector",
+    "positive",
+    "positive_scalar",
+    "integer",
+    "in_open_interval",
+    "one_of",
+    "symmetric_matrix",
+    "positive_diagonal",
+    "points",
+    "training_set",
+]
+
+
+def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool = False) -> np.ndarray:
+    """A finite C-contiguous float64 array; ``ndim`` fixes the number of dimensions.
+
+    With ``copy`` the result never shares memory with ``value`` (for values an object keeps).
+    """
+    try:
+        a = np.array(value, dtype=np.float64, order="C") if copy else np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+    if ndim is not None and a.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a)  # (ascontiguousarray makes 0-D 1-D)
+
+
+def finite_vector(name: str, value: Any, n: int) -> np.ndarray:
+    """A finite float64 vector of shape (n,) (a new array)."""
+    a = float_array(name, value, copy=True)
+    if a.shape != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got {a.shape}")
+    return a
+
+
+def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:
+    """A float64 array (of any shape, a scalar gives shape ()) of finite values > 0 (>= 0 with
+    ``allow_zero``)."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a positive number or array of them") from None
+    if not np.all(np.isfinite(a)) or np.any(a < 0 if allow_zero else a <= 0):
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    return a
+
+
+def positive_scalar(name: str, value: Any, *, allow_zero: bool = False) -> float:
+    """A finite number > 0 (>= 0 with ``allow_zero``) as a Python float; arrays are refused."""
+    if isinstance(value, np.ndarray) and value.ndim != 0:
+        raise ValueError(f"{name}: must be a number, got an array of shape {value.shape}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0)):
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    return v
+
+
+def integer(name: str, value: Any, low: int = 0) -> int:
+    """An integer >= ``low`` (Python or numpy int; bool and float are refused) as a Python int."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def in_open_interval(name: str, value: Any, low: float, high: float) -> float:
+    """A number in the open interval (low, high) as a Python float."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a number in ({low:g}, {high:g}), got {value!r}") from None
+    if not (math.isfinite(v) and low < v < high):
+        raise ValueError(f"{name}: must be in ({low:g}, {high:g}), got {value!r}")
+    return v
+
+
+def one_of(name: str, value: Any, options: Sequence[Any]) -> Any:
+    """``value`` if it equals one of ``options`` (compared with ==; None is allowed as an option)."""
+    if not any(value is o or (o is not None and isinstance(value, type(o)) and value == o) for o in options):
+        choices = ", ".join(repr(o) for o in options[:-1]) + f" or {options[-1]!r}"
+        raise ValueError(f"{name}: must be {choices}, got {value!r}")
+    return value
+
+
+def symmetric_matrix(
+    name: str, value: Any, n: int, *, definite: bool = False, vector_is_diagonal: bool = False
+) -> np.ndarray:
+    """A symmetric positive semi-definite (n, n) matrix (positive definite with ``definite``)
+    from a matrix or a scalar (times the identity); with ``vector_is_diagonal`` also from a
+    (n,) diagonal. The matrix is returned as given (a new C-contiguous array), not symmetrised:
+    symmetry is checked to a relative 1e-10, definiteness on its symmetric part."""
+    a = float_array(name, value, copy=True)
+    if a.ndim == 0:
+        a = a * np.eye(n)
+    elif vector_is_diagonal and a.shape == (n,):
+        a = np.diag(a)
+    if a.shape != (n, n):
+        shapes = f"a scalar, shape ({n},) or ({n}, {n})" if vector_is_diagonal else f"a scalar or shape ({n}, {n})"
+        raise ValueError(f"{name}: expected {shapes}, got {a.shape}")
+    if n == 0:
+        return np.ascontiguousarray(a)
+    scale = max(1.0, float(np.abs(a).max()))
+    if not np.allclose(a, a.T, rtol=1e-10, atol=1e-14 * scale):
+        raise ValueError(f"{name}: must be symmetric")
+    low = float(np.linalg.eigvalsh(0.5 * (a + a.T))[0])
+    if definite and low <= 0:
+        raise ValueError(f"{name}: must be positive definite")
+    if not definite and low < -1e-12 * scale:
+        raise ValueError(f"{name}: must be positive semi-definite")
+    return np.ascontiguousarray(a)
+
+
+def positive_diagonal(name: str, value: Any, n: int, *, allow_full: bool = True) -> np.ndarray:
+    """The positive diagonal, shape (n,), of a diagonal covariance given as a scalar (times the
+    identity), a (n,) vector or a (n, n) matrix. Off-diagonal entries of a matrix are refused
+    unless ``allow_full``, which takes the diagonal of any matrix."""
+    a = float_array(name, value)
+    if a.ndim == 0:
+        diag = np.full(n, float(a))
+    elif a.shape == (n,):
+        diag = a.copy()
+    elif a.shape == (n, n):
+        if not allow_full and np.any(a != np.diag(np.diag(a))):
+            raise ValueError(f"{name}: only diagonal matrices are supported (the paper's Q0, R0 are diagonal)")
+        diag = np.diag(a).copy()
+    else:
+        raise ValueError(f"{name}: expected a scalar, shape ({n},) or ({n}, {n}), got {a.shape}")
+    if np.any(diag <= 0):
+        raise ValueError(f"{name}: diagonal must be positive")
+    return diag
+
+
+def points(name: str, value: Any, nd: int, *, one_point: bool = False, check_finite: bool = True) -> np.ndarray:
+    """Points as a C-contiguous float64 (k, nd) array; with ``one_point`` a 1-D value is one point.
+
+    ``check_finite=False`` leaves the NaN/inf scan to a caller that scans the array anyway (the
+    Rust core's predictions do, naming the same argument): one-point predictions stay cheap.
+    """
+    a = value
+    if not (type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous):
+        try:
+            a = np.ascontiguousarray(a, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+    if one_point and a.ndim == 1:
+        a = a.reshape(1, -1)
+    if a.ndim != 2 or a.shape[1] != nd:
+        raise ValueError(f"{name}: expected shape (k, {nd}), got {a.shape}")
+    if check_finite and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return a
+
+
+def training_set(D: Any, y: Any, y_ndim: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Training inputs D (N, n_d), N >= 2, n_d >= 1, and targets y, (N,) or (N, q) by ``y_ndim``,
+    as finite C-contiguous float64 arrays of their own (a model can keep them); errors name D or y."""
+    D = float_array("D", D, 2, copy=True)
+    y = float_array("y", y, y_ndim, copy=True)
+    n = D.shape[0]
+    if n < 2:
+        raise ValueError(f"D: needs at least 2 training points, got {n}")
+    if D.shape[1] < 1:
+        raise ValueError("D: needs at least one input dimension")
+    if y.shape[0] != n:
+        raise ValueError(f"y: expected {n} rows (one per row of D), got {y.shape[0]}")
+    if y_ndim == 2 and y.shape[1] < 1:
+        raise ValueError("y: needs at least one output column")
+    return D, y
