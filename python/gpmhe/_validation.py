@@ -46,9 +46,20 @@ def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool
     return a if a.flags.c_contiguous else np.ascontiguousarray(a)  # (ascontiguousarray makes 0-D 1-D)
 
 
-def finite_vector(name: str, value: Any, n: int) -> np.ndarray:
-    """A finite float64 vector of shape (n,) (a new array)."""
-    a = float_array(name, value, copy=True)
+def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np.ndarray:
+    """A finite float64 vector of shape (n,) (a new array). With ``flatten`` any shape of n
+    values is accepted (a row or column vector, say) and the result may share memory with
+    ``value`` (for values passed on at once, as an estimator's per-step input)."""
+    if flatten:
+        try:
+            a = np.asarray(value, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+        if a.shape == (n,) and np.isfinite(a).all():
+            return a
+        a = float_array(name, a)  # the NaN/inf message
+    else:
+        a = float_array(name, value, copy=True)
     if a.shape != (n,):
         raise ValueError(f"{name}: expected shape ({n},), got {a.shape}")
     return a

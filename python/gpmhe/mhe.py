@@ -16,33 +16,12 @@ import numpy as np
 from scipy.optimize import Bounds, least_squares, minimize
 
 from gpmhe import _core
+from gpmhe._validation import finite_vector, integer, one_of, positive_diagonal, symmetric_matrix
 
 __all__ = ["GPMHE"]
 
 _NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
 _NO_INPUT.flags.writeable = False
-
-
-def _square(name, a, dim, allow_full):
-    """A positive diagonal (dim,) from a scalar, a (dim,) vector or a (dim, dim) matrix."""
-    a = np.asarray(a, dtype=np.float64)
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains NaN or inf")
-    if a.ndim == 0:
-        diag = np.full(dim, float(a))
-    elif a.shape == (dim,):
-        diag = a.copy()
-    elif a.shape == (dim, dim):
-        if not allow_full and np.any(a != np.diag(np.diag(a))):
-            raise ValueError(
-                f"{name}: only diagonal matrices are supported (the paper's Q0, R0 are diagonal)"
-            )
-        diag = np.diag(a).copy()
-    else:
-        raise ValueError(f"{name}: expected a scalar, shape ({dim},) or ({dim}, {dim}), got {a.shape}")
-    if np.any(diag <= 0):
-        raise ValueError(f"{name}: diagonal must be positive")
-    return diag
 
 
 class _Unsaved:
@@ -236,25 +215,17 @@ class GPMHE:
             if not hasattr(model, attr):
                 raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
         n, p = model.dim_x, model.dim_y
-        if not isinstance(horizon, (int, np.integer)) or horizon < 1:
-            raise ValueError(f"horizon: must be an integer >= 1, got {horizon!r}")
+        horizon = integer("horizon", horizon, low=1)
         if not (np.isfinite(eta) and 0.0 <= eta < 1.0):
             raise ValueError(f"eta: must be in [0, 1), got {eta!r}")
-        if form not in ("prediction", "filtering"):
-            raise ValueError(f"form: must be 'prediction' or 'filtering', got {form!r}")
-        if solver not in self._SOLVERS:
-            raise ValueError(f"solver: must be one of {sorted(self._SOLVERS)}, got {solver!r}")
+        form = one_of("form", form, ("prediction", "filtering"))
+        solver = one_of("solver", solver, tuple(self._SOLVERS))
         if solver_options is not None and not isinstance(solver_options, dict):
             raise ValueError("solver_options: must be a dict or None")
-        P2 = np.eye(n) if P2 is None else np.asarray(P2, dtype=np.float64)
-        if P2.shape != (n, n) or not np.all(np.isfinite(P2)) or np.any(P2 != P2.T):
-            raise ValueError(f"P2: must be a finite symmetric ({n}, {n}) matrix")
-        try:
-            p2_sqrt = np.ascontiguousarray(np.linalg.cholesky(P2).T)  # P2 = SᵀS
-        except np.linalg.LinAlgError:
-            raise ValueError("P2: must be positive definite") from None
-        q0 = _square("Q0", 1.0 if Q0 is None else Q0, n, False)
-        r0 = _square("R0", 1.0 if R0 is None else R0, p, False) if p else np.zeros(0)
+        P2 = symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True)
+        p2_sqrt = np.ascontiguousarray(np.linalg.cholesky(P2).T)  # P2 = SᵀS
+        q0 = positive_diagonal("Q0", 1.0 if Q0 is None else Q0, n, allow_full=False)
+        r0 = positive_diagonal("R0", 1.0 if R0 is None else R0, p, allow_full=False) if p else np.zeros(0)
         if x_bounds is None:
             lb, ub = np.full(n, -np.inf), np.full(n, np.inf)
         else:
@@ -281,9 +252,7 @@ class GPMHE:
 
     # ----------------------------------------------------------------------------------------
     def _check_x0(self, x0):
-        x0 = np.asarray(x0, dtype=np.float64).reshape(-1)
-        if x0.shape != (self.dim_x,) or not np.all(np.isfinite(x0)):
-            raise ValueError(f"x0: must be a finite array of shape ({self.dim_x},)")
+        x0 = finite_vector("x0", x0, self.dim_x, flatten=True).copy()
         lb, ub = self.x_bounds
         if np.any(x0 < lb) or np.any(x0 > ub):
             raise ValueError("x0: must lie inside x_bounds")
@@ -333,14 +302,10 @@ class GPMHE:
                 raise ValueError(f"u: required (dim_u = {m})")
             u = _NO_INPUT
         else:
-            u = np.asarray(u, dtype=np.float64).reshape(-1)
-            if u.shape != (m,) or not np.isfinite(u).all():
-                raise ValueError(f"u: must be a finite array of shape ({m},)")
+            u = finite_vector("u", u, m, flatten=True)
         if y is None:
             return u, np.zeros(p), False
-        y = np.asarray(y, dtype=np.float64).reshape(-1)
-        if y.shape != (p,) or not np.isfinite(y).all():
-            raise ValueError(f"y: must be a finite array of shape ({p},) or None")
+        y = finite_vector("y", y, p, flatten=True)
         return u, y, True
 
     def update(self, u, y):

@@ -12,19 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from gpmhe import _core
+from gpmhe._validation import points
 
 __all__ = ["KnownModel", "LearnedModel"]
-
-
-def _as_points(d, nd):
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    if d.ndim == 1:
-        d = d.reshape(1, -1)
-    if d.ndim != 2 or d.shape[1] != nd:
-        raise ValueError(f"d: expected shape (k, {nd}), got {d.shape}")
-    if not np.all(np.isfinite(d)):
-        raise ValueError("d: contains NaN or inf")
-    return d
 
 
 class _SharedOnCopy:
@@ -318,7 +308,7 @@ class KnownModel(_SharedOnCopy):
         """
         n, m, p = self.dim_x, self.dim_u, self.dim_y
         nd = n + m
-        d = _as_points(d, nd)
+        d = points("d", d, nd, one_point=True)
         k = d.shape[0]
         mx, jx, my, jy = self._points_batch(d) if self.vectorized else self._points_loop(d, k)
         fd = " (finite differences)"
@@ -631,7 +621,7 @@ class LearnedModel(_SharedOnCopy):
         """
         n, p = self.dim_x, self.dim_y
         nd = n + self.dim_u
-        d = _as_points(d, nd)
+        d = points("d", d, nd, one_point=True)
         k = d.shape[0]
         mx, vx, dmx, dvx = (np.array(a) for a in self.f_gp.predict_with_gradients(d))
         if self.f_residual:
