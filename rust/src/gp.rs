@@ -374,43 +374,6 @@ impl Gp {
         self.mean_rounding
     }
 
-    /// Posterior means and latent variances at k test points `d` (k × n_d row-major) into
-    /// `mean` (k) and `var` (k).
-    pub fn predict_into(
-        &self,
-        d: &[f64],
-        mean: &mut [f64],
-        var: &mut [f64],
-        ws: &mut GpWorkspace,
-    ) -> Result<()> {
-        let k = self.kernel.count_points("d", d)?;
-        check_out("mean", mean, k)?;
-        check_out("var", var, k)?;
-        self.predict_block(d, k, 0, 1, mean, Some(var), None, ws);
-        Ok(())
-    }
-
-    /// Means, latent variances and their gradients w.r.t. the test point: `dmean`, `dvar` are
-    /// k × n_d row-major.
-    pub fn predict_with_gradients_into(
-        &self,
-        d: &[f64],
-        mean: &mut [f64],
-        var: &mut [f64],
-        dmean: &mut [f64],
-        dvar: &mut [f64],
-        ws: &mut GpWorkspace,
-    ) -> Result<()> {
-        let k = self.kernel.count_points("d", d)?;
-        let nd = self.dim();
-        check_out("mean", mean, k)?;
-        check_out("var", var, k)?;
-        check_out("dmean", dmean, k * nd)?;
-        check_out("dvar", dvar, k * nd)?;
-        self.predict_block(d, k, 0, 1, mean, Some(var), Some((dmean, dvar)), ws);
-        Ok(())
-    }
-
     /// The numerics of every prediction: for k points `d`, writes output `o` of `q` into
     /// `mean[j*q + o]`, `var[j*q + o]` and the gradients at `[(j*q + o)*nd ..]`. With `var` None
     /// only means (and mean gradients if asked) are computed, O(N) per point; variances cost two
@@ -718,7 +681,8 @@ pub fn log_marginal_likelihood(
     Ok((gp.lml, grad))
 }
 
-/// q independent GPs on shared inputs, one per output, each with its own θ.
+/// q independent GPs on shared inputs, one per output, each with its own θ: the one prediction
+/// interface (a single-output GP is the case q = 1).
 #[derive(Clone, Debug)]
 pub struct MultiGp {
     gps: Vec<Gp>,
@@ -875,6 +839,11 @@ impl MultiGp {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A single GP as the one-output case of `MultiGp` (the only prediction interface).
+    fn one(gp: &Gp) -> MultiGp {
+        MultiGp::from_gps(vec![gp.clone()]).unwrap()
+    }
     use nalgebra::{DMatrix, DVector};
 
     /// A deterministic pseudo-random data set (LCG), N points in n_d dimensions.
@@ -932,7 +901,7 @@ mod tests {
             let (d, _) = data(5, nd, 99);
             let mut ws = GpWorkspace::default();
             let (mut m, mut v) = (vec![0.0; 5], vec![0.0; 5]);
-            gp.predict_into(&d, &mut m, &mut v, &mut ws).unwrap();
+            one(&gp).predict_into(&d, &mut m, &mut v, &mut ws).unwrap();
             for j in 0..5 {
                 let (me, ve) = dense_posterior(&x, &y, &th, &d[j * nd..(j + 1) * nd]);
                 assert!(
@@ -981,12 +950,14 @@ mod tests {
         let mut ws = GpWorkspace::default();
         let (mut m, mut v) = (vec![0.0; k], vec![0.0; k]);
         let (mut dm, mut dv) = (vec![0.0; k * nd], vec![0.0; k * nd]);
-        gp.predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
+        one(&gp)
+            .predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
             .unwrap();
         for j in 0..k {
             let (mut m1, mut v1, mut dm1, mut dv1) = ([0.0], [0.0], [0.0; 2], [0.0; 2]);
             let dj = &d[j * nd..(j + 1) * nd];
-            gp.predict_with_gradients_into(dj, &mut m1, &mut v1, &mut dm1, &mut dv1, &mut ws)
+            one(&gp)
+                .predict_with_gradients_into(dj, &mut m1, &mut v1, &mut dm1, &mut dv1, &mut ws)
                 .unwrap();
             assert!((m1[0] - m[j]).abs() <= 1e-12 * m[j].abs().max(1.0));
             assert!((v1[0] - v[j]).abs() <= 1e-12, "{} vs {}", v1[0], v[j]);
@@ -1030,7 +1001,8 @@ mod tests {
         let mut ws = GpWorkspace::default();
         let (mut m, mut v) = (vec![0.0; k], vec![0.0; k]);
         let (mut dm, mut dv) = (vec![0.0; k * nd], vec![0.0; k * nd]);
-        gp.predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
+        one(&gp)
+            .predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
             .unwrap();
         let h = 1e-6;
         for l in 0..nd {
@@ -1041,8 +1013,12 @@ mod tests {
             }
             let (mut mp, mut vp, mut mm, mut vm) =
                 (vec![0.0; k], vec![0.0; k], vec![0.0; k], vec![0.0; k]);
-            gp.predict_into(&dp, &mut mp, &mut vp, &mut ws).unwrap();
-            gp.predict_into(&dmi, &mut mm, &mut vm, &mut ws).unwrap();
+            one(&gp)
+                .predict_into(&dp, &mut mp, &mut vp, &mut ws)
+                .unwrap();
+            one(&gp)
+                .predict_into(&dmi, &mut mm, &mut vm, &mut ws)
+                .unwrap();
             for j in 0..k {
                 let fm = (mp[j] - mm[j]) / (2.0 * h);
                 let fv = (vp[j] - vm[j]) / (2.0 * h);
@@ -1146,7 +1122,8 @@ mod tests {
             let gp = Gp::new(&x, &ys[o], &thetas[o]).unwrap();
             let (mut m1, mut v1) = (vec![0.0; k], vec![0.0; k]);
             let (mut dm1, mut dv1) = (vec![0.0; k * nd], vec![0.0; k * nd]);
-            gp.predict_with_gradients_into(&d, &mut m1, &mut v1, &mut dm1, &mut dv1, &mut ws)
+            one(&gp)
+                .predict_with_gradients_into(&d, &mut m1, &mut v1, &mut dm1, &mut dv1, &mut ws)
                 .unwrap();
             for j in 0..k {
                 assert_eq!(m[j * q + o], m1[j]);
@@ -1199,7 +1176,9 @@ mod tests {
         assert!(gp.jitter() > 0.0 && gp.jitter() <= JITTER_MAX * (1.0 + 1e-9));
         let mut ws = GpWorkspace::default();
         let (mut m, mut v) = ([0.0], [0.0]);
-        gp.predict_into(&[0.5], &mut m, &mut v, &mut ws).unwrap();
+        one(&gp)
+            .predict_into(&[0.5], &mut m, &mut v, &mut ws)
+            .unwrap();
         assert!((m[0] - 1.0).abs() < 1e-4 && v[0] >= 0.0 && v[0] < 1e-4);
     }
 
@@ -1227,8 +1206,12 @@ mod tests {
         let gp = Gp::new(&x, &y, &theta(2)).unwrap();
         let mut ws = GpWorkspace::default();
         let (mut m, mut v) = (vec![0.0; 2], vec![0.0; 1]);
-        assert!(gp.predict_into(&[0.0; 4], &mut m, &mut v, &mut ws).is_err());
-        assert!(gp.predict_into(&[0.0; 3], &mut m, &mut v, &mut ws).is_err());
+        assert!(one(&gp)
+            .predict_into(&[0.0; 4], &mut m, &mut v, &mut ws)
+            .is_err());
+        assert!(one(&gp)
+            .predict_into(&[0.0; 3], &mut m, &mut v, &mut ws)
+            .is_err());
         assert!(MultiGp::new(&x, &y, &[0.0; 5]).is_err());
         assert!(MultiGp::from_gps(vec![]).is_err());
     }
