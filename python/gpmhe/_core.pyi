@@ -59,7 +59,7 @@ def log_marginal_likelihood(
 ) -> tuple[float, npt.NDArray[np.float64]]: ...
 
 # ===== RGP =====
-# Recursive GP and RGP-dKF kernels (rust/src/rgp.rs); the public classes are gpmhe.RecursiveGP and
+# Recursive GP and RGP-dKF kernels (rust/src/rgp/); the public classes are gpmhe.RecursiveGP and
 # gpmhe.RGPEKF in gpmhe/rgp.py. Arrays are float64, C-contiguous.
 
 class RecursiveGPCore:
