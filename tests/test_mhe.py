@@ -2,6 +2,8 @@
 fails), both forms, missing outputs, a system with inputs and two outputs, bad input, solver
 failure, filterpy's Saver, and that estimates are never NaN and stay inside the bounds."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -168,6 +170,25 @@ def test_bad_inputs_raise_and_leave_the_state(gp5, known):
         est.batch_filter([[3.9], [np.nan]])
     for k, v in before.items():
         np.testing.assert_array_equal(getattr(est, k), v)
+
+
+@pytest.mark.parametrize("solver, options", [("gauss-newton", dict(max_iter=1, dtol=0.0)),
+                                             ("least-squares", dict(max_nfev=1))])
+def test_non_convergence_warning_as_error_leaves_a_consistent_estimator(gp5, solver, options):
+    """With warnings turned into errors, a window that did not converge raises; the estimator is
+    then either unchanged (SciPy paths: the warning comes before the step is recorded) or fully
+    updated (Rust path): its attributes always match the core's history."""
+    _, y = br.simulate(br.X_TRUE0, 3, np.random.default_rng(2))
+    est = GPMHE(gp5, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver=solver, solver_options=options,
+                **br.MHE_SETTINGS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(RuntimeWarning, match="did not converge at t=0"):
+            est.update(None, y[0])
+    assert est.t == est._core.window.t
+    assert est.t == (1 if solver == "gauss-newton" else 0)
+    np.testing.assert_array_equal(est.x, est.x_window[-1])
+    assert est.x_window.shape[0] == est.t + 1
 
 
 def test_solver_failure_keeps_a_finite_estimate(gp5):

@@ -429,8 +429,6 @@ class GPMHE:
             x_window, x_prior, P = rep.x_window, rep.x_prior, rep.P
             cost, success, nit = rep.cost, rep.success, rep.nit
             self.projected_gradient, self.nfev = float(rep.projected_gradient), int(rep.nfev)
-            if not success:
-                self._warn(message, stacklevel=4)
         else:
             z0, lb, ub = core.prepare(u, y)
             z, cost, success, nit, message = self._solve(core, z0, lb, ub)
@@ -441,11 +439,14 @@ class GPMHE:
         self.P = self.P.copy() if P is None else P
         self.cost, self.success, self.nit, self.message = float(cost), bool(success), int(nit), str(message)
         self.t += 1
+        if not success and self.solver == "gauss-newton":
+            # After the attributes follow the core's recorded step (the warning may be an error).
+            self._warn(message, self.t - 1, stacklevel=4)
 
-    def _warn(self, message, stacklevel):
-        """The RuntimeWarning of a window whose solver did not converge (`stacklevel` points at
-        the caller of `update` or `batch_filter`)."""
-        warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={self.t}: "
+    def _warn(self, message, t, stacklevel):
+        """The RuntimeWarning of the window of update t whose solver did not converge
+        (`stacklevel` points at the caller of `update` or `batch_filter`)."""
+        warnings.warn(f"GPMHE window solver ({self.solver}) did not converge at t={t}: "
                       f"{message}; keeping the better of its last iterate and the warm start",
                       RuntimeWarning, stacklevel=stacklevel)
 
@@ -476,8 +477,8 @@ class GPMHE:
             if ok:
                 message = f"solver returned a point costlier than its start ({message})"
             z, cost, ok = z0.copy(), cost0, False
-        if not ok:
-            self._warn(message, stacklevel=5)
+        if not ok:  # (before the core records the step: as an error, it leaves nothing changed)
+            self._warn(message, self.t, stacklevel=5)
         return z, float(cost), bool(ok), int(nit), str(message)
 
     def _solve_trust_constr(self, window, z0, lb, ub):
