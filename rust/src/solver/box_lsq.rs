@@ -224,7 +224,10 @@ impl BoxLsqSolver {
     /// Minimises J(z) over lower ≤ z ≤ upper starting from `z` (a warm start; projected onto the
     /// box first) and writes the best point found into `z`. Bounds may be ±∞ and lower == upper
     /// fixes a variable. The returned cost is never above the cost at the projected start.
-    /// Errors only on invalid input or when J is not finite at the start; afterwards z is always finite and the problem's derivatives refer to the returned z.
+    /// Errors only on invalid input, when J is not finite at the start, or when an evaluation
+    /// fails with an error that is not numerical (bad model output, an interrupt: z is then
+    /// unspecified); otherwise z is always finite and the problem's derivatives refer to the
+    /// returned z. A numerical failure at a trial point only rejects that point.
     pub fn solve<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -256,7 +259,7 @@ impl BoxLsqSolver {
         self.start(prob, z, &mut pr)?;
         let status;
         if !run_interior {
-            status = self.active_set_phase(prob, z, lim, &mut pr);
+            status = self.active_set_phase(prob, z, lim, &mut pr)?;
         } else {
             // The barrier phase is not monotone in J: keep the (projected) start and its cost,
             // and fall back to the active-set phase from there if the result costs more.
@@ -268,7 +271,7 @@ impl BoxLsqSolver {
             if pr.cost > cost0 {
                 z.copy_from_slice(&self.z0);
                 self.start(prob, z, &mut pr)?;
-                status = self.active_set_phase(prob, z, lim, &mut pr);
+                status = self.active_set_phase(prob, z, lim, &mut pr)?;
             } else {
                 status = status_i;
             }
@@ -338,8 +341,8 @@ impl BoxLsqSolver {
     ) -> Result<Status> {
         self.push_inside(z, lim.lower, lim.upper);
         self.start(prob, z, pr)?;
-        self.interior_phase(prob, z, lim, pr);
-        Ok(self.active_set_phase(prob, z, lim, pr))
+        self.interior_phase(prob, z, lim, pr)?;
+        self.active_set_phase(prob, z, lim, pr)
     }
 
     pub(super) fn start<P: BlockLsqProblem + ?Sized>(
