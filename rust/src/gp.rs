@@ -675,6 +675,8 @@ pub fn log_marginal_likelihood(
 ) -> Result<(f64, Vec<f64>)> {
     let gp = Gp::new(x, y, theta)?;
     let grad = if eval_gradient {
+        // between the two O(N³) steps (the factorisation, K⁻¹)
+        crate::interrupt::check()?;
         gp.log_marginal_likelihood_gradient()
     } else {
         Vec::new()

@@ -584,6 +584,69 @@ mod tests {
         assert!(z[0] <= 0.7);
     }
 
+    /// `Synthetic` whose k-th evaluation (1-based) fails with `err`.
+    struct FailsAt {
+        p: Synthetic,
+        k: usize,
+        calls: usize,
+        err: Error,
+    }
+
+    impl BlockLsqProblem for FailsAt {
+        fn n_nodes(&self) -> usize {
+            self.p.n_nodes()
+        }
+        fn node_dim(&self) -> usize {
+            self.p.node_dim()
+        }
+        fn evaluate(&mut self, z: &[f64], want_derivatives: bool) -> Result<f64> {
+            self.calls += 1;
+            if self.calls == self.k {
+                return Err(self.err.clone());
+            }
+            self.p.evaluate(z, want_derivatives)
+        }
+        fn gradient_into(&self, g: &mut [f64]) {
+            self.p.gradient_into(g)
+        }
+        fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
+            self.p.gauss_newton_blocks_into(diag, off)
+        }
+    }
+
+    #[test]
+    fn only_numerical_failures_at_trial_points_are_survived_other_errors_stop_the_solve() {
+        let (nodes, n) = (5, 2);
+        let lo = vec![0.05; nodes * n]; // the start lies near the bound: both phases run
+        let hi = vec![f64::INFINITY; nodes * n];
+        let solve = |k: usize, err: Error| {
+            let p = Synthetic::new(nodes, n, 21);
+            let mut prob = FailsAt {
+                p,
+                k,
+                calls: 0,
+                err,
+            };
+            let mut z = vec![0.06; nodes * n];
+            let r = BoxLsqSolver::new().solve(&mut prob, &mut z, &lo, &hi, &strict());
+            (r, prob.calls)
+        };
+        let (clean, total) = solve(0, Error::numerical("never"));
+        assert!(clean.is_ok() && total > 4, "{total}");
+        for k in 2..=total {
+            let (r, _) = solve(k, Error::numerical("nan at a trial point"));
+            assert!(r.is_ok(), "numerical failure at evaluation {k}: {r:?}");
+            for err in [
+                Error::interrupted("ctrl-c"),
+                Error::invalid("model", "bad output"),
+            ] {
+                let (r, calls) = solve(k, err.clone());
+                assert_eq!(r.unwrap_err(), err, "evaluation {k}");
+                assert_eq!(calls, k, "the solve stops at the failing evaluation");
+            }
+        }
+    }
+
     #[test]
     fn max_iterations_is_reported_and_point_is_finite() {
         let (nodes, n) = (6, 2);
