@@ -3,6 +3,7 @@ and give exactly the serial results; one estimator used from two threads at once
 RuntimeError in the second caller and stays consistent."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -118,3 +119,18 @@ def test_update_from_inside_its_own_model_callback_is_refused():
         mhe.update(None, [1.0])
     assert mhe.t == t
     np.testing.assert_array_equal(mhe.x, x)
+
+
+def test_a_long_gp_prediction_releases_the_gil(learned):
+    # While another thread predicts at many points, this thread keeps running Python code.
+    gp = learned.f_gp
+    D = np.random.default_rng(4).uniform(0.1, 4.5, size=(100_000, gp.dim))  # ~0.3 s
+    worker = threading.Thread(target=gp.predict, args=(D,), kwargs=dict(return_std=True))
+    ticks = 0
+    worker.start()
+    while worker.is_alive():
+        ticks += 1
+        time.sleep(0.0005)
+    worker.join()
+    # with the GIL held for the whole prediction this loop could not run during it
+    assert ticks >= 50, ticks  # (~600 here with the GIL released)
