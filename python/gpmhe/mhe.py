@@ -16,6 +16,7 @@ import numpy as np
 from scipy.optimize import Bounds, least_squares, minimize
 
 from gpmhe import _core
+from gpmhe._threads import exclusive
 from gpmhe._validation import finite_vector, integer, one_of, positive_diagonal, symmetric_matrix
 
 __all__ = ["GPMHE"]
@@ -413,6 +414,7 @@ class GPMHE:
         return xs, Ps
 
     # ----------------------------------------------------------------------------------------
+    @exclusive  # one update at a time per estimator (gpmhe/_threads.py)
     def _step(self, u, y, present):
         """One update with validated input: the Rust core does it in one call ("gauss-newton"),
         or stages the window for a SciPy solver and records its solution. Nothing changes
@@ -441,7 +443,7 @@ class GPMHE:
         self.t += 1
         if not success and self.solver == "gauss-newton":
             # After the attributes follow the core's recorded step (the warning may be an error).
-            self._warn(message, self.t - 1, stacklevel=4)
+            self._warn(message, self.t - 1, stacklevel=5)  # 5: past `exclusive`
 
     def _warn(self, message, t, stacklevel):
         """The RuntimeWarning of the window of update t whose solver did not converge
@@ -478,7 +480,7 @@ class GPMHE:
                 message = f"solver returned a point costlier than its start ({message})"
             z, cost, ok = z0.copy(), cost0, False
         if not ok:  # (before the core records the step: as an error, it leaves nothing changed)
-            self._warn(message, self.t, stacklevel=5)
+            self._warn(message, self.t, stacklevel=6)  # 6: past `exclusive`
         return z, float(cost), bool(ok), int(nit), str(message)
 
     def _solve_trust_constr(self, window, z0, lb, ub):

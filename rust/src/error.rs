@@ -3,7 +3,10 @@
 //! `InvalidInput` is the user's fault (shapes, NaN/inf, non-positive parameters) and becomes a
 //! Python `ValueError` naming the argument; `Numerical` is a failure of the mathematics on valid
 //! input (a matrix that stays indefinite after the jitter policy, a singular system) and becomes
-//! `gpmhe.NumericalError`.
+//! `gpmhe.NumericalError`. `Interrupted` is neither: the computation was stopped from outside
+//! (a signal such as Ctrl-C, or an exception raised by user code that is not a numerical
+//! failure); it is never retried or treated as a bad trial point, and the binding re-raises the
+//! original Python exception.
 
 use thiserror::Error;
 
@@ -13,6 +16,8 @@ pub enum Error {
     InvalidInput { arg: String, msg: String },
     #[error("{0}")]
     Numerical(String),
+    #[error("interrupted: {0}")]
+    Interrupted(String),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
@@ -28,6 +33,20 @@ impl Error {
 
     pub fn numerical(msg: impl Into<String>) -> Self {
         Error::Numerical(msg.into())
+    }
+
+    pub fn interrupted(msg: impl Into<String>) -> Self {
+        Error::Interrupted(msg.into())
+    }
+
+    /// The cost to use for a failed evaluation at a trial point: +∞ (the point is rejected) for
+    /// a numerical failure, the error itself for anything else (bad model output, an interrupt),
+    /// which must stop the computation.
+    pub fn as_trial_cost(r: Result<f64>) -> Result<f64> {
+        match r {
+            Err(Error::Numerical(_)) => Ok(f64::INFINITY),
+            other => other,
+        }
     }
 }
 

@@ -176,6 +176,7 @@ fn factor_with_jitter(gram: &Mat<f64>, noise_var: f64, signal_var: f64) -> Resul
     let scale = signal_var + noise_var;
     // Attempt 0 without jitter, then JITTER_START·scale growing tenfold up to JITTER_MAX·scale.
     for attempt in 0..=JITTER_STEPS {
+        crate::interrupt::check()?;
         let jitter = if attempt == 0 {
             0.0
         } else {
@@ -674,6 +675,8 @@ pub fn log_marginal_likelihood(
 ) -> Result<(f64, Vec<f64>)> {
     let gp = Gp::new(x, y, theta)?;
     let grad = if eval_gradient {
+        // between the two O(N³) steps (the factorisation, K⁻¹)
+        crate::interrupt::check()?;
         gp.log_marginal_likelihood_gradient()
     } else {
         Vec::new()
@@ -718,6 +721,7 @@ impl MultiGp {
         let mut col = vec![0.0; n];
         let gps = (0..q)
             .map(|o| {
+                crate::interrupt::check()?;
                 for (c, row) in col.iter_mut().zip(y.chunks_exact(q)) {
                     *c = row[o];
                 }
@@ -726,6 +730,7 @@ impl MultiGp {
                         Error::invalid(arg, format!("output {o}: {msg}"))
                     }
                     Error::Numerical(msg) => Error::numerical(format!("output {o}: {msg}")),
+                    e @ Error::Interrupted(_) => e,
                 })
             })
             .collect::<Result<Vec<_>>>()?;

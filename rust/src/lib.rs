@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod gp;
+pub mod interrupt;
 pub mod kernel;
 mod linalg;
 pub mod mhe;

@@ -7,6 +7,7 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
 use super::convert::{array2, slice1, slice2};
+use super::error::detach_interruptible;
 use crate::error::Error;
 use crate::kernel::SeArd;
 
@@ -133,7 +134,7 @@ impl PyMultiGp {
                 nd + 2
             )));
         }
-        let inner = py.detach(|| MultiGp::new(x, y, thetas))?;
+        let inner = detach_interruptible(py, || MultiGp::new(x, y, thetas))?;
         Ok(Self { inner })
     }
 
@@ -230,7 +231,8 @@ pub(super) fn gp_log_marginal_likelihood<'py>(
     let (x, _, cols) = slice2("x", &x)?;
     let (y, theta) = (slice1("y", &y)?, slice1("theta", &theta)?);
     check_cols("x", cols, theta.len().saturating_sub(2))?;
-    let (lml, grad) = py.detach(|| log_marginal_likelihood(x, y, theta, eval_gradient))?;
+    let (lml, grad) =
+        detach_interruptible(py, || log_marginal_likelihood(x, y, theta, eval_gradient))?;
     Ok((lml, PyArray1::from_vec(py, grad)))
 }
 

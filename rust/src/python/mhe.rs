@@ -1,15 +1,17 @@
 //! The moving-horizon estimator (`crate::mhe::MovingHorizon`) as `MovingHorizon`, its update
 //! report, and `WindowSolver` (solver settings for `MovingHorizon` and for solving a set window
 //! directly). The model is either the learned GPs (run without the GIL) or a Python callback
-//! (`gpmhe.KnownModel.stage_eval`, run with the GIL), adapted to `StageModel` here.
+//! (`gpmhe.KnownModel.stage_eval`, run with the GIL), adapted to `StageModel` here. An exception
+//! other than a numerical one stops the update (the estimator stays as it was) and is re-raised.
 
 use numpy::{
     PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn,
 };
-use pyo3::exceptions::{PyArithmeticError, PyRuntimeError, PyValueError};
+use pyo3::exceptions::{PyArithmeticError, PyException, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
 use super::convert::{array2, slice1, slice2};
+use super::error::{detach_interruptible, interruptible};
 use super::gp::PyMultiGp;
 use crate::error::{check_finite, check_len, Error};
 use crate::mhe::{
@@ -23,8 +25,10 @@ type Arr2<'py> = Bound<'py, PyArray2<f64>>;
 /// A [`StageModel`] backed by the Python callable `stage_eval(d) -> (mean_x, var_x, dmean_x,
 /// dvar_x, mean_y, var_y, dmean_y, dvar_y)` (the layout of [`StageEval`]) and, if given,
 /// `predict(x, u) -> x_next`. A Python exception is kept (the binding re-raises it) and reported
-/// to the core as a numerical failure if it is an `ArithmeticError` or `RuntimeError` (the
-/// estimator then keeps its warm start), else as bad model output.
+/// to the core as a numerical failure if it is an `ArithmeticError` or `RuntimeError` (a trial
+/// point is rejected, a failed solve keeps the warm start), as an interrupt if it is not an
+/// `Exception` (KeyboardInterrupt, SystemExit), else as bad model output; the last two stop the
+/// update.
 struct CallbackModel<'a, 'py> {
     func: &'a Bound<'py, PyAny>,
     predict: Option<&'a Bound<'py, PyAny>>,
@@ -38,10 +42,12 @@ impl CallbackModel<'_, '_> {
         let msg = e.value(py).str().map(|s| s.to_string()).unwrap_or_default();
         let recoverable =
             e.is_instance_of::<PyArithmeticError>(py) || e.is_instance_of::<PyRuntimeError>(py);
+        let interrupt = !e.is_instance_of::<PyException>(py);
         self.err = Some(e);
-        match recoverable {
-            true => Error::numerical(msg),
-            false => Error::invalid("model", msg),
+        match (recoverable, interrupt) {
+            (true, _) => Error::numerical(msg),
+            (false, true) => Error::interrupted(msg),
+            (false, false) => Error::invalid("model", msg),
         }
     }
 
@@ -244,7 +250,7 @@ impl PyMovingHorizon {
     ) -> PyResult<T> {
         let core = &mut self.core;
         match &mut self.model {
-            Model::Gp(model) => Ok(py.detach(|| f(core, &mut **model))?),
+            Model::Gp(model) => detach_interruptible(py, || f(core, &mut **model)),
             Model::Callback {
                 stage_eval,
                 predict,
@@ -256,9 +262,12 @@ impl PyMovingHorizon {
                     dims: *dims,
                     err: None,
                 };
-                match f(core, &mut cb) {
-                    Ok(v) => Ok(v),
-                    Err(e) => Err(cb.err.take().unwrap_or_else(|| e.into())),
+                // The model's exceptions reach Python anyway (a signal's handler runs inside the
+                // callback); the check covers the core's own work between callbacks.
+                match interruptible(|| f(core, &mut cb)) {
+                    (Ok(v), _) => Ok(v),
+                    (Err(_), Some(raised)) => Err(raised),
+                    (Err(e), None) => Err(cb.err.take().unwrap_or_else(|| e.into())),
                 }
             }
         }

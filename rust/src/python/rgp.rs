@@ -9,6 +9,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use super::convert::{array2, slice1, slice2};
+use super::error::detach_interruptible;
 // Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
 // python/gpmhe/rgp.py, which validates inputs and calls these once per step.
 
@@ -90,7 +91,7 @@ impl RgpCore {
         let (z, _, _) = slice2("zeta", &zeta)?;
         let (y, v) = (slice1("y", &y)?, slice1("var_y", &var_y)?);
         let inner = &mut self.inner;
-        let out = py.detach(|| inner.update_many(z, y, v))?;
+        let out = detach_interruptible(py, || inner.update_many(z, y, v))?;
         Ok(PyArray1::from_vec(py, out))
     }
 

@@ -48,6 +48,14 @@ impl RgpBasis {
         let nx = lower.len();
         let nb = check_grid(lower, upper, n_points)?;
         check_positive("sigma_K", sigma_k)?;
+        // σ_K² scales K and the jitter: it must be a normal float (1e200² overflows to inf,
+        // 1e-200² underflows to 0, and neither K nor its jitter would make sense).
+        if !(sigma_k * sigma_k).is_normal() {
+            return Err(Error::invalid(
+                "sigma_K",
+                format!("sigma_K² must be a finite, normal float, got sigma_K = {sigma_k:e}"),
+            ));
+        }
         check_positive("L", l)?;
         check_nonneg("sigma_r", sigma_r)?;
         check_nonneg("sigma_p", sigma_p)?;
@@ -294,7 +302,17 @@ fn unit_grid(n_points: &[usize], nb: usize) -> Vec<f64> {
 fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
     let nb = k.nrows();
     let mut jitter = 0.0;
-    let chol = loop {
+    let too_large = || {
+        Error::numerical(format!(
+            "the kernel matrix K of {nb} basis vectors is not positive definite even with \
+             jitter {:.1e}·σ_K²; use a smaller L or fewer basis vectors",
+            MAX_REL_JITTER
+        ))
+    };
+    // 0, then 1e-12·s2 growing tenfold past MAX_REL_JITTER·s2: 8 factorisations for a normal
+    // s2; the cap also bounds the loop should s2 not be (the jitter would then never grow).
+    for _ in 0..JITTER_TRIES {
+        crate::interrupt::check()?;
         let mut kj = k.clone();
         for i in 0..nb {
             kj[(i, i)] += jitter;
@@ -310,7 +328,7 @@ fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
                     }
                 }
             }
-            break l;
+            return Ok((l, jitter));
         }
         jitter = if jitter == 0.0 {
             1e-12 * s2
@@ -318,15 +336,14 @@ fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
             jitter * 10.0
         };
         if jitter > MAX_REL_JITTER * s2 {
-            return Err(Error::numerical(format!(
-                "the kernel matrix K of {nb} basis vectors is not positive definite even with \
-                 jitter {:.1e}·σ_K²; use a smaller L or fewer basis vectors",
-                MAX_REL_JITTER
-            )));
+            return Err(too_large());
         }
-    };
-    Ok((chol, jitter))
+    }
+    Err(too_large())
 }
+
+/// The most factorisations [`factor_with_jitter`] tries (it needs 8 with MAX_REL_JITTER = 1e-6).
+const JITTER_TRIES: usize = 16;
 
 // The per-step triangular solves with K's Cholesky factor for one right-hand side of length
 // n_b ≤ a few hundred: `linalg::triangular` with this module's rounding ([`ReciprocalWithFloor`]:
@@ -354,6 +371,26 @@ mod tests {
     use super::*;
     use crate::rgp::test_basis as basis;
     use faer::MatMut;
+
+    #[test]
+    fn sigma_k_whose_square_is_not_a_normal_float_is_rejected() {
+        for s in [1e200, 1e-200, f64::MAX] {
+            let e = RgpBasis::new(&[0.0], &[1.0], &[5], s, 0.5, 0.0, 0.0).unwrap_err();
+            assert!(
+                matches!(e, Error::InvalidInput { ref arg, .. } if arg == "sigma_K"),
+                "{s}"
+            );
+        }
+        assert!(RgpBasis::new(&[0.0], &[1.0], &[5], 1e150, 0.5, 0.0, 0.0).is_ok());
+    }
+
+    #[test]
+    fn jitter_search_is_bounded_for_any_scale() {
+        let k = Mat::<f64>::from_fn(2, 2, |_, _| -1.0);
+        for s2 in [0.0, f64::INFINITY, f64::NAN, 1.0] {
+            assert!(factor_with_jitter(&k, s2).is_err(), "{s2}");
+        }
+    }
 
     #[test]
     fn substitutions_match_faer_triangular_solves() {

@@ -159,7 +159,9 @@ impl Rgp {
         let mut out = Vec::with_capacity(m);
         for i in 0..m {
             let v = if var_y.len() == 1 { var_y[0] } else { var_y[i] };
-            match self.update(&zetas[i * nx..(i + 1) * nx], ys[i], v) {
+            let step = crate::interrupt::check()
+                .and_then(|()| self.update(&zetas[i * nx..(i + 1) * nx], ys[i], v));
+            match step {
                 Ok(p) => out.push(p),
                 Err(e) => {
                     (self.mean, self.cov) = backup;

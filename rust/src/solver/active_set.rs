@@ -22,6 +22,8 @@ use super::box_lsq::{
     LAMBDA_MIN, NOISE, NOISE_PG,
 };
 use super::{projected_gradient_norm, BlockLsqProblem, BoxLsqSolver, SolverOptions, Status};
+use crate::error::{Error, Result};
+use crate::interrupt;
 
 /// −(gᵀs + ½ sᵀHs): the decrease of J the Gauss-Newton model predicts for the step s, with H
 /// given by its block-tridiagonal blocks (`hp` is scratch for Hs).
@@ -109,7 +111,7 @@ impl BoxLsqSolver {
         z: &mut [f64],
         lim: Limits<'_>,
         pr: &mut Progress,
-    ) -> Status {
+    ) -> Result<Status> {
         let mut st = LmState {
             lambda: 1e-6,
             nu: 2.0,
@@ -117,14 +119,18 @@ impl BoxLsqSolver {
             noise_est: 0.0,
         };
         // `g`, `diag`, `off` hold the derivatives at z here (start() or the interior phase).
+        // Bounded: every iteration that does not stop the phase counts in pr.nit, which stops it
+        // at opts.max_iter.
         loop {
-            if let Some(status) = self.active_set_iteration(prob, z, lim, pr, &mut st) {
-                return status;
+            interrupt::check()?;
+            if let Some(status) = self.active_set_iteration(prob, z, lim, pr, &mut st)? {
+                return Ok(status);
             }
         }
     }
 
-    /// One iteration; Some(status) when the phase stops.
+    /// One iteration; Some(status) when the phase stops, Err when an evaluation fails with an
+    /// error that is not numerical.
     fn active_set_iteration<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -132,24 +138,24 @@ impl BoxLsqSolver {
         lim: Limits<'_>,
         pr: &mut Progress,
         st: &mut LmState,
-    ) -> Option<Status> {
+    ) -> Result<Option<Status>> {
         let (nodes, n) = (prob.n_nodes(), prob.node_dim());
         let Limits { lower, upper, opts } = lim;
         let pg = projected_gradient_norm(z, &self.g, lower, upper);
         if pg <= opts.gtol {
-            return Some(Status::GradientTolerance);
+            return Ok(Some(Status::GradientTolerance));
         }
         if pr.nit >= opts.max_iter {
-            return Some(Status::MaxIterations);
+            return Ok(Some(Status::MaxIterations));
         }
         pr.nit += 1;
         self.hold_active(n, z, lower, upper, st.lambda);
         if !self.reduced_step(nodes, n, z, lower, upper) {
-            return st.damp_harder().then_some(Status::NoProgress);
+            return Ok(st.damp_harder().then_some(Status::NoProgress));
         }
         let (clipped, pnorm, znorm) = self.project_step(z, lower, upper);
         if pnorm <= opts.xtol * (opts.xtol + znorm) {
-            return Some(Status::StepTolerance);
+            return Ok(Some(Status::StepTolerance));
         }
         let known_noise = st.noise_est.max(self.noise_at_z);
         let mut pred = model_decrease(
@@ -172,11 +178,11 @@ impl BoxLsqSolver {
         };
         match self.verdict(&cand, opts, pr, st) {
             Verdict::Evaluate => {}
-            Verdict::Retry => return st.damp_harder().then_some(Status::NoProgress),
-            Verdict::Stop(status) => return Some(status),
+            Verdict::Retry => return Ok(st.damp_harder().then_some(Status::NoProgress)),
+            Verdict::Stop(status) => return Ok(Some(status)),
         }
-        match self.judge_trial(prob, lim, pr, st, &cand) {
-            Err(status) => Some(status),
+        match self.judge_trial(prob, lim, pr, st, &cand)? {
+            Err(status) => Ok(Some(status)),
             Ok(t) if t.accept => self.accept(prob, z, lim, pr, st, &t),
             Ok(t) => self.reject(prob, z, lim, pr, st, &t),
         }
@@ -384,7 +390,8 @@ impl BoxLsqSolver {
     }
 
     /// Evaluates the trial point and decides whether to accept it, or Err(status) when repeated
-    /// steps below J's rounding noise stop the phase.
+    /// steps below J's rounding noise stop the phase (the outer Err: the evaluation failed with
+    /// an error that is not numerical).
     ///
     /// Below the rounding noise of J (GP variances are differences of O(σ_f²) numbers) the gain
     /// ratio is meaningless: the step is accepted if it lowers the projected gradient instead,
@@ -396,7 +403,7 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         st: &mut LmState,
         cand: &Candidate,
-    ) -> std::result::Result<Trial, Status> {
+    ) -> Result<std::result::Result<Trial, Status>> {
         let len = self.g.len();
         let Candidate {
             pg,
@@ -406,7 +413,7 @@ impl BoxLsqSolver {
         } = *cand;
         let w = &mut self.work;
         let gp: f64 = (0..len).map(|k| self.g[k] * w.step[k]).sum();
-        let ct = prob.evaluate(&w.trial, true).unwrap_or(f64::INFINITY);
+        let ct = Error::as_trial_cost(prob.evaluate(&w.trial, true))?;
         pr.nfev += 1;
         let rho = (pr.cost - ct) / pred;
         let mut accept = ct.is_finite() && pred > 0.0 && rho > ARMIJO;
@@ -427,18 +434,18 @@ impl BoxLsqSolver {
                 st.noise_failures += 1;
                 if st.noise_failures >= 3 {
                     pr.derivs_at_z = false;
-                    return Err(Status::CostTolerance);
+                    return Ok(Err(Status::CostTolerance));
                 }
             }
         }
-        Ok(Trial {
+        Ok(Ok(Trial {
             ct,
             rho,
             gp,
             pred,
             unmeasurable,
             accept,
-        })
+        }))
     }
 
     /// Moves to the accepted trial point, lowers the damping (fast after a well-predicted step,
@@ -452,7 +459,7 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         st: &mut LmState,
         t: &Trial,
-    ) -> Option<Status> {
+    ) -> Result<Option<Status>> {
         let opts = lim.opts;
         let Trial {
             ct,
@@ -468,7 +475,7 @@ impl BoxLsqSolver {
         st.nu = 2.0;
         if unmeasurable {
             st.lambda /= 3.0;
-            return None;
+            return Ok(None);
         }
         st.lambda = if (0.75..=1.25).contains(&rho) {
             // The model predicted this step well: damping only slows the flat directions
@@ -479,7 +486,7 @@ impl BoxLsqSolver {
             st.lambda * (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0)
         };
         if decrease <= opts.ftol * old {
-            return Some(Status::CostTolerance);
+            return Ok(Some(Status::CostTolerance));
         }
         // Along flat directions the Gauss-Newton model overestimates the curvature (rho ≈ 2,
         // slow linear convergence): try the parabola's minimiser along the step, keep it if it
@@ -489,14 +496,14 @@ impl BoxLsqSolver {
         if gp < 0.0 && !(0.7..=1.5).contains(&a_star) {
             let a = a_star.clamp(0.2, EXTRAP_MAX);
             // z is already z_old + step
-            let c2 = self.evaluate_along_step(prob, z, lim, pr, a - 1.0);
+            let c2 = self.evaluate_along_step(prob, z, lim, pr, a - 1.0)?;
             if c2.is_finite() && c2 < pr.cost {
                 self.take_trial(prob, z, pr, c2);
             } else {
                 pr.derivs_at_z = false;
             }
         }
-        None
+        Ok(None)
     }
 
     /// After a rejected trial point: before damping harder, tries the minimiser of the parabola
@@ -510,7 +517,7 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         st: &mut LmState,
         t: &Trial,
-    ) -> Option<Status> {
+    ) -> Result<Option<Status>> {
         let Trial {
             ct,
             gp,
@@ -524,19 +531,19 @@ impl BoxLsqSolver {
             let a = (-gp / c).clamp(0.05, 0.9);
             let php = -2.0 * (pred + gp); // stepᵀ H step
             let pred2 = -(a * gp + 0.5 * a * a * php);
-            let c2 = self.evaluate_along_step(prob, z, lim, pr, a);
+            let c2 = self.evaluate_along_step(prob, z, lim, pr, a)?;
             if c2.is_finite() && pred2 > 0.0 && pr.cost - c2 > ARMIJO * pred2 {
                 self.take_trial(prob, z, pr, c2);
                 st.noise_failures = 0;
                 st.lambda *= 2.0;
-                return None;
+                return Ok(None);
             }
         }
-        st.damp_harder().then_some(Status::NoProgress)
+        Ok(st.damp_harder().then_some(Status::NoProgress))
     }
 
-    /// J at P(z + a·step) (left in `work.trial`), +∞ if the evaluation fails; the problem's
-    /// derivatives then refer to that point.
+    /// J at P(z + a·step) (left in `work.trial`), +∞ if the evaluation fails numerically (any
+    /// other error is returned); the problem's derivatives then refer to that point.
     fn evaluate_along_step<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -544,15 +551,15 @@ impl BoxLsqSolver {
         lim: Limits<'_>,
         pr: &mut Progress,
         a: f64,
-    ) -> f64 {
+    ) -> Result<f64> {
         let Limits { lower, upper, .. } = lim;
         let w = &mut self.work;
         for k in 0..z.len() {
             w.trial[k] = (z[k] + a * w.step[k]).clamp(lower[k], upper[k]);
         }
-        let c2 = prob.evaluate(&w.trial, true).unwrap_or(f64::INFINITY);
+        let c2 = Error::as_trial_cost(prob.evaluate(&w.trial, true))?;
         pr.nfev += 1;
-        c2
+        Ok(c2)
     }
 
     /// Moves z to `work.trial`, whose cost is `cost` and whose derivatives the problem holds

@@ -17,6 +17,8 @@ use super::box_lsq::{
     finite_lower, finite_upper, Limits, Progress, ARMIJO, EXTRAP_MAX, LAMBDA_MAX, NOISE_PG,
 };
 use super::{BlockLsqProblem, BoxLsqSolver};
+use crate::error::{Error, Result};
+use crate::interrupt;
 
 /// The log-barrier term −μ Σ ln s over the finite bounds of the free variables.
 fn barrier(z: &[f64], lower: &[f64], upper: &[f64], fixed_bound: &[bool], mu: f64) -> f64 {
@@ -98,7 +100,7 @@ impl BoxLsqSolver {
         z: &mut [f64],
         lim: Limits<'_>,
         pr: &mut Progress,
-    ) {
+    ) -> Result<()> {
         let Limits { lower, upper, opts } = lim;
         let mut mu = opts.mu_init;
         let n_bounded = self.init_duals(z, lower, upper, mu);
@@ -108,6 +110,7 @@ impl BoxLsqSolver {
         // barrier phase got to (a window it cannot finish would otherwise end at the cap).
         let budget = pr.nit + opts.max_iter.div_ceil(2);
         while pr.nit < budget.min(opts.max_iter) {
+            interrupt::check()?;
             if self.barrier_converged(z, lower, upper, mu, n_bounded) {
                 if mu <= opts.mu_final {
                     break;
@@ -125,7 +128,7 @@ impl BoxLsqSolver {
             }
             let mut limits = self.step_limits(z, lower, upper, mu);
             limits.phi0 = pr.cost + barrier(z, lower, upper, &self.fixed_bound, mu);
-            let Some(mut acc) = self.line_search(prob, z, lim, pr, &limits) else {
+            let Some(mut acc) = self.line_search(prob, z, lim, pr, &limits)? else {
                 // g and the blocks still hold the derivatives at z: damp harder and retry, but
                 // leave the rest to the active-set phase after repeated failures.
                 lambda = (10.0 * lambda).max(1e-8);
@@ -136,7 +139,7 @@ impl BoxLsqSolver {
                 continue;
             };
             if acc.have_derivs && acc.alpha == 1.0 {
-                self.extrapolate(prob, z, lim, pr, &limits, &mut acc);
+                self.extrapolate(prob, z, lim, pr, &limits, &mut acc)?;
             }
             failures = 0;
             z.copy_from_slice(&self.work.trial);
@@ -145,8 +148,8 @@ impl BoxLsqSolver {
             if acc.have_derivs {
                 pr.derivs_at_z = true;
             } else {
-                match prob.evaluate(z, true) {
-                    Ok(c) if c.is_finite() => {
+                match Error::as_trial_cost(prob.evaluate(z, true))? {
+                    c if c.is_finite() => {
                         pr.nfev += 1;
                         pr.cost = c;
                         pr.derivs_at_z = true;
@@ -160,15 +163,20 @@ impl BoxLsqSolver {
             }
         }
         if !pr.derivs_at_z {
-            if let Ok(c) = prob.evaluate(z, true) {
-                pr.nfev += 1;
-                if c.is_finite() {
-                    pr.cost = c;
-                    pr.derivs_at_z = true;
-                    self.take_derivatives(prob);
+            match prob.evaluate(z, true) {
+                Ok(c) => {
+                    pr.nfev += 1;
+                    if c.is_finite() {
+                        pr.cost = c;
+                        pr.derivs_at_z = true;
+                        self.take_derivatives(prob);
+                    }
                 }
+                Err(Error::Numerical(_)) => {}
+                Err(e) => return Err(e),
             }
         }
+        Ok(())
     }
 
     /// Holds the fixed variables, sets the multipliers to μ / s (on the central path) and returns
@@ -324,7 +332,8 @@ impl BoxLsqSolver {
     }
 
     /// Armijo backtracking on φ_μ = J − μ Σ ln s from the largest step inside the box; the
-    /// accepted point is left in `work.trial`. None after 12 halvings.
+    /// accepted point is left in `work.trial`. None after 12 halvings; Err if an evaluation fails
+    /// with an error that is not numerical.
     fn line_search<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -332,7 +341,7 @@ impl BoxLsqSolver {
         lim: Limits<'_>,
         pr: &mut Progress,
         limits: &StepLimits,
-    ) -> Option<Accepted> {
+    ) -> Result<Option<Accepted>> {
         let Limits { lower, upper, .. } = lim;
         let StepLimits { mu, phi0, dphi, .. } = *limits;
         let w = &mut self.work;
@@ -341,21 +350,21 @@ impl BoxLsqSolver {
             for k in 0..z.len() {
                 w.trial[k] = z[k] + alpha * w.step[k];
             }
-            let ct = prob.evaluate(&w.trial, ls == 0).unwrap_or(f64::INFINITY);
+            let ct = Error::as_trial_cost(prob.evaluate(&w.trial, ls == 0))?;
             pr.nfev += 1;
             pr.derivs_at_z = false;
             let phit = ct + barrier(&w.trial, lower, upper, &self.fixed_bound, mu);
             if phit.is_finite() && phit <= phi0 + ARMIJO * alpha * dphi.min(0.0) {
-                return Some(Accepted {
+                return Ok(Some(Accepted {
                     ct,
                     phit,
                     alpha,
                     have_derivs: ls == 0,
-                });
+                }));
             }
             alpha *= 0.5;
         }
-        None
+        Ok(None)
     }
 
     /// After a full step: Gauss-Newton underestimates the step along flat directions (rho ≈ 2),
@@ -369,7 +378,7 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         limits: &StepLimits,
         acc: &mut Accepted,
-    ) {
+    ) -> Result<()> {
         let Limits { lower, upper, .. } = lim;
         let StepLimits { mu, phi0, dphi, .. } = *limits;
         let c = 2.0 * (acc.phit - phi0 - dphi);
@@ -380,7 +389,7 @@ impl BoxLsqSolver {
             for k in 0..z.len() {
                 w.hp[k] = z[k] + a * w.step[k];
             }
-            let c2 = prob.evaluate(&w.hp, true).unwrap_or(f64::INFINITY);
+            let c2 = Error::as_trial_cost(prob.evaluate(&w.hp, true))?;
             pr.nfev += 1;
             let phi2 = c2 + barrier(&w.hp, lower, upper, &self.fixed_bound, mu);
             if phi2.is_finite() && phi2 < acc.phit {
@@ -390,6 +399,7 @@ impl BoxLsqSolver {
                 acc.have_derivs = false;
             }
         }
+        Ok(())
     }
 
     /// The dual step of length `a_d`, each multiplier kept within a factor KAPPA_SIGMA of the

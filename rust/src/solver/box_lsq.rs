@@ -224,7 +224,10 @@ impl BoxLsqSolver {
     /// Minimises J(z) over lower ≤ z ≤ upper starting from `z` (a warm start; projected onto the
     /// box first) and writes the best point found into `z`. Bounds may be ±∞ and lower == upper
     /// fixes a variable. The returned cost is never above the cost at the projected start.
-    /// Errors only on invalid input or when J is not finite at the start; afterwards z is always finite and the problem's derivatives refer to the returned z.
+    /// Errors only on invalid input, when J is not finite at the start, or when an evaluation
+    /// fails with an error that is not numerical (bad model output, an interrupt: z is then
+    /// unspecified); otherwise z is always finite and the problem's derivatives refer to the
+    /// returned z. A numerical failure at a trial point only rejects that point.
     pub fn solve<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -256,7 +259,7 @@ impl BoxLsqSolver {
         self.start(prob, z, &mut pr)?;
         let status;
         if !run_interior {
-            status = self.active_set_phase(prob, z, lim, &mut pr);
+            status = self.active_set_phase(prob, z, lim, &mut pr)?;
         } else {
             // The barrier phase is not monotone in J: keep the (projected) start and its cost,
             // and fall back to the active-set phase from there if the result costs more.
@@ -268,7 +271,7 @@ impl BoxLsqSolver {
             if pr.cost > cost0 {
                 z.copy_from_slice(&self.z0);
                 self.start(prob, z, &mut pr)?;
-                status = self.active_set_phase(prob, z, lim, &mut pr);
+                status = self.active_set_phase(prob, z, lim, &mut pr)?;
             } else {
                 status = status_i;
             }
@@ -338,8 +341,8 @@ impl BoxLsqSolver {
     ) -> Result<Status> {
         self.push_inside(z, lim.lower, lim.upper);
         self.start(prob, z, pr)?;
-        self.interior_phase(prob, z, lim, pr);
-        Ok(self.active_set_phase(prob, z, lim, pr))
+        self.interior_phase(prob, z, lim, pr)?;
+        self.active_set_phase(prob, z, lim, pr)
     }
 
     pub(super) fn start<P: BlockLsqProblem + ?Sized>(
@@ -579,6 +582,69 @@ mod tests {
             .unwrap();
         assert!(z.iter().all(|v| v.is_finite()) && rep.cost.is_finite());
         assert!(z[0] <= 0.7);
+    }
+
+    /// `Synthetic` whose k-th evaluation (1-based) fails with `err`.
+    struct FailsAt {
+        p: Synthetic,
+        k: usize,
+        calls: usize,
+        err: Error,
+    }
+
+    impl BlockLsqProblem for FailsAt {
+        fn n_nodes(&self) -> usize {
+            self.p.n_nodes()
+        }
+        fn node_dim(&self) -> usize {
+            self.p.node_dim()
+        }
+        fn evaluate(&mut self, z: &[f64], want_derivatives: bool) -> Result<f64> {
+            self.calls += 1;
+            if self.calls == self.k {
+                return Err(self.err.clone());
+            }
+            self.p.evaluate(z, want_derivatives)
+        }
+        fn gradient_into(&self, g: &mut [f64]) {
+            self.p.gradient_into(g)
+        }
+        fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
+            self.p.gauss_newton_blocks_into(diag, off)
+        }
+    }
+
+    #[test]
+    fn only_numerical_failures_at_trial_points_are_survived_other_errors_stop_the_solve() {
+        let (nodes, n) = (5, 2);
+        let lo = vec![0.05; nodes * n]; // the start lies near the bound: both phases run
+        let hi = vec![f64::INFINITY; nodes * n];
+        let solve = |k: usize, err: Error| {
+            let p = Synthetic::new(nodes, n, 21);
+            let mut prob = FailsAt {
+                p,
+                k,
+                calls: 0,
+                err,
+            };
+            let mut z = vec![0.06; nodes * n];
+            let r = BoxLsqSolver::new().solve(&mut prob, &mut z, &lo, &hi, &strict());
+            (r, prob.calls)
+        };
+        let (clean, total) = solve(0, Error::numerical("never"));
+        assert!(clean.is_ok() && total > 4, "{total}");
+        for k in 2..=total {
+            let (r, _) = solve(k, Error::numerical("nan at a trial point"));
+            assert!(r.is_ok(), "numerical failure at evaluation {k}: {r:?}");
+            for err in [
+                Error::interrupted("ctrl-c"),
+                Error::invalid("model", "bad output"),
+            ] {
+                let (r, calls) = solve(k, err.clone());
+                assert_eq!(r.unwrap_err(), err, "evaluation {k}");
+                assert_eq!(calls, k, "the solve stops at the failing evaluation");
+            }
+        }
     }
 
     #[test]
