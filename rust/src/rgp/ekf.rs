@@ -43,8 +43,10 @@ pub struct RgpEkf {
     j_offsets: Vec<usize>,
     /// Variance of the GP noise input per disturbance, the diagonal of the term in (12).
     dvar: Vec<f64>,
-    /// μ_z^p per disturbance.
+    /// μ_z^p per disturbance, of the last [`Self::infer`] (staged for [`Self::predict`]).
     mu_zp: Vec<f64>,
+    /// μ_z^p of the last completed [`Self::predict`] (a failed step leaves it unchanged).
+    z_pred: Vec<f64>,
     inferred: bool,
     /// Scratch: Ã's top rows times C (n × N, row-major); J C_z (q × N, row-major); T J
     /// (n × q, row-major); C H̃ᵀ, then W (N × p, column-major).
@@ -127,6 +129,7 @@ impl RgpEkf {
             j_offsets,
             dvar: vec![0.0; q],
             mu_zp: vec![0.0; q],
+            z_pred: vec![0.0; q],
             inferred: false,
             t: vec![0.0; n * nt],
             jc: vec![0.0; q * nt],
@@ -199,8 +202,13 @@ impl RgpEkf {
         Ok(())
     }
 
-    /// μ_z^p of the last [`Self::infer`] (one per disturbance).
+    /// μ_z^p of the last completed [`Self::predict`] (one per disturbance).
     pub fn z_pred(&self) -> &[f64] {
+        &self.z_pred
+    }
+
+    /// μ_z^p of the last [`Self::infer`], which the next [`Self::predict`] uses.
+    pub fn inferred_z(&self) -> &[f64] {
         &self.mu_zp
     }
 
@@ -414,6 +422,7 @@ impl RgpEkf {
             self.predicted_weight_blocks();
         }
         self.mu[..n].copy_from_slice(x_pred);
+        self.z_pred.copy_from_slice(&self.mu_zp);
         self.inferred = false;
         Ok(())
     }
