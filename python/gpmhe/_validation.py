@@ -48,10 +48,19 @@ class MagnitudeError(ValueError, NumericalError):
     it."""
 
 
+def _within(a: np.ndarray) -> bool:
+    """Whether every value of the float64 array ``a`` is of magnitude <= MAX_ABS (NaN is not):
+    a Python loop for the few values of a per-step input (cheaper than numpy's reductions
+    there), one reduction otherwise."""
+    if a.size <= 16:
+        return all(-MAX_ABS <= v <= MAX_ABS for v in a.ravel().tolist())
+    return bool(np.abs(a).max() <= MAX_ABS)
+
+
 def _check_values(name: str, a: np.ndarray) -> None:
     """Raise ValueError naming ``name`` unless every value of ``a`` is finite and of magnitude
-    <= MAX_ABS (one reduction for valid input: NaN fails the comparison)."""
-    if a.size and not np.abs(a).max() <= MAX_ABS:
+    <= MAX_ABS."""
+    if not _within(a):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name}: contains NaN or inf")
         raise MagnitudeError(f"{name}: contains a value of magnitude > {MAX_ABS:g} (its square overflows)")
@@ -81,7 +90,7 @@ def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np
             a = np.asarray(value, dtype=np.float64).reshape(-1)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
-        if a.shape == (n,) and (n == 0 or np.abs(a).max() <= MAX_ABS):
+        if a.shape == (n,) and _within(a):
             return a
         a = float_array(name, a)  # the NaN/inf message
     else:

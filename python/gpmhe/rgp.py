@@ -885,7 +885,10 @@ class RGPEKF:
         """
         # One core call: it evaluates h (and H if callable) at the predicted state x⁻ (or
         # whatever was assigned to x since), forms ν = y − h(x⁻) and updates.
-        y = float_array("y", y).reshape(-1)
+        if self.dim_y is None:
+            y = float_array("y", y).reshape(-1)
+        else:
+            y = finite_vector("y", y, self.dim_y, flatten=True)
         self._core.update_step(
             y, self.h, self._H_fn, self.R_x, self.dim_y, self.learning and not self.pure_prediction
         )
