@@ -21,6 +21,7 @@ __all__ = [
     "MAX_ABS",
     "MAX_COUNT",
     "MagnitudeError",
+    "within_limits",
     "float_array",
     "finite_vector",
     "positive",
@@ -48,7 +49,7 @@ class MagnitudeError(ValueError, NumericalError):
     it."""
 
 
-def _within(a: np.ndarray) -> bool:
+def within_limits(a: np.ndarray) -> bool:
     """Whether every value of the float64 array ``a`` is of magnitude <= MAX_ABS (NaN is not):
     a Python loop for the few values of a per-step input (cheaper than numpy's reductions
     there), one reduction otherwise."""
@@ -60,7 +61,7 @@ def _within(a: np.ndarray) -> bool:
 def _check_values(name: str, a: np.ndarray) -> None:
     """Raise ValueError naming ``name`` unless every value of ``a`` is finite and of magnitude
     <= MAX_ABS."""
-    if not _within(a):
+    if not within_limits(a):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name}: contains NaN or inf")
         raise MagnitudeError(f"{name}: contains a value of magnitude > {MAX_ABS:g} (its square overflows)")
@@ -90,7 +91,7 @@ def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np
             a = np.asarray(value, dtype=np.float64).reshape(-1)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
-        if a.shape == (n,) and _within(a):
+        if a.shape == (n,) and within_limits(a):
             return a
         a = float_array(name, a)  # the NaN/inf message
     else:

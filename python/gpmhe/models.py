@@ -12,7 +12,16 @@ from __future__ import annotations
 import numpy as np
 
 from gpmhe import _core
-from gpmhe._validation import boolean, finite_vector, float_array, integer, points, positive_scalar
+from gpmhe._validation import (
+    MAX_ABS,
+    boolean,
+    finite_vector,
+    float_array,
+    integer,
+    points,
+    positive_scalar,
+    within_limits,
+)
 
 __all__ = ["KnownModel", "LearnedModel"]
 
@@ -256,8 +265,8 @@ class KnownModel(_SharedOnCopy):
             v = self._call_batch(self.f, x[None, :], u[None, :], self.dim_x, "f")[0]
         else:
             v = self._call(self.f, x, u, self.dim_x, "f")
-        if not np.all(np.isfinite(v)):
-            raise ValueError("f: returned NaN or inf")
+        if not within_limits(v):
+            raise ValueError(f"f: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         return v
 
     def stage_eval(self, d):
@@ -319,8 +328,8 @@ class KnownModel(_SharedOnCopy):
         for a, name in ((mx, "f"), (my, "h"),
                         (jx, "f_jacobian" if self.f_jacobian is not None else "f" + fd),
                         (jy, "h_jacobian" if self.h_jacobian is not None else "h" + fd)):
-            if not np.isfinite(a).all():
-                raise ValueError(f"{name}: returned NaN or inf")
+            if not within_limits(a):
+                raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         if m:
             dmx, dmy = np.zeros((k, n, nd)), np.zeros((k, p, nd))
             dmx[:, :, :n], dmy[:, :, :n] = jx, jy

@@ -7,7 +7,7 @@ use faer::{Accum, Mat, MatRef, Par};
 
 use super::dense::{cholesky, quad_form, rank_p_downdate, symmetric_from_lower};
 use super::{Rgp, RgpBasis};
-use crate::error::{check_finite, check_len, Error, Result};
+use crate::error::{check_finite, check_len, check_magnitude, Error, Result};
 use crate::linalg::{add4, axpy, dot4, dot_lanes8, symv_column};
 
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
@@ -446,9 +446,9 @@ impl RgpEkf {
         check_len("A", a, n * n)?;
         check_len("e", e, n * q)?;
         check_len("Q_x", q_x, n * n)?;
-        check_finite("f(x, u, z)", x_pred)?;
-        check_finite("A", a)?;
-        check_finite("e", e)?;
+        check_magnitude("f(x, u, z)", x_pred)?;
+        check_magnitude("A", a)?;
+        check_magnitude("e", e)?;
         check_finite("Q_x", q_x)?;
         Ok(())
     }
@@ -608,9 +608,9 @@ impl RgpEkf {
         if p == 0 {
             return Err(Error::invalid("y", "needs at least one output"));
         }
-        check_finite("y - h(x)", nu)?;
+        check_magnitude("y - h(x)", nu)?;
         check_len("H", h, p * n)?;
-        check_finite("H", h)?;
+        check_magnitude("H", h)?;
         check_len("R_x", r, p * p)?;
         check_finite("R_x", r)?;
         if self.pht.len() != nt * p {
