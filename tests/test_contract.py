@@ -37,7 +37,7 @@ from gpmhe import (
 )
 from gpmhe.baselines import GPEKF, ExactEKF
 
-SETTINGS = settings(max_examples=40, deadline=None, derandomize=True, database=None,
+SETTINGS = settings(max_examples=100, deadline=None, derandomize=True, database=None,
                     suppress_health_check=list(HealthCheck))
 
 # ----------------------------------------------------------------------------- hostile values
@@ -593,3 +593,38 @@ def test_extreme_scales_of_known_model_stay_finite():
         xs, Ps = mhe.batch_filter([[1e9], None, [-1e9], [0.0]] * 3)
     _finite(xs, Ps)
     assert math.isfinite(mhe.cost)
+
+
+def test_diverging_models_raise_instead_of_overflowing():
+    """A model that drives the state beyond 1e150 raises ValueError (its square would overflow)
+    with the estimator unchanged, instead of leaving inf in x or P."""
+    ekf = RGPEKF(**{**RGPEKF_KW, "f": lambda x, u, z: 2.0 * x + z, "A": 2.0 * np.eye(2)})
+    with pytest.raises(ValueError, match="f"):
+        for _ in range(1000):
+            before = snapshot(ekf)
+            ekf.predict(None, 0.3)
+            _finite(ekf.x, ekf.P)
+    assert_same(snapshot(ekf), before)
+    model = KnownModel(lambda x, u: 1e100 * x, lambda x, u: x, dim_x=1, dim_y=1)
+    mhe = GPMHE(model, x0=[1.0], horizon=3)
+    with pytest.raises(ValueError, match="f"):
+        for _ in range(5):
+            before = snapshot(mhe)
+            mhe.update(None, [1.0])
+    assert_same(snapshot(mhe), before)
+
+
+@pytest.mark.parametrize("sigma_f, lengthscale, sigma_eps",
+                         [(1e-3, 1e-3, 1e-5), (1e3, 1e-3, 1e-5), (1e-3, 1e3, 1e2), (1e3, 1e3, 1e2)])
+def test_mhe_on_gps_at_their_hyperparameter_bounds_stays_finite(sigma_f, lengthscale, sigma_eps):
+    rng = np.random.default_rng(3)
+    D = rng.uniform(-1.5, 1.5, size=(15, 3))
+    opts = dict(sigma_f=sigma_f, lengthscales=lengthscale, sigma_eps=sigma_eps, optimizer=None)
+    model = LearnedModel(MultiOutputGP(**opts).fit(D, 0.9 * D[:, :2]), MultiOutputGP(**opts).fit(D, D[:, :2]),
+                         dim_u=1)
+    mhe = GPMHE(**{**MHE_KW, "model": model})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for t in range(8):
+            mhe.update([0.1], None if t % 3 == 0 else [0.3, 1e6 if t == 4 else 0.2])
+            _finite(mhe.x, mhe.P, mhe.cost)
