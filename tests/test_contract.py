@@ -204,6 +204,27 @@ RGPEKF_KW = dict(dim_x=2, f=_rf, A=[[0.9, 0.0], [0.1, 0.8]], e=[[1.0], [0.0]], h
                  gps=RecursiveGP(0.0, 1.0, 5), learning=True, pure_prediction=False)
 
 
+def _rf2(x, u, z):
+    return np.array([0.9 * x[0] + z[0], 0.8 * x[1] + z[1]])
+
+
+RGPEKF2_KW = {**RGPEKF_KW, "f": _rf2, "e": np.eye(2),
+              "gps": [RecursiveGP(0.0, 1.0, 5), RecursiveGP([0.0, 0.0], [1.0, 1.0], [3, 3])]}
+
+
+def make_rgpekf2():
+    ekf = RGPEKF(**RGPEKF2_KW)
+    ekf.predict(None, [0.3, [0.5, 0.5]])
+    ekf.update([0.5])
+    return ekf
+
+
+def _rgpekf2_next(ekf):
+    ekf.predict(None, [0.6, [0.1, 0.9]])
+    ekf.update([0.4])
+    return ekf.x, ekf.P, ekf.z_pred, ekf.mu, ekf.C
+
+
 def make_rgpekf():
     ekf = RGPEKF(**RGPEKF_KW)
     ekf.predict(None, 0.3)
@@ -387,6 +408,10 @@ case("RGPEKF", None, _ctor(RGPEKF), RGPEKF_KW,
      generic=dict(learning=False, pure_prediction=False))
 case("RGPEKF.predict", make_rgpekf, _method("predict"), dict(u=None, zeta=0.5),
      dict(zeta=[[0.5, 0.5]]), _rgpekf_next)
+case("RGPEKF[2 GPs].predict", make_rgpekf2, _method("predict"), dict(u=None, zeta=[0.3, [0.2, 0.5]]),
+     dict(zeta=[[0.3], [0.3, [0.2]], [0.3, [0.2, np.nan]], [np.nan, [0.2, 0.5]], [0.3, [0.2, 1e200]],
+                [0.3, [0.2, 0.5], [1.0]], [0.3, "ab"], (0.3, None), np.ones(3)]),
+     _rgpekf2_next, numeric=dict(zeta=False), allow=dict(zeta=[[[1.0], [2.0, 3.0]]]))
 case("RGPEKF.update", make_rgpekf, _method("update"), dict(y=[0.4]), dict(y=[[0.4, 0.1]]),
      _rgpekf_next)
 case("RGPEKF.gp_predict", make_rgpekf, _method("gp_predict"), dict(zeta=[0.5], index=0, return_std=True),

@@ -49,6 +49,13 @@ class MagnitudeError(ValueError, NumericalError):
     it."""
 
 
+def _not_numbers(name: str, value: Any) -> str:
+    """The message for a value that is not a number or an array of numbers (of one shape)."""
+    text = repr(value)
+    text = text if len(text) <= 60 else text[:57] + "..."
+    return f"{name}: must be a number or an array of numbers (all rows of one length), got {text}"
+
+
 def within_limits(a: np.ndarray) -> bool:
     """Whether every value of the float64 array ``a`` is of magnitude <= MAX_ABS (NaN is not):
     a Python loop for the few values of a per-step input (cheaper than numpy's reductions
@@ -74,8 +81,8 @@ def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool
     """
     try:
         a = np.array(value, dtype=np.float64, order="C") if copy else np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+    except (TypeError, ValueError):
+        raise ValueError(_not_numbers(name, value)) from None
     if ndim is not None and a.ndim != ndim:
         raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
     _check_values(name, a)
@@ -89,8 +96,8 @@ def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np
     if flatten:
         try:
             a = np.asarray(value, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+        except (TypeError, ValueError):
+            raise ValueError(_not_numbers(name, value)) from None
         if a.shape == (n,) and within_limits(a):
             return a
         a = float_array(name, a)  # the NaN/inf message
@@ -215,8 +222,8 @@ def points(name: str, value: Any, nd: int, *, one_point: bool = False) -> np.nda
     if not (type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous):
         try:
             a = np.ascontiguousarray(a, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+        except (TypeError, ValueError):
+            raise ValueError(_not_numbers(name, value)) from None
     if one_point and a.ndim == 1:
         a = a.reshape(1, -1)
     if a.ndim != 2 or a.shape[1] != nd:

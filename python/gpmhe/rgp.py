@@ -794,25 +794,22 @@ class RGPEKF:
 
     # -- filter steps --------------------------------------------------------------------------
     def _zeta(self, zeta: Any) -> np.ndarray:
-        # Finiteness is checked in Rust (the error names zeta); only shapes are checked here.
+        # The values are checked here (finite, magnitude <= MAX_ABS), the Rust core checks again.
         if zeta is None:
             raise ValueError("zeta: the GP input is required")
         if (self._scalar_zeta and isinstance(zeta, (float, int, np.floating, np.integer))
                 and not isinstance(zeta, bool) and abs(zeta) <= MAX_ABS):
             self._zbuf[0] = zeta
             return self._zbuf
-        try:
-            if self.dim_z == 1:
-                z = np.asarray(zeta, dtype=np.float64).reshape(-1)
-            else:
-                if len(zeta) != self.dim_z:
-                    raise ValueError(f"expected one input per GP ({self.dim_z}), got {len(zeta)}")
-                z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in zeta])
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"zeta: {err}") from None
+        if self.dim_z == 1:
+            z = float_array("zeta", zeta).reshape(-1)
+        else:
+            if not isinstance(zeta, (list, tuple, np.ndarray)) or len(zeta) != self.dim_z:
+                raise ValueError(f"zeta: expected a sequence of one input per GP ({self.dim_z}), got {zeta!r}")
+            z = np.concatenate([float_array(f"zeta[{i}]", v).reshape(-1) for i, v in enumerate(zeta)])
         if z.size != self._zeta_total:
             raise ValueError(f"zeta: expected {self._zeta_total} value(s) in total, got {z.size}")
-        return float_array("zeta", z)
+        return np.ascontiguousarray(z)
 
     def predict(self, u: Any = None, zeta: Any = None) -> None:
         """Predict the state and the augmented covariance one step ahead.
