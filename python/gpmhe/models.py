@@ -249,7 +249,8 @@ class KnownModel(_SharedOnCopy):
         Raises
         ------
         ValueError
-            If f returns the wrong shape, NaN or inf.
+            If x or u is not a finite vector of dim_x or dim_u values (u missing when dim_u > 0),
+            or f returns the wrong shape, NaN, inf or a value of magnitude > 1e150.
 
         Examples
         --------
@@ -585,6 +586,11 @@ class LearnedModel(_SharedOnCopy):
         -------
         ndarray of shape (dim_x,)
             The f-GPs' posterior mean (plus x with ``f_residual``).
+
+        Raises
+        ------
+        ValueError
+            If x or u is not a finite vector of dim_x or dim_u values (u missing when dim_u > 0).
 
         Examples
         --------
