@@ -116,7 +116,7 @@ def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:
     except (TypeError, ValueError):
         raise ValueError(f"{name}: must be a positive number or array of them") from None
     if not np.all(np.isfinite(a)) or np.any(a < 0 if allow_zero else a <= 0) or np.any(a > MAX_ABS):
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
     return a
 
 
@@ -129,7 +129,7 @@ def positive_scalar(name: str, value: Any, *, allow_zero: bool = False) -> float
     except (TypeError, ValueError):
         raise ValueError(f"{name}: must be a number, got {value!r}") from None
     if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0) and v <= MAX_ABS):
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
     return v
 
 
