@@ -15,7 +15,13 @@ from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
+from gpmhe._core import NumericalError
+
 __all__ = [
+    "MAX_ABS",
+    "MAX_COUNT",
+    "MagnitudeError",
+    "within_limits",
     "float_array",
     "finite_vector",
     "positive",
@@ -27,7 +33,45 @@ __all__ = [
     "positive_diagonal",
     "points",
     "training_set",
+    "boolean",
+    "random_state",
+    "options",
 ]
+
+#: The largest magnitude accepted in a numeric argument: beyond it squares (variances, distances,
+#: costs) overflow float64 (whose largest square root is about 1.3e154).
+MAX_ABS = 1e150
+
+
+class MagnitudeError(ValueError, NumericalError):
+    """A value too large for float64 arithmetic (magnitude > MAX_ABS): bad input and a numerical
+    failure at once, so either ``except ValueError`` or ``except gpmhe.NumericalError`` catches
+    it."""
+
+
+def _not_numbers(name: str, value: Any) -> str:
+    """The message for a value that is not a number or an array of numbers (of one shape)."""
+    text = repr(value)
+    text = text if len(text) <= 60 else text[:57] + "..."
+    return f"{name}: must be a number or an array of numbers (all rows of one length), got {text}"
+
+
+def within_limits(a: np.ndarray) -> bool:
+    """Whether every value of the float64 array ``a`` is of magnitude <= MAX_ABS (NaN is not):
+    a Python loop for the few values of a per-step input (cheaper than numpy's reductions
+    there), one reduction otherwise."""
+    if a.size <= 16:
+        return all(-MAX_ABS <= v <= MAX_ABS for v in a.ravel().tolist())
+    return bool(np.abs(a).max() <= MAX_ABS)
+
+
+def _check_values(name: str, a: np.ndarray) -> None:
+    """Raise ValueError naming ``name`` unless every value of ``a`` is finite and of magnitude
+    <= MAX_ABS."""
+    if not within_limits(a):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name}: contains NaN or inf")
+        raise MagnitudeError(f"{name}: contains a value of magnitude > {MAX_ABS:g} (its square overflows)")
 
 
 def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool = False) -> np.ndarray:
@@ -37,12 +81,11 @@ def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool
     """
     try:
         a = np.array(value, dtype=np.float64, order="C") if copy else np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+    except (TypeError, ValueError):
+        raise ValueError(_not_numbers(name, value)) from None
     if ndim is not None and a.ndim != ndim:
         raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains NaN or inf")
+    _check_values(name, a)
     return a if a.flags.c_contiguous else np.ascontiguousarray(a)  # (ascontiguousarray makes 0-D 1-D)
 
 
@@ -53,9 +96,9 @@ def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np
     if flatten:
         try:
             a = np.asarray(value, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
-        if a.shape == (n,) and np.isfinite(a).all():
+        except (TypeError, ValueError):
+            raise ValueError(_not_numbers(name, value)) from None
+        if a.shape == (n,) and within_limits(a):
             return a
         a = float_array(name, a)  # the NaN/inf message
     else:
@@ -72,8 +115,8 @@ def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: must be a positive number or array of them") from None
-    if not np.all(np.isfinite(a)) or np.any(a < 0 if allow_zero else a <= 0):
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    if not np.all(np.isfinite(a)) or np.any(a < 0 if allow_zero else a <= 0) or np.any(a > MAX_ABS):
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
     return a
 
 
@@ -85,15 +128,23 @@ def positive_scalar(name: str, value: Any, *, allow_zero: bool = False) -> float
         v = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0)):
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'}, got {value!r}")
+    if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0) and v <= MAX_ABS):
+        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
     return v
 
 
-def integer(name: str, value: Any, low: int = 0) -> int:
-    """An integer >= ``low`` (Python or numpy int; bool and float are refused) as a Python int."""
+#: The largest count (dimension, number of points or iterations) accepted: the Rust core's
+#: sizes are machine integers.
+MAX_COUNT = 2**31 - 1
+
+
+def integer(name: str, value: Any, low: int = 0, high: int = MAX_COUNT) -> int:
+    """An integer in [low, high] (Python or numpy int; bool and float are refused) as a Python
+    int."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
         raise ValueError(f"{name}: must be an integer >= {low}, got {value!r}")
+    if value > high:
+        raise ValueError(f"{name}: must be an integer <= {high}, got {value!r}")
     return int(value)
 
 
@@ -164,30 +215,27 @@ def positive_diagonal(name: str, value: Any, n: int, *, allow_full: bool = True)
     return diag
 
 
-def points(name: str, value: Any, nd: int, *, one_point: bool = False, check_finite: bool = True) -> np.ndarray:
-    """Points as a C-contiguous float64 (k, nd) array; with ``one_point`` a 1-D value is one point.
-
-    ``check_finite=False`` leaves the NaN/inf scan to a caller that scans the array anyway (the
-    Rust core's predictions do, naming the same argument): one-point predictions stay cheap.
-    """
+def points(name: str, value: Any, nd: int, *, one_point: bool = False) -> np.ndarray:
+    """Points as a C-contiguous float64 (k, nd) array of finite values of magnitude <= MAX_ABS;
+    with ``one_point`` a 1-D value is one point."""
     a = value
     if not (type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous):
         try:
             a = np.ascontiguousarray(a, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name}: cannot be converted to a float64 array ({exc})") from None
+        except (TypeError, ValueError):
+            raise ValueError(_not_numbers(name, value)) from None
     if one_point and a.ndim == 1:
         a = a.reshape(1, -1)
     if a.ndim != 2 or a.shape[1] != nd:
         raise ValueError(f"{name}: expected shape (k, {nd}), got {a.shape}")
-    if check_finite and not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: contains NaN or inf")
+    _check_values(name, a)
     return a
 
 
 def training_set(D: Any, y: Any, y_ndim: int) -> Tuple[np.ndarray, np.ndarray]:
     """Training inputs D (N, n_d), N >= 2, n_d >= 1, and targets y, (N,) or (N, q) by ``y_ndim``,
-    as finite C-contiguous float64 arrays of their own (a model can keep them); errors name D or y."""
+    as finite C-contiguous float64 arrays of their own (a model can keep them); errors name D or y
+    (MultiOutputGP's Y too: the targets are y throughout the documentation)."""
     D = float_array("D", D, 2, copy=True)
     y = float_array("y", y, y_ndim, copy=True)
     n = D.shape[0]
@@ -200,3 +248,53 @@ def training_set(D: Any, y: Any, y_ndim: int) -> Tuple[np.ndarray, np.ndarray]:
     if y_ndim == 2 and y.shape[1] < 1:
         raise ValueError("y: needs at least one output column")
     return D, y
+
+
+def boolean(name: str, value: Any) -> bool:
+    """True or False (a Python or numpy bool; other values, 0 and 1 included, are refused)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name}: must be True or False, got {value!r}")
+    return bool(value)
+
+
+def random_state(name: str, value: Any) -> Any:
+    """A seed `numpy.random.default_rng` accepts (None, an int >= 0, a sequence of them, a
+    SeedSequence, BitGenerator or Generator), returned as given."""
+    if isinstance(value, (bool, float, str, bytes)):
+        raise ValueError(f"{name}: must be None, an integer >= 0 or a numpy Generator, got {value!r}")
+    try:
+        np.random.default_rng(value)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"{name}: must be None, an integer >= 0 or a numpy Generator ({exc})") from None
+    return value
+
+
+def options(name: str, value: Any, spec: dict) -> dict:
+    """A dict of keyword options (None is empty) whose keys are in ``spec``, as a new dict.
+
+    ``spec`` maps each accepted key to the check of its value: "count" (an integer >= 1, or None
+    with "count?"), "tol" (a finite number >= 0, at most MAX_ABS), "positive" (> 0), a tuple of
+    allowed values, or None (any value: checked by the function it is passed to). Errors name
+    ``name`` and the key ("solver_options: max_iter: must be an integer >= 1, got -1").
+    """
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ValueError(f"{name}: must be a dict or None, got {type(value).__name__}")
+    out = {}
+    for key, v in value.items():
+        if key not in spec:
+            known = ", ".join(sorted(spec))
+            raise ValueError(f"{name}: unknown option {key!r} (accepted: {known})")
+        kind = spec[key]
+        try:
+            if kind == "count" or (kind == "count?" and v is not None):
+                v = integer(str(key), v, low=1)
+            elif kind in ("tol", "positive"):
+                v = positive_scalar(str(key), v, allow_zero=kind == "tol")
+            elif isinstance(kind, tuple):
+                v = one_of(str(key), v, kind)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
+        out[key] = v
+    return out

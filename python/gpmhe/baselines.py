@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from gpmhe._validation import float_array
+from gpmhe._validation import finite_vector, float_array, symmetric_matrix
 
 __all__ = ["ExactEKF", "GPEKF"]
 
@@ -122,6 +122,7 @@ def ExactEKF(f, f_jacobian, h, h_jacobian, x0, P0, Q, R):
                 lambda x: np.asarray(h(x.ravel()), dtype=float).reshape(-1, 1), R=R,
                 args=args, hx_args=hx_args, residual=residual)
 
+    _callables(f=f, f_jacobian=f_jacobian, h=h, h_jacobian=h_jacobian)
     x0, P0, Q, R = _initial_values(x0, P0, Q, R)
     ekf = _ExactEKF(dim_x=x0.size, dim_z=R.shape[0])
     ekf.x, ekf.P, ekf.Q, ekf.R = x0.reshape(-1, 1), P0, Q, R
@@ -184,6 +185,8 @@ def GPEKF(model, x0, P0, Q, R):
     >>> print(np.round(ekf.x.ravel(), 1), np.round(x_true[10], 1))  # x̂(10|9) and x(10)
     [1.6 1.7] [1.5 1.8]
     """
+    if not all(hasattr(model, a) for a in ("dim_x", "dim_y", "dim_u", "stage_eval")):
+        raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
     n, m = model.dim_x, model.dim_u
 
     def point(x, u):
@@ -227,14 +230,31 @@ def GPEKF(model, x0, P0, Q, R):
             return super().update(np.atleast_1d(z), lambda x: H, lambda x: my[0].reshape(-1, 1),
                                   R=R_eff)
 
-    x0, P0, Q, R = _initial_values(x0, P0, Q, R)
+    x0, P0, Q, R = _initial_values(x0, P0, Q, R, n=n, p=model.dim_y)
     ekf = _GPEKF(dim_x=n, dim_z=R.shape[0])
     ekf.x, ekf.P, ekf.Q, ekf.R = x0.reshape(-1, 1), P0, Q, R
     return ekf
 
 
-def _initial_values(x0, P0, Q, R):
-    """x0 flattened, P0, Q and R as 2-D (a scalar R is 1 x 1): finite float64 copies."""
-    x0 = float_array("x0", x0, copy=True).reshape(-1)
-    P0, Q = float_array("P0", P0, copy=True), float_array("Q", Q, copy=True)
-    return x0, P0, Q, np.atleast_2d(float_array("R", R, copy=True))
+def _initial_values(x0, P0, Q, R, n=None, p=None):
+    """x0 as a vector (of n values if given), P0 and Q as symmetric positive semi-definite (n, n)
+    matrices, R as a symmetric positive definite (p, p) matrix (a scalar R is R I, 1 x 1 if p is
+    not known): float64 copies, errors naming the argument."""
+    if n is None:
+        x0 = float_array("x0", x0, copy=True)
+        if x0.size == 0 or x0.ndim > 2 or (x0.ndim == 2 and 1 not in x0.shape):
+            raise ValueError(f"x0: expected a vector (or a row or column), got shape {x0.shape}")
+        n = x0.size
+    x0 = finite_vector("x0", x0, n, flatten=True).copy()
+    P0, Q = symmetric_matrix("P0", P0, n), symmetric_matrix("Q", Q, n)
+    if p is None:
+        r = float_array("R", R)
+        p = r.shape[0] if r.ndim == 2 else 1
+    return x0, P0, Q, symmetric_matrix("R", R, p, definite=True)
+
+
+def _callables(**fns):
+    """Refuse any of the named functions that is not callable."""
+    for name, fn in fns.items():
+        if not callable(fn):
+            raise ValueError(f"{name}: must be callable")

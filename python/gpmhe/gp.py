@@ -33,7 +33,17 @@ import scipy.optimize
 
 from gpmhe import _core
 from gpmhe._core import NumericalError
-from gpmhe._validation import float_array, integer, one_of, points, positive, positive_scalar, training_set
+from gpmhe._validation import (
+    boolean,
+    float_array,
+    integer,
+    one_of,
+    points,
+    positive,
+    positive_scalar,
+    random_state as check_random_state,
+    training_set,
+)
 
 __all__ = ["GaussianProcess", "MultiOutputGP", "ConvergenceWarning", "NotFittedError"]
 
@@ -126,10 +136,7 @@ class _Theta:
     def log_bounds(bounds: Any, nd: Optional[int]) -> np.ndarray:
         """Natural-unit bounds -> (nd + 2, 2) bounds on theta. With nd None (n_d not known yet)
         only the form is checked and the rows are returned as given."""
-        try:
-            b = np.asarray(bounds, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError("bounds: must be a sequence of (low, high) pairs") from None
+        b = float_array("bounds", bounds)
         rows_ok = b.ndim == 2 and (b.shape[0] == 3 or (b.shape[0] > 3 if nd is None else b.shape[0] == nd + 2))
         if not rows_ok or b.shape[1] != 2:
             expected = "(n_d + 2, 2)" if nd is None else f"({nd + 2}, 2)"
@@ -287,8 +294,8 @@ class _ExactGP:
         self.n_restarts = integer("n_restarts", n_restarts)
         _Theta.log_bounds(bounds, None)  # validate the form now; expanded once n_d is known
         self.bounds = bounds
-        self.random_state = random_state
-        self.maxiter = int(maxiter)
+        self.random_state = check_random_state("random_state", random_state)
+        self.maxiter = integer("maxiter", maxiter, low=1)
         self._core_model: Optional[_core.MultiGP] = None
         self._D: Optional[np.ndarray] = None
         self._Y: Optional[np.ndarray] = None
@@ -365,6 +372,7 @@ class _ExactGP:
     def _log_marginal_likelihood(self, theta: Any, eval_gradient: bool) -> Tuple[np.ndarray, np.ndarray]:
         """(lml (q,), grad (q, n_d + 2) or None) at theta, None for the current one."""
         m = self._model()
+        eval_gradient = boolean("eval_gradient", eval_gradient)
         if theta is None:
             lml = m.log_marginal_likelihoods()
             return lml, (m.log_marginal_likelihood_gradients() if eval_gradient else None)
@@ -381,15 +389,15 @@ class _ExactGP:
 
     def predict(self, D: Any, return_std: bool = False):
         m = self._model()
-        D = points("D", D, m.dim, check_finite=False)  # the core scans D for NaN/inf
-        if not return_std:
+        D = points("D", D, m.dim)
+        if not boolean("return_std", return_std):
             return self._out(m.predict_mean(D))
         mean, var = m.predict(D)
         return self._out(mean), np.sqrt(self._out(var))
 
     def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         m = self._model()
-        mean, var, dmean, dvar = m.predict_with_gradients(points("D", D, m.dim, check_finite=False))
+        mean, var, dmean, dvar = m.predict_with_gradients(points("D", D, m.dim))
         return self._out(mean), self._out(var), self._out(dmean), self._out(dvar)
 
     # -- persistence -------------------------------------------------------------------------
@@ -1006,6 +1014,8 @@ class MultiOutputGP(_ExactGP):
         self.sigma_f = positive("sigma_f", sigma_f)
         self.lengthscales = positive("lengthscales", lengthscales)
         self.sigma_eps = positive("sigma_eps", sigma_eps)
+        if 0 in (self.sigma_f.size, self.sigma_eps.size, self.lengthscales.size):
+            raise ValueError("sigma_f, lengthscales, sigma_eps: must not be empty")
         if self.sigma_f.ndim > 1 or self.sigma_eps.ndim > 1 or self.lengthscales.ndim > 2:
             raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
 
@@ -1042,7 +1052,11 @@ class MultiOutputGP(_ExactGP):
         return self._model().jitters
 
     def fit(self, D: Any, Y: Any) -> "MultiOutputGP":
-        return self._fit(D, Y, 1 if np.ndim(Y) == 1 else 2)
+        try:
+            y_ndim = 1 if np.ndim(Y) == 1 else 2
+        except ValueError:  # (a ragged list: training_set names it)
+            y_ndim = 2
+        return self._fit(D, Y, y_ndim)
 
     def log_marginal_likelihood(self, theta: Any = None, eval_gradient: bool = False):
         """Log marginal likelihood of each output's training data.

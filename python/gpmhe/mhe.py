@@ -10,6 +10,7 @@ Rust window between ``prepare`` and ``commit``. See *Architecture* in the docume
 
 from __future__ import annotations
 
+import inspect
 import warnings
 
 import numpy as np
@@ -17,12 +18,53 @@ from scipy.optimize import Bounds, least_squares, minimize
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import finite_vector, integer, one_of, positive_diagonal, symmetric_matrix
+from gpmhe._validation import (
+    finite_vector,
+    integer,
+    one_of,
+    options,
+    positive_diagonal,
+    positive_scalar,
+    symmetric_matrix,
+)
 
 __all__ = ["GPMHE"]
 
+#: The largest horizon accepted (the history keeps M + 2 steps).
+_MAX_HORIZON = 1_000_000
+
+#: The options each solver accepts (see `gpmhe._validation.options`): gpmhe's own for the Rust
+#: solver; for SciPy's, the keywords of `scipy.optimize.least_squares` and of `minimize`'s
+#: "trust-constr" options except those gpmhe sets itself (the problem, its bounds and method).
+_SOLVER_OPTIONS = {
+    "gauss-newton": dict(max_iter="count", gtol="tol", xtol="tol", ftol="tol", dtol="tol",
+                         interior=("auto", "always", "never"), interior_zone="tol",
+                         mu_init="positive", mu_final="positive"),
+    "trust-constr": dict(xtol="tol", gtol="tol", barrier_tol="tol", sparse_jacobian=None,
+                         maxiter="count", verbose=(0, 1, 2, 3), finite_diff_rel_step=None,
+                         initial_constr_penalty="positive", initial_tr_radius="positive",
+                         initial_barrier_parameter="positive", initial_barrier_tolerance="positive",
+                         factorization_method=None, disp=(True, False)),
+    "least-squares": {
+        **{k: None for k in inspect.signature(least_squares).parameters
+           if k not in ("fun", "x0", "jac", "bounds", "method", "args", "kwargs")},
+        **dict(ftol="tol", xtol="tol", gtol="tol", max_nfev="count?", verbose=(0, 1, 2),
+               f_scale="positive"),
+    },
+}
+
 _NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
 _NO_INPUT.flags.writeable = False
+
+
+def _rows(name, value):
+    """The rows of a sequence (a list, tuple or array; strings, dicts and sets are refused)."""
+    if isinstance(value, (str, bytes, dict, set)) or not hasattr(value, "__len__"):
+        raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}")
+    try:
+        return list(value)
+    except TypeError:
+        raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
 
 
 class _Unsaved:
@@ -216,13 +258,12 @@ class GPMHE:
             if not hasattr(model, attr):
                 raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
         n, p = model.dim_x, model.dim_y
-        horizon = integer("horizon", horizon, low=1)
-        if not (np.isfinite(eta) and 0.0 <= eta < 1.0):
+        horizon = integer("horizon", horizon, low=1, high=_MAX_HORIZON)
+        if positive_scalar("eta", eta, allow_zero=True) >= 1.0:
             raise ValueError(f"eta: must be in [0, 1), got {eta!r}")
         form = one_of("form", form, ("prediction", "filtering"))
         solver = one_of("solver", solver, tuple(self._SOLVERS))
-        if solver_options is not None and not isinstance(solver_options, dict):
-            raise ValueError("solver_options: must be a dict or None")
+        solver_options = options("solver_options", solver_options, _SOLVER_OPTIONS[solver])
         P2 = symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True)
         p2_sqrt = np.ascontiguousarray(np.linalg.cholesky(P2).T)  # P2 = SᵀS
         q0 = positive_diagonal("Q0", 1.0 if Q0 is None else Q0, n, allow_full=False)
@@ -396,16 +437,17 @@ class GPMHE:
         >>> bool(rmse < 0.3)
         True
         """
-        ys = list(ys)
-        us = [None] * len(ys) if us is None else list(us)
+        ys = _rows("ys", ys)
+        us = [None] * len(ys) if us is None else _rows("us", us)
         if len(us) != len(ys):
-            raise ValueError(f"us: has {len(us)} rows but ys has {len(ys)}")
+            raise ValueError(f"us, ys: us has {len(us)} rows but ys has {len(ys)}")
         steps = []
         for i, (u, y) in enumerate(zip(us, ys)):
             try:
                 steps.append(self._check_step(u, y))
-            except ValueError as e:
-                raise ValueError(f"{e} (at row {i})") from None
+            except ValueError as e:  # "y: ..." -> "ys[i]: ... (at row i)"
+                name, _, detail = str(e).partition(": ")
+                raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
         xs = np.empty((len(steps), self.dim_x))
         Ps = np.empty((len(steps), self.dim_x, self.dim_x))
         for i, (u, y, present) in enumerate(steps):

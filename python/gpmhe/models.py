@@ -12,9 +12,27 @@ from __future__ import annotations
 import numpy as np
 
 from gpmhe import _core
-from gpmhe._validation import points
+from gpmhe._validation import (
+    MAX_ABS,
+    boolean,
+    finite_vector,
+    float_array,
+    integer,
+    points,
+    positive_scalar,
+    within_limits,
+)
 
 __all__ = ["KnownModel", "LearnedModel"]
+
+
+def _point(x, u, n, m):
+    """A model's point (x, u) as finite vectors of n and m values; u may be None when m = 0."""
+    if u is None:
+        if m:
+            raise ValueError(f"u: required (dim_u = {m})")
+        u = np.zeros(0)
+    return finite_vector("x", x, n, flatten=True), finite_vector("u", u, m, flatten=True)
 
 
 class _SharedOnCopy:
@@ -127,18 +145,14 @@ class KnownModel(_SharedOnCopy):
         for name, fn in (("f_jacobian", f_jacobian), ("h_jacobian", h_jacobian)):
             if fn is not None and not callable(fn):
                 raise ValueError(f"{name}: must be callable or None")
-        for name, v, lo in (("dim_x", dim_x, 1), ("dim_y", dim_y, 0), ("dim_u", dim_u, 0)):
-            if not isinstance(v, (int, np.integer)) or v < lo:
-                raise ValueError(f"{name}: must be an integer >= {lo}, got {v!r}")
-        if not (np.isfinite(fd_step) and fd_step > 0):
-            raise ValueError(f"fd_step: must be positive, got {fd_step!r}")
-        if not isinstance(vectorized, (bool, np.bool_)):
-            raise ValueError(f"vectorized: must be True or False, got {vectorized!r}")
+        dim_x, dim_y, dim_u = integer("dim_x", dim_x, 1), integer("dim_y", dim_y), integer("dim_u", dim_u)
+        fd_step = positive_scalar("fd_step", fd_step)
+        vectorized = boolean("vectorized", vectorized)
         self.f, self.h = f, h
         self.f_jacobian, self.h_jacobian = f_jacobian, h_jacobian
-        self.dim_x, self.dim_y, self.dim_u = int(dim_x), int(dim_y), int(dim_u)
-        self.fd_step = float(fd_step)
-        self.vectorized = bool(vectorized)
+        self.dim_x, self.dim_y, self.dim_u = dim_x, dim_y, dim_u
+        self.fd_step = fd_step
+        self.vectorized = vectorized
 
     # ---- per point (vectorized=False) ------------------------------------------------------
     def _call(self, fn, x, u, size, name):
@@ -235,7 +249,8 @@ class KnownModel(_SharedOnCopy):
         Raises
         ------
         ValueError
-            If f returns the wrong shape, NaN or inf.
+            If x or u is not a finite vector of dim_x or dim_u values (u missing when dim_u > 0),
+            or f returns the wrong shape, NaN, inf or a value of magnitude > 1e150.
 
         Examples
         --------
@@ -246,14 +261,13 @@ class KnownModel(_SharedOnCopy):
         >>> print(model.predict([2.0, 4.0], u=[1.0, 0.0]))
         [2. 2.]
         """
-        x = np.asarray(x, dtype=np.float64).reshape(-1)
-        u = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(-1)
+        x, u = _point(x, u, self.dim_x, self.dim_u)
         if self.vectorized:
             v = self._call_batch(self.f, x[None, :], u[None, :], self.dim_x, "f")[0]
         else:
             v = self._call(self.f, x, u, self.dim_x, "f")
-        if not np.all(np.isfinite(v)):
-            raise ValueError("f: returned NaN or inf")
+        if not within_limits(v):
+            raise ValueError(f"f: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         return v
 
     def stage_eval(self, d):
@@ -315,8 +329,8 @@ class KnownModel(_SharedOnCopy):
         for a, name in ((mx, "f"), (my, "h"),
                         (jx, "f_jacobian" if self.f_jacobian is not None else "f" + fd),
                         (jy, "h_jacobian" if self.h_jacobian is not None else "h" + fd)):
-            if not np.isfinite(a).all():
-                raise ValueError(f"{name}: returned NaN or inf")
+            if not within_limits(a):
+                raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         if m:
             dmx, dmy = np.zeros((k, n, nd)), np.zeros((k, p, nd))
             dmx[:, :, :n], dmy[:, :, :n] = jx, jy
@@ -334,22 +348,36 @@ class KnownModel(_SharedOnCopy):
         return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
 
+def _first_trajectory(name, value):
+    """The first trajectory of a list of them (or the one (T+1, k) array given) as a float64
+    array, for its number of columns."""
+    try:
+        first = value if isinstance(value, np.ndarray) and value.ndim == 2 else value[0]
+        a = np.asarray(first, dtype=np.float64)
+    except (TypeError, ValueError, IndexError, KeyError) as exc:
+        raise ValueError(f"{name}: must be a list of trajectories (2-D arrays) ({exc})") from None
+    if a.ndim not in (1, 2):
+        raise ValueError(f"{name}: must be a list of trajectories (2-D arrays), got shape {a.shape} first")
+    return a
+
+
 def _trajectories(states, outputs, inputs, n, p, m):
     """Regression data (D_f, X_next, X_now, D_h, Y) from lists of measured trajectories."""
     if isinstance(states, np.ndarray) and states.ndim == 2:
         states, outputs = [states], [outputs]
         inputs = None if inputs is None else [inputs]
-    states, outputs = list(states), list(outputs)
+    states, outputs = list(states), list(outputs)  # (iterable: _first_trajectory indexed them)
     if len(states) == 0 or len(outputs) != len(states):
-        raise ValueError("outputs: need one output trajectory per state trajectory (at least one)")
+        raise ValueError(f"outputs, states: need one output trajectory per state trajectory (at least "
+                         f"one), got {len(outputs)} and {len(states)}")
     if inputs is not None:
         inputs = list(inputs)
         if len(inputs) != len(states):
             raise ValueError("inputs: need one input trajectory per state trajectory")
     Df, Xn, Xc, Dh, Yh = [], [], [], [], []
     for i, (X, Y) in enumerate(zip(states, outputs)):
-        X = np.asarray(X, dtype=np.float64)
-        Y = np.asarray(Y, dtype=np.float64)
+        X = float_array(f"states[{i}]", X)
+        Y = float_array(f"outputs[{i}]", Y)
         if Y.ndim == 1:
             Y = Y[:, None]
         if X.ndim != 2 or X.shape[0] < 2 or not np.all(np.isfinite(X)):
@@ -360,7 +388,7 @@ def _trajectories(states, outputs, inputs, n, p, m):
             raise ValueError(f"outputs[{i}]: must be a finite ({X.shape[0]}, {p}) array")
         T = X.shape[0] - 1
         if m:
-            U = np.asarray(inputs[i], dtype=np.float64)
+            U = float_array(f"inputs[{i}]", inputs[i])
             if U.ndim == 1:
                 U = U[:, None]
             if U.shape not in ((T + 1, m), (T, m)) or not np.all(np.isfinite(U)):
@@ -453,17 +481,17 @@ class LearnedModel(_SharedOnCopy):
             raise ValueError("f_gp: must be a fitted gpmhe.MultiOutputGP")
         if h_gp is not None and (not isinstance(h_gp, MultiOutputGP) or h_gp._core_model is None):
             raise ValueError("h_gp: must be a fitted gpmhe.MultiOutputGP or None")
-        if not isinstance(dim_u, (int, np.integer)) or dim_u < 0:
-            raise ValueError(f"dim_u: must be an integer >= 0, got {dim_u!r}")
+        dim_u = integer("dim_u", dim_u)
+        f_residual = boolean("f_residual", f_residual)
         n = f_gp.n_outputs
         if f_gp.dim != n + dim_u:
-            raise ValueError(f"f_gp: input dimension {f_gp.dim} is not dim_x + dim_u = {n + dim_u}")
+            raise ValueError(f"f_gp, dim_u: input dimension {f_gp.dim} is not dim_x + dim_u = {n + dim_u}")
         if h_gp is not None and h_gp.dim != n + dim_u:
-            raise ValueError(f"h_gp: input dimension {h_gp.dim} is not dim_x + dim_u = {n + dim_u}")
+            raise ValueError(f"h_gp, dim_u: input dimension {h_gp.dim} is not dim_x + dim_u = {n + dim_u}")
         self.f_gp, self.h_gp = f_gp, h_gp
         self.dim_x, self.dim_u = n, int(dim_u)
         self.dim_y = 0 if h_gp is None else h_gp.n_outputs
-        self.f_residual = bool(f_residual)
+        self.f_residual = f_residual
 
     @classmethod
     def from_trajectories(cls, states, outputs, inputs=None, f_residual=False, **gp_options):
@@ -522,10 +550,13 @@ class LearnedModel(_SharedOnCopy):
         """
         from gpmhe.gp import MultiOutputGP
 
-        X0 = np.asarray(states[0] if not (isinstance(states, np.ndarray) and states.ndim == 2)
-                        else states)
-        Y0 = np.asarray(outputs[0] if not (isinstance(outputs, np.ndarray) and outputs.ndim == 2)
-                        else outputs)
+        f_residual = boolean("f_residual", f_residual)
+        try:
+            MultiOutputGP(**gp_options)  # the options' own checks, before any fit
+        except TypeError as exc:
+            raise ValueError(f"gp_options: {exc}") from None
+        X0 = _first_trajectory("states", states)
+        Y0 = _first_trajectory("outputs", outputs)
         if X0.ndim != 2:
             raise ValueError("states: must be a list of (T+1, n) arrays")
         n = X0.shape[1]
@@ -533,8 +564,7 @@ class LearnedModel(_SharedOnCopy):
         if inputs is None:
             m = 0
         else:
-            U0 = np.asarray(inputs[0] if not (isinstance(inputs, np.ndarray) and inputs.ndim == 2)
-                            else inputs)
+            U0 = _first_trajectory("inputs", inputs)
             m = 1 if U0.ndim == 1 else U0.shape[1]
         Df, Xn, Xc, Dh, Yh = _trajectories(states, outputs, inputs, n, p, m)
         target = Xn - Xc if f_residual else Xn
@@ -557,6 +587,11 @@ class LearnedModel(_SharedOnCopy):
         ndarray of shape (dim_x,)
             The f-GPs' posterior mean (plus x with ``f_residual``).
 
+        Raises
+        ------
+        ValueError
+            If x or u is not a finite vector of dim_x or dim_u values (u missing when dim_u > 0).
+
         Examples
         --------
         >>> import numpy as np
@@ -568,8 +603,7 @@ class LearnedModel(_SharedOnCopy):
         >>> print(np.round(model.predict([2.0, 4.0]), 1), np.round(br.f([2.0, 4.0]), 1))
         [1.9 4.1] [1.9 4.1]
         """
-        x = np.asarray(x, dtype=np.float64).reshape(-1)
-        u = np.zeros(0) if u is None else np.asarray(u, dtype=np.float64).reshape(-1)
+        x, u = _point(x, u, self.dim_x, self.dim_u)
         d = np.concatenate([x, u])[None, :]
         mean = self.f_gp.predict(d)[0]
         return mean + x if self.f_residual else mean

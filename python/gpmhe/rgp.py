@@ -22,7 +22,15 @@ from typing import Any, Callable, Sequence, Union
 import numpy as np
 
 from gpmhe._core import RecursiveGPCore, RGPEKFCore
-from gpmhe._validation import float_array, positive_scalar, symmetric_matrix
+from gpmhe._validation import (
+    MAX_ABS,
+    boolean,
+    finite_vector,
+    float_array,
+    integer,
+    positive_scalar,
+    symmetric_matrix,
+)
 
 __all__ = ["RecursiveGP", "RGPEKF"]
 
@@ -144,8 +152,11 @@ class RecursiveGP:
         if hi.shape != lo.shape:
             raise ValueError(f"upper: expected shape {lo.shape} like lower, got {hi.shape}")
         if np.any(hi <= lo):
-            raise ValueError("upper: must exceed lower on every axis")
-        npts = np.atleast_1d(np.asarray(n_points))
+            raise ValueError("lower, upper: upper must exceed lower on every axis")
+        try:
+            npts = np.atleast_1d(np.asarray(n_points))
+        except (TypeError, ValueError):
+            raise ValueError(f"n_points: expected an int or {lo.size} ints, got {n_points!r}") from None
         if npts.ndim != 1 or npts.size not in (1, lo.size):
             raise ValueError(f"n_points: expected an int or {lo.size} ints, got {n_points!r}")
         if not np.issubdtype(npts.dtype, np.integer) or np.any(npts < 2):
@@ -260,12 +271,7 @@ class RecursiveGP:
 
     # -- inputs --------------------------------------------------------------------------------
     def _zeta_one(self, zeta: ArrayLike) -> np.ndarray:
-        z = np.asarray(zeta, dtype=np.float64).reshape(-1)
-        if z.size != self.dim_zeta:
-            raise ValueError(f"zeta: expected {self.dim_zeta} value(s), got {z.size}")
-        if not np.all(np.isfinite(z)):
-            raise ValueError("zeta: contains NaN or inf")
-        return z
+        return finite_vector("zeta", zeta, self.dim_zeta, flatten=True)
 
     def _zeta_many(self, zeta: ArrayLike) -> np.ndarray:
         z = float_array("zeta", zeta, copy=True)
@@ -312,20 +318,19 @@ class RecursiveGP:
         >>> round(gp.update(0.5, 2.0, 1e-4), 2)  # after learning the first measurement
         2.0
         """
-        if np.ndim(y) > 0:
-            ys = float_array("y", y, 1, copy=True)
+        ys = float_array("y", y, copy=True)
+        if ys.ndim > 1:
+            raise ValueError(f"y: expected a scalar or a 1-D array, got shape {ys.shape}")
+        if ys.ndim == 1:
             zs = self._zeta_many(zeta)
             if zs.shape[0] != ys.size:
-                raise ValueError(f"zeta: {zs.shape[0]} inputs for {ys.size} measurements y")
+                raise ValueError(f"y, zeta: {ys.size} measurements y for {zs.shape[0]} inputs zeta")
             vs = np.atleast_1d(float_array("var_y", var_y, copy=True))
             if vs.ndim != 1 or vs.size not in (1, ys.size) or np.any(vs < 0):
                 raise ValueError(f"var_y: expected a scalar or {ys.size} values >= 0")
             return self._core.update_many(zs, np.ascontiguousarray(ys), np.ascontiguousarray(vs))
         z = self._zeta_one(zeta)
-        yv = float(y)
-        if not np.isfinite(yv):
-            raise ValueError(f"y: must be finite, got {y!r}")
-        return self._core.update(z, yv, positive_scalar("var_y", var_y, allow_zero=True))
+        return self._core.update(z, float(ys), positive_scalar("var_y", var_y, allow_zero=True))
 
     def predict(
         self, zeta: ArrayLike, return_std: bool = False
@@ -357,6 +362,7 @@ class RecursiveGP:
         >>> print(mean, std.round(6))
         [0. 0.] [3. 3.]
         """
+        return_std = boolean("return_std", return_std)
         mean, var = self._core.predict(self._zeta_many(zeta))
         return (mean, np.sqrt(var)) if return_std else mean
 
@@ -398,8 +404,9 @@ def _as_fn(name: str, value: Any, shape: tuple[int, ...]) -> Callable[..., np.nd
     if callable(value):
         return value
     a = float_array(name, value, copy=True)
-    if a.size != int(np.prod(shape)):
-        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+    if a.shape != shape and not (a.ndim <= 1 and a.size == shape[0] and shape[1:] == (1,)):
+        raise ValueError(f"{name}: expected shape {shape}{' or ' + str(shape[:1]) if shape[1:] == (1,) else ''}, "
+                         f"got {a.shape}")
     return np.ascontiguousarray(a.reshape(shape))
 
 
@@ -557,14 +564,15 @@ class RGPEKF:
         learning: bool = True,
         pure_prediction: bool = False,
     ) -> None:
-        if not isinstance(dim_x, (int, np.integer)) or dim_x < 1:
-            raise ValueError(f"dim_x: must be a positive integer, got {dim_x!r}")
-        n = int(dim_x)
+        n = integer("dim_x", dim_x, low=1)
         if not callable(f):
             raise ValueError("f: must be callable f(x, u, z)")
         if not callable(h):
             raise ValueError("h: must be callable h(x)")
-        gp_list = [gps] if isinstance(gps, RecursiveGP) else list(gps)
+        try:
+            gp_list = [gps] if isinstance(gps, RecursiveGP) else list(gps)
+        except TypeError:
+            gp_list = []
         if not gp_list or not all(isinstance(g, RecursiveGP) for g in gp_list):
             raise ValueError("gps: expected a RecursiveGP or a non-empty sequence of them")
         q = len(gp_list)
@@ -592,7 +600,7 @@ class RGPEKF:
             if Ha.ndim != 2 or Ha.shape[1] != n:
                 raise ValueError(f"H: expected shape (p, {n}), got {Ha.shape}")
             if self.dim_y is not None and Ha.shape[0] != self.dim_y:
-                raise ValueError(f"H: has {Ha.shape[0]} rows but R_x is {self.dim_y}x{self.dim_y}")
+                raise ValueError(f"H, R_x: H has {Ha.shape[0]} rows but R_x is {self.dim_y}x{self.dim_y}")
             self._H = np.ascontiguousarray(Ha)
             self.dim_y = Ha.shape[0]
         if self.R_x.ndim == 0 and self.dim_y is not None:
@@ -608,8 +616,8 @@ class RGPEKF:
         self._A_fn = self._A if callable(self._A) else None
         self._e_fn = self._e if callable(self._e) else None
         self._H_fn = self._H if callable(self._H) else None
-        self.learning = bool(learning)
-        self.pure_prediction = bool(pure_prediction)
+        self.learning = boolean("learning", learning)
+        self.pure_prediction = boolean("pure_prediction", pure_prediction)
         self._core = RGPEKFCore(
             np.ascontiguousarray(x0a),
             symmetric_matrix("P0", P0, n),
@@ -775,31 +783,30 @@ class RGPEKF:
         [0. 0.] [2. 2.]
         """
         i = self._index(index)
+        return_std = boolean("return_std", return_std)
         mean, var = self._core.gp_predict(i, self.gps[i]._zeta_many(zeta))
         return (mean, np.sqrt(var)) if return_std else mean
 
     def _index(self, index: int) -> int:
-        if not isinstance(index, (int, np.integer)) or not 0 <= index < self.dim_z:
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < self.dim_z:
             raise ValueError(f"index: must be an integer in [0, {self.dim_z}), got {index!r}")
         return int(index)
 
     # -- filter steps --------------------------------------------------------------------------
     def _zeta(self, zeta: Any) -> np.ndarray:
-        # Finiteness is checked in Rust (the error names zeta); only shapes are checked here.
+        # The values are checked here (finite, magnitude <= MAX_ABS), the Rust core checks again.
         if zeta is None:
             raise ValueError("zeta: the GP input is required")
-        if self._scalar_zeta and isinstance(zeta, (float, int, np.floating, np.integer)):
+        if (self._scalar_zeta and isinstance(zeta, (float, int, np.floating, np.integer))
+                and not isinstance(zeta, bool) and abs(zeta) <= MAX_ABS):
             self._zbuf[0] = zeta
             return self._zbuf
-        try:
-            if self.dim_z == 1:
-                z = np.asarray(zeta, dtype=np.float64).reshape(-1)
-            else:
-                if len(zeta) != self.dim_z:
-                    raise ValueError(f"expected one input per GP ({self.dim_z}), got {len(zeta)}")
-                z = np.concatenate([np.asarray(v, dtype=np.float64).reshape(-1) for v in zeta])
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"zeta: {err}") from None
+        if self.dim_z == 1:
+            z = float_array("zeta", zeta).reshape(-1)
+        else:
+            if not isinstance(zeta, (list, tuple, np.ndarray)) or len(zeta) != self.dim_z:
+                raise ValueError(f"zeta: expected a sequence of one input per GP ({self.dim_z}), got {zeta!r}")
+            z = np.concatenate([float_array(f"zeta[{i}]", v).reshape(-1) for i, v in enumerate(zeta)])
         if z.size != self._zeta_total:
             raise ValueError(f"zeta: expected {self._zeta_total} value(s) in total, got {z.size}")
         return np.ascontiguousarray(z)
@@ -838,7 +845,7 @@ class RGPEKF:
         """
         # One core call per step: it computes J_k, calls f (and A, e if callables) with
         # z = μ_z^p and predicts C. Finiteness of ζ and of the results is checked there.
-        if not (self._scalar_zeta and isinstance(zeta, float)):
+        if not (self._scalar_zeta and isinstance(zeta, float) and abs(zeta) <= MAX_ABS):
             zeta = self._zeta(zeta)
         self._core.predict_step(self.f, u, zeta, self._A_fn, self._e_fn, self.Q_x)
 
@@ -875,6 +882,10 @@ class RGPEKF:
         """
         # One core call: it evaluates h (and H if callable) at the predicted state x⁻ (or
         # whatever was assigned to x since), forms ν = y − h(x⁻) and updates.
+        if self.dim_y is None:
+            y = float_array("y", y).reshape(-1)
+        else:
+            y = finite_vector("y", y, self.dim_y, flatten=True)
         self._core.update_step(
             y, self.h, self._H_fn, self.R_x, self.dim_y, self.learning and not self.pure_prediction
         )

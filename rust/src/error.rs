@@ -61,6 +61,23 @@ pub fn check_finite(arg: &str, values: &[f64]) -> Result<()> {
     }
 }
 
+/// The largest magnitude accepted in a value the core squares (gpmhe._validation.MAX_ABS in
+/// Python): beyond it squares overflow f64 (whose largest square root is about 1.3e154).
+pub const MAX_ABS: f64 = 1e150;
+
+/// Fails with `InvalidInput` naming `arg` if any value is NaN, infinite or of magnitude above
+/// [`MAX_ABS`] (for results of user functions, which Python cannot check before the core).
+pub fn check_magnitude(arg: &str, values: &[f64]) -> Result<()> {
+    check_finite(arg, values)?;
+    match values.iter().position(|v| v.abs() > MAX_ABS) {
+        None => Ok(()),
+        Some(i) => Err(Error::invalid(
+            arg,
+            format!("contains a value of magnitude > {MAX_ABS:e} (its square overflows) at flat index {i}"),
+        )),
+    }
+}
+
 /// Fails with `InvalidInput` naming `arg` unless `values.len() == expected`.
 pub fn check_len(arg: &str, values: &[f64], expected: usize) -> Result<()> {
     if values.len() == expected {

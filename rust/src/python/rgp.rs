@@ -344,7 +344,7 @@ impl RgpEkfCore {
         }
         let (n, q) = (self.inner.dim_x(), self.inner.n_gps());
         let x = self.x_array(py);
-        let zp = self.inner.z_pred();
+        let zp = self.inner.inferred_z();
         let z = if q == 1 {
             PyFloat::new(py, zp[0]).into_any()
         } else {

@@ -7,7 +7,7 @@ use faer::{Accum, Mat, MatRef, Par};
 
 use super::dense::{cholesky, quad_form, rank_p_downdate, symmetric_from_lower};
 use super::{Rgp, RgpBasis};
-use crate::error::{check_finite, check_len, Error, Result};
+use crate::error::{check_finite, check_len, check_magnitude, Error, Result};
 use crate::linalg::{add4, axpy, dot4, dot_lanes8, symv_column};
 
 /// The RGP-dKF: EKF on μ = [x; μ_z1; …; μ_zq] with one RGP per disturbance z_j, or, in
@@ -43,8 +43,10 @@ pub struct RgpEkf {
     j_offsets: Vec<usize>,
     /// Variance of the GP noise input per disturbance, the diagonal of the term in (12).
     dvar: Vec<f64>,
-    /// μ_z^p per disturbance.
+    /// μ_z^p per disturbance, of the last [`Self::infer`] (staged for [`Self::predict`]).
     mu_zp: Vec<f64>,
+    /// μ_z^p of the last completed [`Self::predict`] (a failed step leaves it unchanged).
+    z_pred: Vec<f64>,
     inferred: bool,
     /// Scratch: Ã's top rows times C (n × N, row-major); J C_z (q × N, row-major); T J
     /// (n × q, row-major); C H̃ᵀ, then W (N × p, column-major).
@@ -127,6 +129,7 @@ impl RgpEkf {
             j_offsets,
             dvar: vec![0.0; q],
             mu_zp: vec![0.0; q],
+            z_pred: vec![0.0; q],
             inferred: false,
             t: vec![0.0; n * nt],
             jc: vec![0.0; q * nt],
@@ -199,8 +202,13 @@ impl RgpEkf {
         Ok(())
     }
 
-    /// μ_z^p of the last [`Self::infer`] (one per disturbance).
+    /// μ_z^p of the last completed [`Self::predict`] (one per disturbance).
     pub fn z_pred(&self) -> &[f64] {
+        &self.z_pred
+    }
+
+    /// μ_z^p of the last [`Self::infer`], which the next [`Self::predict`] uses.
+    pub fn inferred_z(&self) -> &[f64] {
         &self.mu_zp
     }
 
@@ -414,6 +422,7 @@ impl RgpEkf {
             self.predicted_weight_blocks();
         }
         self.mu[..n].copy_from_slice(x_pred);
+        self.z_pred.copy_from_slice(&self.mu_zp);
         self.inferred = false;
         Ok(())
     }
@@ -437,9 +446,9 @@ impl RgpEkf {
         check_len("A", a, n * n)?;
         check_len("e", e, n * q)?;
         check_len("Q_x", q_x, n * n)?;
-        check_finite("f(x, u, z)", x_pred)?;
-        check_finite("A", a)?;
-        check_finite("e", e)?;
+        check_magnitude("f(x, u, z)", x_pred)?;
+        check_magnitude("A", a)?;
+        check_magnitude("e", e)?;
         check_finite("Q_x", q_x)?;
         Ok(())
     }
@@ -599,9 +608,9 @@ impl RgpEkf {
         if p == 0 {
             return Err(Error::invalid("y", "needs at least one output"));
         }
-        check_finite("y - h(x)", nu)?;
+        check_magnitude("y - h(x)", nu)?;
         check_len("H", h, p * n)?;
-        check_finite("H", h)?;
+        check_magnitude("H", h)?;
         check_len("R_x", r, p * p)?;
         check_finite("R_x", r)?;
         if self.pht.len() != nt * p {
