@@ -10,6 +10,7 @@ Rust window between ``prepare`` and ``commit``. See *Architecture* in the docume
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import numpy as np
@@ -25,14 +26,16 @@ _NO_INPUT.flags.writeable = False
 
 
 class _Unsaved:
-    """Holds the Rust estimator core (with the history); `copy.deepcopy` (filterpy's Saver)
-    shares it instead of copying."""
+    """Holds the Rust estimator core (with the history). `copy.deepcopy` (also filterpy's Saver,
+    at every save) clones the core: the settings, the history and the work buffers are copied,
+    the model's GPs (immutable) are shared, so a copy is independent and cheap. Pickling goes
+    through the core's ``__reduce__``."""
 
     def __init__(self, window):
         self.window = window
 
     def __deepcopy__(self, memo):
-        return self
+        return _Unsaved(copy.deepcopy(self.window, memo))
 
 
 class GPMHE:

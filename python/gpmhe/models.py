@@ -325,11 +325,15 @@ class KnownModel(_SharedOnCopy):
         return (np.ascontiguousarray(mx), np.zeros((k, n)), dmx, np.zeros((k, n, nd)),
                 np.ascontiguousarray(my), np.zeros((k, p)), dmy, np.zeros((k, p, nd)))
 
+    def _predict_f64(self, x, u):
+        """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
+        return np.ascontiguousarray(self.predict(x, u), dtype=np.float64)
+
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
         """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`)."""
         model = _core.StageModel.callback(
             self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
-            predict=lambda x, u: np.ascontiguousarray(self.predict(x, u), dtype=np.float64),
+            predict=self._predict_f64,
         )
         return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
