@@ -12,9 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from gpmhe import _core
+from gpmhe._npz import NpzReader
 from gpmhe._validation import points
 
 __all__ = ["KnownModel", "LearnedModel"]
+
+_FORMAT_VERSION = 1  # of LearnedModel files
 
 
 class _SharedOnCopy:
@@ -678,7 +681,8 @@ class LearnedModel(_SharedOnCopy):
                 buf = io.BytesIO()
                 gp.save(buf)
                 blobs[name] = np.frombuffer(buf.getvalue(), dtype=np.uint8)
-        np.savez(path, kind="LearnedModel", dim_u=self.dim_u, f_residual=self.f_residual, **blobs)
+        np.savez(path, kind="LearnedModel", format_version=_FORMAT_VERSION, dim_u=self.dim_u,
+                 f_residual=self.f_residual, **blobs)
 
     @classmethod
     def load(cls, path):
@@ -716,10 +720,23 @@ class LearnedModel(_SharedOnCopy):
 
         from gpmhe.gp import MultiOutputGP
 
-        with np.load(path, allow_pickle=False) as f:
-            if str(f["kind"]) != "LearnedModel":
-                raise ValueError(f"path: not a saved LearnedModel ({f['kind']})")
-            gps = {name: MultiOutputGP.load(io.BytesIO(f[name].tobytes())) if name in f else None
-                   for name in ("f_gp", "h_gp")}
-            return cls(gps["f_gp"], gps["h_gp"], dim_u=int(f["dim_u"]),
-                       f_residual=bool(f["f_residual"]))
+        # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
+        # Files of gpmhe <= 0.1 have no format version.
+        with NpzReader(path, "LearnedModel", _FORMAT_VERSION, require_version=False) as f:
+            gps = {}
+            for name in ("f_gp", "h_gp"):
+                if name == "h_gp" and name not in f:
+                    gps[name] = None
+                    continue
+                blob = f.raw(name)
+                if blob.dtype != np.uint8 or blob.ndim != 1:
+                    raise f.error(name, "must be the bytes of a saved MultiOutputGP")
+                try:
+                    gps[name] = MultiOutputGP.load(io.BytesIO(blob.tobytes()))
+                except ValueError as e:
+                    raise f.error(name, f"is not a valid MultiOutputGP ({e})") from None
+            dim_u, f_residual = f.integer("dim_u"), f.boolean("f_residual")
+            try:
+                return cls(gps["f_gp"], gps["h_gp"], dim_u=dim_u, f_residual=f_residual)
+            except ValueError as e:
+                raise ValueError(f"path: {f.name}: the GPs do not make a model ({e})") from None
