@@ -47,7 +47,8 @@ class NpzReader:
             raise ValueError(f"path: {self.name} is a .npy file, not an .npz file")
         try:
             if "kind" not in self._f.files or self.string("kind") != kind:
-                raise ValueError(f"path: {self.name} is not a saved {kind} file")
+                raise ValueError(f"path: {self.name} is not a saved {kind} file (its entry "
+                                 f"'kind' is missing or not {kind!r})")
             if require_version or "format_version" in self._f.files:
                 version = self.integer("format_version")
                 if version > max_version:

@@ -634,9 +634,11 @@ class GPMHE:
         with NpzReader(path, "GPMHE", cls._CHECKPOINT_VERSION) as f:
             f.allow_nonfinite = ("x_lower", "x_upper", "cost", "projected_gradient")
             kind = f.string("model_kind")
+            if kind not in ("LearnedModel", "KnownModel"):
+                raise f.error("model_kind", f"must be 'LearnedModel' or 'KnownModel', got {kind!r}")
             if type(model).__name__ != kind:
-                raise ValueError(f"model: the file {f.name} was saved with a {kind}, got "
-                                 f"{type(model).__name__}")
+                raise ValueError(f"model: the file {f.name} was saved with a {kind} (entry "
+                                 f"'model_kind'), got {type(model).__name__}")
             n, p, m = (f.integer(k) for k in ("dim_x", "dim_y", "dim_u"))
             if (getattr(model, "dim_x", None), getattr(model, "dim_y", None),
                     getattr(model, "dim_u", None)) != (n, p, m):

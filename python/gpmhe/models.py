@@ -328,6 +328,14 @@ class KnownModel(_SharedOnCopy):
         return (np.ascontiguousarray(mx), np.zeros((k, n)), dmx, np.zeros((k, n, nd)),
                 np.ascontiguousarray(my), np.zeros((k, p)), dmy, np.zeros((k, p, nd)))
 
+    # ---- pickling ---------------------------------------------------------------------------
+    def __getstate__(self):
+        """Pickling needs picklable callables (module-level functions, not lambdas or local
+        functions): raise a `pickle.PicklingError` naming the one that is not."""
+        check_picklable("KnownModel", {name: getattr(self, name) for name in
+                                       ("f", "h", "f_jacobian", "h_jacobian")})
+        return self.__dict__
+
     def _predict_f64(self, x, u):
         """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
         return np.ascontiguousarray(self.predict(x, u), dtype=np.float64)
@@ -339,6 +347,23 @@ class KnownModel(_SharedOnCopy):
             predict=self._predict_f64,
         )
         return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
+
+
+def check_picklable(owner, callables):
+    """Raise `pickle.PicklingError` naming the first of `callables` (name -> callable or None)
+    that cannot be pickled (a lambda, a local function, ...)."""
+    import pickle
+
+    for name, fn in callables.items():
+        if fn is None:
+            continue
+        try:
+            pickle.dumps(fn)
+        except Exception as e:  # pickle raises PicklingError, AttributeError, TypeError, ...
+            raise pickle.PicklingError(
+                f"{owner}: cannot pickle {name}={fn!r} ({e}); to pickle or copy it to another "
+                f"process, give {name} as a module-level function (or another picklable "
+                f"callable)") from None
 
 
 def _trajectories(states, outputs, inputs, n, p, m):

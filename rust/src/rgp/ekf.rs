@@ -143,7 +143,16 @@ impl RgpEkf {
             return Err(Error::invalid("log_likelihood", "must not be NaN"));
         }
         let mut gps = self.gps.clone();
-        for (g, (m, c)) in gps.iter_mut().zip(st.gp_means.iter().zip(&st.gp_covs)) {
+        for (i, (g, (m, c))) in gps
+            .iter_mut()
+            .zip(st.gp_means.iter().zip(&st.gp_covs))
+            .enumerate()
+        {
+            let nb = g.basis.n_basis();
+            check_len(&format!("gp_mean_{i}"), m, nb)?;
+            check_len(&format!("gp_cov_{i}"), c, nb * nb)?;
+            check_finite(&format!("gp_mean_{i}"), m)?;
+            check_finite(&format!("gp_cov_{i}"), c)?;
             g.set_weights_raw(m, c)?;
         }
         self.gps = gps;
