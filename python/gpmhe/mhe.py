@@ -617,9 +617,10 @@ class GPMHE:
         >>> import io
         >>> import numpy as np
         >>> from gpmhe import GPMHE, KnownModel
-        >>> model = KnownModel(np.sin, np.cos, dim_x=1, dim_y=1)
-        >>> mhe = GPMHE(model, x0=[0.5], horizon=3)
-        >>> _ = mhe.update(None, [0.9])
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+        >>> mhe = GPMHE(model, x0=[3.0, 1.0], horizon=3, x_bounds=br.X_BOUNDS)
+        >>> _ = mhe.update(None, [4.2])
         >>> buf = io.BytesIO()
         >>> mhe.save(buf)
         >>> _ = buf.seek(0)

@@ -917,7 +917,7 @@ class RGPEKF:
         ...     return 0.9 * x + z
         >>> def h(x):
         ...     return x
-        >>> ekf = RGPEKF(1, f=f, A=0.9, e=1.0, h=h, H=1.0, Q_x=1e-3, R_x=0.1, x0=[0.0], P0=1.0,
+        >>> ekf = RGPEKF(1, f=f, A=0.9, e=1.0, h=h, H=[1.0], Q_x=1e-3, R_x=0.1, x0=[0.0], P0=1.0,
         ...              gps=RecursiveGP(-1, 1, 5))
         >>> ekf.predict(None, 0.2); ekf.update([0.5])
         >>> buf = io.BytesIO()
@@ -989,7 +989,7 @@ class RGPEKF:
         ...     return x + z
         >>> def h(x):
         ...     return x
-        >>> ekf = RGPEKF(1, f=f, A=1.0, e=1.0, h=h, H=1.0, Q_x=1e-3, R_x=0.1, x0=[0.5], P0=1.0,
+        >>> ekf = RGPEKF(1, f=f, A=1.0, e=1.0, h=h, H=[1.0], Q_x=1e-3, R_x=0.1, x0=[0.5], P0=1.0,
         ...              gps=RecursiveGP(-1, 1, 5))
         >>> buf = io.BytesIO()
         >>> ekf.save(buf)

@@ -316,7 +316,7 @@ mod tests {
                     assert_eq!(a.state(), b.state());
                 }
                 let y = [t as f64];
-                let mut step = |h: &mut History| {
+                let step = |h: &mut History| {
                     let w = h.next_window(&[1.0], Some(&y)).unwrap();
                     let x = vec![t as f64 * 0.1; w.nodes];
                     h.push(w, x, vec![t as f64]);
