@@ -212,7 +212,7 @@ impl History {
         }
         check_len("u", &s.u, rows * m)?;
         check_len("y", &s.y, rows * p)?;
-        check_len("priors", &s.priors, (t + 1).min(big_m + 2) * n)?;
+        check_len("priors", &s.priors, t.saturating_add(1).min(big_m + 2) * n)?;
         // The window of the last update (t − 1), or x0 as one row before any.
         let (t0, nodes) = match t.checked_sub(1) {
             None => (0, 1),
