@@ -33,6 +33,7 @@ import scipy.optimize
 
 from gpmhe import _core
 from gpmhe._core import NumericalError
+from gpmhe._npz import NpzReader
 from gpmhe._validation import (
     boolean,
     float_array,
@@ -240,21 +241,14 @@ def _settings(est: Any) -> dict:
     )
 
 
-def _settings_from(f: Any) -> dict:
-    opt = str(f["optimizer"])
+def _settings_from(f: NpzReader) -> dict:
+    opt = f.string("optimizer")
     return dict(
         optimizer=None if opt == "" else opt,
-        n_restarts=int(f["n_restarts"]),
-        bounds=f["bounds"],
-        maxiter=int(f["maxiter"]),
+        n_restarts=f.integer("n_restarts"),
+        bounds=f.floats("bounds"),
+        maxiter=f.integer("maxiter"),
     )
-
-
-def _check_kind(f: Any, kind: str) -> None:
-    if "kind" not in f or str(f["kind"]) != kind:
-        raise ValueError(f"path: not a saved {kind} file")
-    if int(f["format_version"]) > _FORMAT_VERSION:
-        raise ValueError("path: saved by a newer gpmhe (format version too high)")
 
 
 # ----------------------------------------------------------------------------- the implementation
@@ -410,13 +404,24 @@ class _ExactGP:
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike]) -> "_ExactGP":
-        with np.load(path, allow_pickle=False) as f:
-            _check_kind(f, cls._kind)
-            gp = cls(**_settings_from(f))
-            D, Y, theta = (np.ascontiguousarray(f[key]) for key in ("D", "y", "theta"))
+        # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
+        with NpzReader(path, cls._kind, _FORMAT_VERSION) as f:
+            D = f.floats("D", (None, None))
+            y_shape, t_shape = ((None,), (D.shape[1] + 2,)) if cls._squeeze else \
+                ((None, None), (None, D.shape[1] + 2))
+            Y, theta = f.floats("y", y_shape), f.floats("theta", t_shape)
+            try:
+                gp = cls(**_settings_from(f))
+            except ValueError as e:
+                raise ValueError(f"path: {f.name}: bad settings ({e})") from None
+            name = f.name
         if cls._squeeze:
             Y, theta = Y.reshape(-1, 1), theta.reshape(1, -1)
-        gp._set_model(_core.MultiGP(D, Y, theta), D, Y)
+        try:
+            model = _core.MultiGP(D, Y, theta)
+        except (ValueError, NumericalError) as e:
+            raise ValueError(f"path: {name}: entries 'D', 'y', 'theta' do not make a GP ({e})") from None
+        gp._set_model(model, D, Y)
         return gp
 
 

@@ -10,6 +10,7 @@ Rust window between ``prepare`` and ``commit``. See *Architecture* in the docume
 
 from __future__ import annotations
 
+import copy
 import inspect
 import warnings
 
@@ -68,14 +69,16 @@ def _rows(name, value):
 
 
 class _Unsaved:
-    """Holds the Rust estimator core (with the history); `copy.deepcopy` (filterpy's Saver)
-    shares it instead of copying."""
+    """Holds the Rust estimator core (with the history). `copy.deepcopy` (also filterpy's Saver,
+    at every save) clones the core: the settings, the history and the work buffers are copied,
+    the model's GPs (immutable) are shared, so a copy is independent and cheap. Pickling goes
+    through the core's ``__reduce__``."""
 
     def __init__(self, window):
         self.window = window
 
     def __deepcopy__(self, memo):
-        return self
+        return _Unsaved(copy.deepcopy(self.window, memo))
 
 
 class GPMHE:
@@ -556,3 +559,170 @@ class GPMHE:
         "trust-constr": "_solve_trust_constr",
         "least-squares": "_solve_least_squares",
     }
+
+    # ---- checkpoints: save and load ---------------------------------------------------------
+    # (Copies and pickles need no code here: the core holder `_Unsaved` deep-copies the Rust
+    # core and the core pickles itself with its whole state.)
+
+    _CHECKPOINT_VERSION = 1
+
+    def save(self, path):
+        """Write the estimator's whole state (settings, history, attributes) to an ``.npz`` file.
+
+        The file holds plain arrays only (no pickle); the model is not saved: give it again to
+        `load`. An estimator loaded from the file continues exactly (bit for bit) as this one
+        would with the same data.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            Destination, passed to `numpy.savez` (which appends ``.npz`` to a name without it).
+
+        Raises
+        ------
+        ValueError
+            If ``solver_options`` holds values that cannot be written (only numbers, strings,
+            booleans, None, lists and dicts of them can).
+
+        See Also
+        --------
+        load : Continue from the file.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+        >>> _, y = br.simulate(br.X_TRUE0, 12, np.random.default_rng(0))
+        >>> mhe = GPMHE(model, x0=[3.0, 1.0], horizon=5, Q0=1e-3, R0=1e-2, x_bounds=br.X_BOUNDS)
+        >>> xs, _ = mhe.batch_filter(y[:6])
+        >>> buf = io.BytesIO()
+        >>> mhe.save(buf)
+        >>> _ = buf.seek(0)
+        >>> restored = GPMHE.load(buf, model)
+        >>> restored.t
+        6
+        >>> a, _ = mhe.batch_filter(y[6:12])
+        >>> b, _ = restored.batch_filter(y[6:12])
+        >>> bool(np.array_equal(a, b))
+        True
+        """
+        import json
+
+        try:
+            options = json.dumps(self.solver_options)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"solver_options: cannot be saved ({e})") from None
+        core = self._core.window.__getstate__()
+        lb, ub = self.x_bounds
+        np.savez(
+            path, kind="GPMHE", format_version=self._CHECKPOINT_VERSION,
+            model_kind=type(self.model).__name__, dim_x=self.dim_x, dim_y=self.dim_y,
+            dim_u=self.dim_u, horizon=self.horizon, eta=self.eta, P2=self.P2, Q0=self.Q0,
+            R0=self.R0, x_lower=lb, x_upper=ub, form=self.form, solver=self.solver,
+            solver_options=options, t=self.t, x=self.x, P=self.P, x_prior=self.x_prior,
+            x_window=self.x_window, cost=self.cost, success=self.success, nit=self.nit,
+            message=self.message, nfev=self.nfev, projected_gradient=self.projected_gradient,
+            **{"core_" + key: value for key, value in core.items()})
+
+    @classmethod
+    def load(cls, path, model):
+        """Continue an estimator from a file written by `save`.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            The ``.npz`` file. It is read without pickle (``allow_pickle=False``), so a file from
+            an untrusted source cannot run code.
+        model : LearnedModel or KnownModel
+            The model the saved estimator ran on (models are not saved with the estimator). It
+            must be of the same class and dimensions; for bit-identical continuation it must be
+            the same model (for a `LearnedModel`, e.g. saved with `LearnedModel.save`).
+
+        Returns
+        -------
+        GPMHE
+            The estimator with the saved settings, history and attributes.
+
+        Raises
+        ------
+        ValueError
+            If the file cannot be read, is not a saved GPMHE, or an entry is missing, damaged or
+            inconsistent (the message names the file and the entry), or if `model` does not fit.
+
+        See Also
+        --------
+        save : Write the file.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+        >>> mhe = GPMHE(model, x0=[3.0, 1.0], horizon=3, x_bounds=br.X_BOUNDS)
+        >>> _ = mhe.update(None, [4.2])
+        >>> buf = io.BytesIO()
+        >>> mhe.save(buf)
+        >>> _ = buf.seek(0)
+        >>> loaded = GPMHE.load(buf, model)
+        >>> loaded.t, bool(np.array_equal(loaded.x, mhe.x))
+        (1, True)
+        """
+        import json
+
+        from gpmhe._npz import NpzReader
+
+        with NpzReader(path, "GPMHE", cls._CHECKPOINT_VERSION) as f:
+            f.allow_nonfinite = ("x_lower", "x_upper", "cost", "projected_gradient")
+            kind = f.string("model_kind")
+            if kind not in ("LearnedModel", "KnownModel"):
+                raise f.error("model_kind", f"must be 'LearnedModel' or 'KnownModel', got {kind!r}")
+            if type(model).__name__ != kind:
+                raise ValueError(f"model: the file {f.name} was saved with a {kind} (entry "
+                                 f"'model_kind'), got {type(model).__name__}")
+            n, p, m = (f.integer(k) for k in ("dim_x", "dim_y", "dim_u"))
+            if (getattr(model, "dim_x", None), getattr(model, "dim_y", None),
+                    getattr(model, "dim_u", None)) != (n, p, m):
+                raise ValueError(f"model: the file {f.name} was saved with dim_x={n}, "
+                                 f"dim_y={p}, dim_u={m}")
+            settings = dict(
+                horizon=f.integer("horizon", low=1), eta=f.float("eta"),
+                P2=f.floats("P2", (n, n)), Q0=np.diag(f.floats("Q0", (n, n))),
+                R0=np.diag(f.floats("R0", (p, p))) if p else None, form=f.string("form"),
+                solver=f.string("solver"))
+            lb, ub = f.floats("x_lower", (n,)), f.floats("x_upper", (n,))
+            try:
+                options = json.loads(f.string("solver_options"))
+            except ValueError as e:
+                raise f.error("solver_options", f"is not valid ({e})") from None
+            try:
+                mhe = cls(model, x0=np.clip(np.zeros(n), lb, ub), x_bounds=(lb, ub),
+                          solver_options=options, **settings)
+            except ValueError as e:
+                raise ValueError(f"path: {f.name}: the saved settings are invalid ({e})") from None
+            t = f.integer("t")
+            state = {"t": f.integer("core_t"), "window_t0": f.integer("core_window_t0"),
+                     "present": f.array("core_present", "b", (None,))}
+            for key, cols in (("u", m), ("y", p), ("priors", n), ("x_window", n)):
+                state[key] = f.floats("core_" + key, (None, cols))
+            if kind == "LearnedModel":
+                for key in ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y",
+                            "dmean_y", "dvar_y"):
+                    state["cache_" + key] = f.floats("core_cache_" + key, (None,))
+            if state["t"] != t:
+                raise f.error("core_t", f"is {state['t']} but entry 't' is {t}")
+            try:
+                mhe._core.window.__setstate__(state)
+            except ValueError as e:
+                raise f.state_error("core_", e) from None
+            mhe.t = t
+            mhe.x, mhe.x_prior = f.floats("x", (n,)), f.floats("x_prior", (n,))
+            mhe.P, mhe.x_window = f.floats("P", (n, n)), f.floats("x_window", (None, n))
+            mhe.cost, mhe.success = f.float("cost"), f.boolean("success")
+            mhe.nit, mhe.message = f.integer("nit"), f.string("message")
+            mhe.nfev, mhe.projected_gradient = f.integer("nfev"), f.float("projected_gradient")
+        return mhe

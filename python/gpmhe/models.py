@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from gpmhe import _core
+from gpmhe._npz import NpzReader
 from gpmhe._validation import (
     MAX_ABS,
     boolean,
@@ -24,6 +25,8 @@ from gpmhe._validation import (
 )
 
 __all__ = ["KnownModel", "LearnedModel"]
+
+_FORMAT_VERSION = 1  # of LearnedModel files
 
 
 def _point(x, u, n, m):
@@ -339,11 +342,23 @@ class KnownModel(_SharedOnCopy):
         return (np.ascontiguousarray(mx), np.zeros((k, n)), dmx, np.zeros((k, n, nd)),
                 np.ascontiguousarray(my), np.zeros((k, p)), dmy, np.zeros((k, p, nd)))
 
+    # ---- pickling ---------------------------------------------------------------------------
+    def __getstate__(self):
+        """Pickling needs picklable callables (module-level functions, not lambdas or local
+        functions): raise a `pickle.PicklingError` naming the one that is not."""
+        check_picklable("KnownModel", {name: getattr(self, name) for name in
+                                       ("f", "h", "f_jacobian", "h_jacobian")})
+        return self.__dict__
+
+    def _predict_f64(self, x, u):
+        """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
+        return np.ascontiguousarray(self.predict(x, u), dtype=np.float64)
+
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
         """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`)."""
         model = _core.StageModel.callback(
             self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
-            predict=lambda x, u: np.ascontiguousarray(self.predict(x, u), dtype=np.float64),
+            predict=self._predict_f64,
         )
         return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
@@ -359,6 +374,23 @@ def _first_trajectory(name, value):
     if a.ndim not in (1, 2):
         raise ValueError(f"{name}: must be a list of trajectories (2-D arrays), got shape {a.shape} first")
     return a
+
+
+def check_picklable(owner, callables):
+    """Raise `pickle.PicklingError` naming the first of `callables` (name -> callable or None)
+    that cannot be pickled (a lambda, a local function, ...)."""
+    import pickle
+
+    for name, fn in callables.items():
+        if fn is None:
+            continue
+        try:
+            pickle.dumps(fn)
+        except Exception as e:  # pickle raises PicklingError, AttributeError, TypeError, ...
+            raise pickle.PicklingError(
+                f"{owner}: cannot pickle {name}={fn!r} ({e}); to pickle or copy it to another "
+                f"process, give {name} as a module-level function (or another picklable "
+                f"callable)") from None
 
 
 def _trajectories(states, outputs, inputs, n, p, m):
@@ -708,7 +740,8 @@ class LearnedModel(_SharedOnCopy):
                 buf = io.BytesIO()
                 gp.save(buf)
                 blobs[name] = np.frombuffer(buf.getvalue(), dtype=np.uint8)
-        np.savez(path, kind="LearnedModel", dim_u=self.dim_u, f_residual=self.f_residual, **blobs)
+        np.savez(path, kind="LearnedModel", format_version=_FORMAT_VERSION, dim_u=self.dim_u,
+                 f_residual=self.f_residual, **blobs)
 
     @classmethod
     def load(cls, path):
@@ -746,10 +779,23 @@ class LearnedModel(_SharedOnCopy):
 
         from gpmhe.gp import MultiOutputGP
 
-        with np.load(path, allow_pickle=False) as f:
-            if str(f["kind"]) != "LearnedModel":
-                raise ValueError(f"path: not a saved LearnedModel ({f['kind']})")
-            gps = {name: MultiOutputGP.load(io.BytesIO(f[name].tobytes())) if name in f else None
-                   for name in ("f_gp", "h_gp")}
-            return cls(gps["f_gp"], gps["h_gp"], dim_u=int(f["dim_u"]),
-                       f_residual=bool(f["f_residual"]))
+        # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
+        # Files of gpmhe <= 0.1 have no format version.
+        with NpzReader(path, "LearnedModel", _FORMAT_VERSION, require_version=False) as f:
+            gps = {}
+            for name in ("f_gp", "h_gp"):
+                if name == "h_gp" and name not in f:
+                    gps[name] = None
+                    continue
+                blob = f.raw(name)
+                if blob.dtype != np.uint8 or blob.ndim != 1:
+                    raise f.error(name, "must be the bytes of a saved MultiOutputGP")
+                try:
+                    gps[name] = MultiOutputGP.load(io.BytesIO(blob.tobytes()))
+                except ValueError as e:
+                    raise f.error(name, f"is not a valid MultiOutputGP ({e})") from None
+            dim_u, f_residual = f.integer("dim_u"), f.boolean("f_residual")
+            try:
+                return cls(gps["f_gp"], gps["h_gp"], dim_u=dim_u, f_residual=f_residual)
+            except ValueError as e:
+                raise ValueError(f"path: {f.name}: the GPs do not make a model ({e})") from None

@@ -895,3 +895,167 @@ class RGPEKF:
             f"RGPEKF(dim_x={self.dim_x}, gps={len(self.gps)}, learning={self.learning}, "
             f"pure_prediction={self.pure_prediction}, x={self.x})"
         )
+
+    # -- checkpoints: save and load ------------------------------------------------------------
+    # (Copies and pickles need no code here: the Rust cores copy and pickle themselves with
+    # their whole state; the user functions must be picklable to pickle the filter.)
+
+    _CHECKPOINT_VERSION = 1
+
+    def save(self, path: Any) -> None:
+        """Write the filter's whole state (settings, GPs, μ, C, last innovation) to an ``.npz``
+        file.
+
+        The file holds plain arrays only (no pickle). The user functions ``f``, ``h`` (and ``A``,
+        ``e``, ``H`` where they are functions) are not saved: give them again to `load`. A filter
+        loaded from the file continues exactly (bit for bit) as this one would.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            Destination, passed to `numpy.savez`.
+
+        See Also
+        --------
+        load : Continue from the file.
+
+        Examples
+        --------
+        >>> import io
+        >>> import numpy as np
+        >>> from gpmhe import RGPEKF, RecursiveGP
+        >>> def f(x, u, z):
+        ...     return 0.9 * x + z
+        >>> def h(x):
+        ...     return x
+        >>> ekf = RGPEKF(1, f=f, A=0.9, e=1.0, h=h, H=[1.0], Q_x=1e-3, R_x=0.1, x0=[0.0], P0=1.0,
+        ...              gps=RecursiveGP(-1, 1, 5))
+        >>> ekf.predict(None, 0.2); ekf.update([0.5])
+        >>> buf = io.BytesIO()
+        >>> ekf.save(buf)
+        >>> _ = buf.seek(0)
+        >>> loaded = RGPEKF.load(buf, f=f, h=h)
+        >>> for filt in (ekf, loaded):
+        ...     filt.predict(None, 0.3); filt.update([0.4])
+        >>> bool(np.array_equal(loaded.x, ekf.x) and np.array_equal(loaded.C, ekf.C))
+        True
+        """
+        entries: dict = dict(
+            kind="RGPEKF", format_version=self._CHECKPOINT_VERSION, dim_x=self.dim_x,
+            learning=self.learning, pure_prediction=self.pure_prediction, Q_x=self.Q_x,
+            R_x=self.R_x, n_gps=len(self.gps))
+        for name, value in (("A", self._A), ("e", self._e), ("H", self._H)):
+            entries[name + "_is_function"] = callable(value)
+            if not callable(value):
+                entries[name] = value
+        for i, g in enumerate(self.gps):
+            _, _, (mean, cov) = g._core.__reduce__()
+            entries.update({
+                f"gp{i}_lower": g.lower, f"gp{i}_upper": g.upper,
+                f"gp{i}_n_points": np.asarray(g.n_points, dtype=np.int64),
+                f"gp{i}_params": np.array([g.sigma_K, g.L, g.sigma_r, g.sigma_p]),
+                f"gp{i}_mean": mean, f"gp{i}_cov": cov})
+        # (The core's copies of the constant Jacobians are the entries A, e, H.)
+        entries.update({"core_" + k: v for k, v in self._core.__getstate__().items()
+                        if not k.endswith("_const")})
+        np.savez(path, **entries)
+
+    @classmethod
+    def load(cls, path: Any, f: Callable[..., Any], h: Callable[..., Any], A: Any = None,
+             e: Any = None, H: Any = None) -> "RGPEKF":
+        """Continue a filter from a file written by `save`.
+
+        Parameters
+        ----------
+        path : str, os.PathLike or file-like object
+            The ``.npz`` file. It is read without pickle (``allow_pickle=False``), so a file from
+            an untrusted source cannot run code.
+        f, h : callable
+            The transition and output functions, as given to the constructor.
+        A, e, H : callable, array_like or None, default None
+            As given to the constructor; None takes the constant saved in the file, and is only
+            allowed where the saved filter had a constant (a function must be given again).
+
+        Returns
+        -------
+        RGPEKF
+            The filter with the saved settings, GPs and state.
+
+        Raises
+        ------
+        ValueError
+            If the file cannot be read, is not a saved RGPEKF, or an entry is missing, damaged or
+            inconsistent (the message names the file and the entry), or if a function the saved
+            filter used is not given.
+
+        See Also
+        --------
+        save : Write the file.
+
+        Examples
+        --------
+        >>> import io
+        >>> from gpmhe import RGPEKF, RecursiveGP
+        >>> def f(x, u, z):
+        ...     return x + z
+        >>> def h(x):
+        ...     return x
+        >>> ekf = RGPEKF(1, f=f, A=1.0, e=1.0, h=h, H=[1.0], Q_x=1e-3, R_x=0.1, x0=[0.5], P0=1.0,
+        ...              gps=RecursiveGP(-1, 1, 5))
+        >>> buf = io.BytesIO()
+        >>> ekf.save(buf)
+        >>> _ = buf.seek(0)
+        >>> RGPEKF.load(buf, f=f, h=h).x
+        array([0.5])
+        """
+        from gpmhe._npz import NpzReader
+
+        with NpzReader(path, "RGPEKF", cls._CHECKPOINT_VERSION) as fl:
+            n = fl.integer("dim_x", low=1)
+            given = {"A": A, "e": e, "H": H}
+            for name in given:
+                saved = None if fl.boolean(name + "_is_function") else fl.floats(name, (None, None))
+                if given[name] is None:
+                    if saved is None:
+                        raise ValueError(f"{name}: the filter in {fl.name} took {name} as a "
+                                         f"function; give it again")
+                    given[name] = saved
+            gps = []
+            for i in range(fl.integer("n_gps", low=1)):
+                params = fl.floats(f"gp{i}_params", (4,))
+                try:
+                    g = RecursiveGP(fl.floats(f"gp{i}_lower", (None,)),
+                                    fl.floats(f"gp{i}_upper", (None,)),
+                                    [int(v) for v in fl.array(f"gp{i}_n_points", "i", (None,))],
+                                    *params)
+                    g._core.__setstate__((fl.floats(f"gp{i}_mean", (None,)),
+                                          fl.floats(f"gp{i}_cov", (None, None))))
+                except ValueError as err:
+                    raise ValueError(f"path: {fl.name}: entries 'gp{i}_*' do not make a "
+                                     f"RecursiveGP ({err})") from None
+                gps.append(g)
+            fl.allow_nonfinite = ("core_log_likelihood",)
+            state = {"inferred": fl.boolean("core_inferred"),
+                     "log_likelihood": fl.float("core_log_likelihood")}
+            keys = [("mu", 1), ("cov", 2), ("j", 1), ("dvar", 1), ("mu_zp", 1), ("z_pred", 1),
+                    ("innovation", 1), ("S", 2)]
+            keys += [(f"gp_{part}_{i}", dims) for i in range(len(gps))
+                     for part, dims in (("mean", 1), ("cov", 2))]
+            for key, dims in keys:
+                state[key] = fl.floats("core_" + key, (None,) * dims)
+            if state["S"].shape != (len(state["innovation"]),) * 2:
+                raise fl.error("core_S", f"has shape {state['S'].shape}, expected (p, p) with p = "
+                                         f"{len(state['innovation'])} (entry 'core_innovation')")
+            try:
+                ekf = cls(n, f, given["A"], given["e"], h, given["H"], fl.floats("Q_x"),
+                          fl.floats("R_x"), x0=np.zeros(n), P0=np.eye(n), gps=gps,
+                          learning=fl.boolean("learning"),
+                          pure_prediction=fl.boolean("pure_prediction"))
+            except ValueError as err:
+                raise ValueError(f"path: {fl.name}: the saved settings are invalid ({err})") from None
+            try:
+                ekf._core.__setstate__(state)
+            except ValueError as err:
+                raise fl.state_error("core_", err) from None
+            ekf._core.set_constant_jacobians(ekf._A_const, ekf._e_const, ekf._H_const)
+        return ekf

@@ -9,7 +9,7 @@
 //! [`MovingHorizon::evaluate`] evaluates the staged window at any z, and
 //! [`MovingHorizon::commit`] records a solution.
 
-use super::history::{History, WindowData};
+use super::history::{History, HistoryState, WindowData};
 use super::lsq::WindowLsq;
 use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
@@ -133,6 +133,31 @@ impl MovingHorizon {
     /// The box for the staged window's stacked states.
     pub fn bounds(&self) -> (&[f64], &[f64]) {
         (&self.lower, &self.upper)
+    }
+
+    /// The state box X (lower, upper).
+    pub fn x_bounds(&self) -> (&[f64], &[f64]) {
+        (&self.x_bounds.0, &self.x_bounds.1)
+    }
+
+    /// The solver settings.
+    pub fn options(&self) -> &SolverOptions {
+        &self.opts
+    }
+
+    /// The history's state (see [`HistoryState`]): with the settings, all an update depends on.
+    pub fn history_state(&self) -> HistoryState {
+        self.history.state()
+    }
+
+    /// Replaces the history's state (validated, see [`History::set_state`]) and drops any staged
+    /// window; on error nothing changes.
+    pub fn set_history_state(&mut self, state: HistoryState) -> Result<()> {
+        self.history.set_state(state)?;
+        self.staged = None;
+        self.has_window = false;
+        self.evaluated_at.clear();
+        Ok(())
     }
 
     /// One whole update with (u(t), y(t)) (`y` None: not measured); see the module docs. On

@@ -168,6 +168,86 @@ impl History {
     }
 }
 
+/// The whole state of a [`History`] (what [`History::push`] changes), for copies and
+/// checkpoints: `t`, the rows of the last min(t, M + 1) steps (`u` rows × m, `y` rows × p,
+/// `present`), the arrival priors of the last min(t + 1, M + 2) times (`priors`, oldest first,
+/// k × n), the last optimal window `x_window` (rows × n) and the time of its first row.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HistoryState {
+    pub t: usize,
+    pub u: Vec<f64>,
+    pub y: Vec<f64>,
+    pub present: Vec<bool>,
+    pub priors: Vec<f64>,
+    pub x_window: Vec<f64>,
+    pub window_t0: usize,
+}
+
+impl History {
+    /// A copy of the state (see [`HistoryState`]).
+    pub fn state(&self) -> HistoryState {
+        HistoryState {
+            t: self.t,
+            u: self.u.clone(),
+            y: self.y.clone(),
+            present: self.present.clone(),
+            priors: self.priors.iter().flatten().copied().collect(),
+            x_window: self.x_window.clone(),
+            window_t0: self.window_t0,
+        }
+    }
+
+    /// Replaces the state by `s` (from [`History::state`] of a history with the same horizon,
+    /// form and dimensions). Every length follows from `t`, M and the form; a state that does not
+    /// fit, or holds a non-finite value, is rejected naming the entry, and nothing changes.
+    pub fn set_state(&mut self, s: HistoryState) -> Result<()> {
+        let (n, m, p) = self.dims;
+        let (t, big_m) = (s.t, self.horizon);
+        let rows = t.min(big_m + 1);
+        if s.present.len() != rows {
+            return Err(Error::invalid(
+                "present",
+                format!("expected {rows} values at t = {t}, got {}", s.present.len()),
+            ));
+        }
+        check_len("u", &s.u, rows * m)?;
+        check_len("y", &s.y, rows * p)?;
+        check_len("priors", &s.priors, t.saturating_add(1).min(big_m + 2) * n)?;
+        // The window of the last update (t − 1), or x0 as one row before any.
+        let (t0, nodes) = match t.checked_sub(1) {
+            None => (0, 1),
+            Some(last) => {
+                let end = match self.form {
+                    Form::Prediction => last + 1,
+                    Form::Filtering => last,
+                };
+                let s0 = end.saturating_sub(big_m);
+                (s0, end - s0 + 1)
+            }
+        };
+        check_len("x_window", &s.x_window, nodes * n)?;
+        if s.window_t0 != t0 {
+            return Err(Error::invalid(
+                "window_t0",
+                format!("must be {t0} at t = {t}, got {}", s.window_t0),
+            ));
+        }
+        check_finite("u", &s.u)?;
+        check_finite("priors", &s.priors)?;
+        check_finite("x_window", &s.x_window)?;
+        // Outputs that were not measured are stored as zeros; measured ones are finite.
+        check_finite("y", &s.y)?;
+        self.t = t;
+        self.u = s.u;
+        self.y = s.y;
+        self.present = s.present;
+        self.priors = s.priors.chunks_exact(n).map(<[f64]>::to_vec).collect();
+        self.x_window = s.x_window;
+        self.window_t0 = s.window_t0;
+        Ok(())
+    }
+}
+
 /// The last `rows` rows (of width `width`) of a row-major buffer.
 fn last_rows(buf: &[f64], width: usize, rows: usize) -> Vec<f64> {
     buf[buf.len() - rows * width..].to_vec()
@@ -223,6 +303,46 @@ mod tests {
             let nodes = w.nodes;
             h.push(w, vec![0.0; nodes], vec![t as f64]);
         }
+    }
+
+    #[test]
+    fn a_state_set_on_a_fresh_history_continues_identically() {
+        for form in [Form::Prediction, Form::Filtering] {
+            let mut a = History::new(2, form, (1, 1, 1), &[0.5]).unwrap();
+            let mut b = History::new(2, form, (1, 1, 1), &[0.0]).unwrap();
+            for t in 0..6 {
+                if t == 3 {
+                    b.set_state(a.state()).unwrap();
+                    assert_eq!(a.state(), b.state());
+                }
+                let y = [t as f64];
+                let step = |h: &mut History| {
+                    let w = h.next_window(&[1.0], Some(&y)).unwrap();
+                    let x = vec![t as f64 * 0.1; w.nodes];
+                    h.push(w, x, vec![t as f64]);
+                };
+                step(&mut a);
+                step(&mut b);
+            }
+            assert_eq!(a.state(), b.state());
+        }
+    }
+
+    #[test]
+    fn a_state_that_does_not_fit_is_rejected_naming_the_entry() {
+        let mut h = History::new(2, Form::Prediction, (1, 0, 1), &[0.0]).unwrap();
+        let good = h.state();
+        let err = |h: &mut History, s: HistoryState| h.set_state(s).unwrap_err().to_string();
+        let mut s = good.clone();
+        s.t = 3;
+        assert!(err(&mut h, s).starts_with("present:"));
+        let mut s = good.clone();
+        s.priors = vec![f64::NAN];
+        assert!(err(&mut h, s).starts_with("priors:"));
+        let mut s = good.clone();
+        s.window_t0 = 1;
+        assert!(err(&mut h, s).starts_with("window_t0:"));
+        assert_eq!(h.state(), good);
     }
 
     #[test]

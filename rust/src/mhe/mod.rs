@@ -15,7 +15,7 @@ pub mod problem;
 pub mod stage;
 
 pub use estimator::{MovingHorizon, UpdateReport};
-pub use history::{History, WindowData};
+pub use history::{History, HistoryState, WindowData};
 pub use lsq::WindowLsq;
 pub use problem::{Form, WindowEval, WindowProblem};
-pub use stage::{GpStageModel, StageEval, StageModel};
+pub use stage::{GpStageModel, StageEval, StageModel, GP_CACHE_PARTS};

@@ -50,6 +50,24 @@ pub struct WindowProblem {
     x_prior: Vec<f64>,
 }
 
+/// The settings a problem was built with (for copies and checkpoints of an estimator).
+impl WindowProblem {
+    pub fn eta(&self) -> f64 {
+        self.eta
+    }
+    /// The diagonals of Q0 (n) and R0 (p).
+    pub fn q0(&self) -> &[f64] {
+        &self.q0
+    }
+    pub fn r0(&self) -> &[f64] {
+        &self.r0
+    }
+    /// S with P2 = SᵀS (n × n row-major).
+    pub fn p2_sqrt(&self) -> &[f64] {
+        &self.p2_sqrt
+    }
+}
+
 impl WindowProblem {
     /// `q0` (n) and `r0` (p) are the diagonals of Q0, R0 (positive); `p2_sqrt` is S (n×n,
     /// row-major) with P2 = SᵀS; `eta` ∈ [0, 1).

@@ -6,6 +6,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::error::{check_len, Error, Result};
+use std::sync::Arc;
+
 use crate::gp::{GpWorkspace, MultiGp};
 
 /// Means, variances and their input gradients of a stage model at k points d = [x; u].
@@ -132,10 +134,13 @@ pub trait StageModel {
 /// The values at the points of the last evaluation are kept: a point given again with exactly
 /// the same coordinates is copied instead of recomputed. A moving-horizon window starts from the
 /// previous solution shifted by one step, so its first evaluation recomputes only the new point.
+///
+/// The GPs are immutable and shared (`Arc`): a clone copies only the workspace and the cache, so
+/// copying an estimator (`copy.deepcopy`, filterpy's `Saver`) does not copy the training data.
 #[derive(Debug, Clone)]
 pub struct GpStageModel {
-    f: MultiGp,
-    h: Option<MultiGp>,
+    f: Arc<MultiGp>,
+    h: Option<Arc<MultiGp>>,
     f_residual: bool,
     n: usize,
     m: usize,
@@ -178,8 +183,8 @@ impl GpStageModel {
             }
         }
         Ok(Self {
-            f,
-            h,
+            f: Arc::new(f),
+            h: h.map(Arc::new),
             f_residual,
             n,
             m: dim_u,
@@ -257,6 +262,64 @@ impl GpStageModel {
 
     pub fn f_residual(&self) -> bool {
         self.f_residual
+    }
+
+    /// The GPs of f and h (shared, see the struct's doc).
+    pub fn gps(&self) -> (&Arc<MultiGp>, Option<&Arc<MultiGp>>) {
+        (&self.f, self.h.as_ref())
+    }
+}
+
+/// Names of the cache's parts, in the order of [`GpStageModel::cache`].
+pub const GP_CACHE_PARTS: [&str; 9] = [
+    "d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y", "dvar_y",
+];
+
+impl GpStageModel {
+    /// The cache of the last evaluation: its points d (k × nd) and the values there (the fields
+    /// of [`StageEval`] in the order of [`GP_CACHE_PARTS`]). A point found in the cache is
+    /// copied, not recomputed, and a batch's values depend (in the last bits) on the batch: an
+    /// estimator restored with its cache continues bit-identically, one without would not.
+    pub fn cache(&self) -> [Vec<f64>; 9] {
+        let l = &self.last;
+        [
+            self.last_d.clone(),
+            l.mean_x.clone(),
+            l.var_x.clone(),
+            l.dmean_x.clone(),
+            l.dvar_x.clone(),
+            l.mean_y.clone(),
+            l.var_y.clone(),
+            l.dmean_y.clone(),
+            l.dvar_y.clone(),
+        ]
+    }
+
+    /// Sets the cache from [`GpStageModel::cache`]'s parts; lengths and finiteness are checked
+    /// (an error names the part) and nothing changes on error.
+    pub fn set_cache(&mut self, parts: [Vec<f64>; 9]) -> Result<()> {
+        let (n, m, p) = (self.n, self.m, self.dim_y());
+        let nd = n + m;
+        let k = parts[0].len() / nd;
+        let widths = [nd, n, n, n * nd, n * nd, p, p, p * nd, p * nd];
+        for ((part, name), w) in parts.iter().zip(GP_CACHE_PARTS).zip(widths) {
+            check_len(name, part, k * w)?;
+            crate::error::check_finite(name, part)?;
+        }
+        let [d, mean_x, var_x, dmean_x, dvar_x, mean_y, var_y, dmean_y, dvar_y] = parts;
+        self.last_d = d;
+        self.last = StageEval {
+            mean_x,
+            var_x,
+            dmean_x,
+            dvar_x,
+            mean_y,
+            var_y,
+            dmean_y,
+            dvar_y,
+            ..StageEval::default()
+        };
+        Ok(())
     }
 }
 

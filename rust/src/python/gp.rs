@@ -138,6 +138,33 @@ impl PyMultiGp {
         Ok(Self { inner })
     }
 
+    // ---- copies and pickles -----------------------------------------------------------------
+    /// Pickles as `MultiGP(x, y, thetas)`: the same data factorise to the same GP, bit for bit.
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyTuple>> {
+        let gps = self.inner.gps();
+        let (q, nd) = (self.inner.n_outputs(), self.inner.dim());
+        let n = gps[0].n_train();
+        let x = array2(py, gps[0].x_train().to_vec(), n, nd)?;
+        let mut y = vec![0.0; n * q];
+        for (o, g) in gps.iter().enumerate() {
+            for (i, v) in g.y_train().iter().enumerate() {
+                y[i * q + o] = *v;
+            }
+        }
+        let thetas: Vec<f64> = gps.iter().flat_map(|g| g.theta()).collect();
+        let args = (x, array2(py, y, n, q)?, array2(py, thetas, q, nd + 2)?);
+        (py.get_type::<Self>(), args).into_pyobject(py)
+    }
+
+    /// Immutable: a copy is the same object.
+    fn __copy__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __deepcopy__(slf: Py<Self>, _memo: Bound<'_, PyAny>) -> Py<Self> {
+        slf
+    }
+
     #[getter]
     fn n_outputs(&self) -> usize {
         self.inner.n_outputs()

@@ -5,17 +5,20 @@
 //! other than a numerical one stops the update (the estimator stays as it was) and is re-raised.
 
 use numpy::{
-    PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn,
+    PyArray1, PyArray2, PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArrayDyn, PyUntypedArrayMethods,
 };
 use pyo3::exceptions::{PyArithmeticError, PyException, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyTuple};
 
 use super::convert::{array2, slice1, slice2};
 use super::error::{detach_interruptible, interruptible};
 use super::gp::PyMultiGp;
 use crate::error::{check_finite, check_len, Error};
 use crate::mhe::{
-    Form, GpStageModel, MovingHorizon, StageEval, StageModel, UpdateReport, WindowProblem,
+    Form, GpStageModel, HistoryState, MovingHorizon, StageEval, StageModel, UpdateReport,
+    WindowProblem, GP_CACHE_PARTS,
 };
 use crate::solver::{BoxLsqSolver, InteriorMode, SolverOptions};
 
@@ -175,6 +178,92 @@ impl Model {
     }
 }
 
+// ---- copies and pickles ---------------------------------------------------------------------
+impl Model {
+    /// `(constructor, args)` rebuilding this model: `StageModel.callback(stage_eval, dims...,
+    /// predict)` or `StageModel.gp(f, h, dim_u, f_residual)`.
+    fn reduce<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let cls = py.get_type::<PyStageModel>();
+        match self {
+            Model::Callback {
+                stage_eval,
+                predict,
+                dims,
+            } => {
+                let args = (
+                    stage_eval.clone_ref(py),
+                    dims.0,
+                    dims.1,
+                    dims.2,
+                    predict.as_ref().map(|p| p.clone_ref(py)),
+                );
+                (cls.getattr("callback")?, args).into_pyobject(py)
+            }
+            Model::Gp(gp) => {
+                let (f, h) = gp.gps();
+                let f = Py::new(
+                    py,
+                    PyMultiGp {
+                        inner: (**f).clone(),
+                    },
+                )?;
+                let h = h
+                    .map(|h| {
+                        Py::new(
+                            py,
+                            PyMultiGp {
+                                inner: (**h).clone(),
+                            },
+                        )
+                    })
+                    .transpose()?;
+                let args = (f, h, gp.dim_u(), gp.f_residual());
+                (cls.getattr("gp")?, args).into_pyobject(py)
+            }
+        }
+    }
+}
+
+/// The float64 array `state[key]` with `cols` columns (2-D), as a flat row-major vector; a
+/// ValueError naming the entry otherwise.
+fn state_rows(state: &Bound<'_, PyDict>, key: &str, cols: usize) -> PyResult<Vec<f64>> {
+    let a = state_item(state, key)?;
+    let a = a
+        .cast::<PyArrayDyn<f64>>()
+        .map_err(|_| PyValueError::new_err(format!("{key}: must be a float64 array")))?;
+    if a.ndim() != 2 || a.shape()[1] != cols {
+        return Err(PyValueError::new_err(format!(
+            "{key}: must have shape (rows, {cols}), got {:?}",
+            a.shape()
+        )));
+    }
+    Ok(a.readonly().as_array().iter().copied().collect())
+}
+
+/// The 1-D float64 array `state[key]` as a vector; a ValueError naming the entry otherwise.
+fn state_rows_1d(state: &Bound<'_, PyDict>, key: &str) -> PyResult<Vec<f64>> {
+    let a = state_item(state, key)?;
+    let a = a
+        .cast::<PyArrayDyn<f64>>()
+        .map_err(|_| PyValueError::new_err(format!("{key}: must be a float64 array")))?;
+    if a.ndim() != 1 {
+        return Err(PyValueError::new_err(format!("{key}: must be 1-D")));
+    }
+    Ok(a.readonly().as_array().iter().copied().collect())
+}
+
+fn state_item<'py>(state: &Bound<'py, PyDict>, key: &str) -> PyResult<Bound<'py, PyAny>> {
+    state
+        .get_item(key)?
+        .ok_or_else(|| PyValueError::new_err(format!("{key}: missing from the state")))
+}
+
+fn state_usize(state: &Bound<'_, PyDict>, key: &str) -> PyResult<usize> {
+    state_item(state, key)?
+        .extract::<usize>()
+        .map_err(|_| PyValueError::new_err(format!("{key}: must be a non-negative integer")))
+}
+
 /// The model of a `MovingHorizon`: `StageModel.gp(...)` (the learned GPs) or
 /// `StageModel.callback(...)` (a `gpmhe.KnownModel`'s Python functions).
 #[pyclass(name = "StageModel", module = "gpmhe._core", frozen)]
@@ -229,6 +318,22 @@ impl PyStageModel {
     #[getter]
     fn dims(&self) -> (usize, usize, usize) {
         self.model.dims()
+    }
+
+    // ---- copies and pickles -----------------------------------------------------------------
+    /// Pickles as its constructor call: the GPs' data, or the Python callables (which must be
+    /// picklable themselves, e.g. module-level functions or bound methods of picklable objects).
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        self.model.reduce(py)
+    }
+
+    /// The model is immutable: a copy is the same object.
+    fn __copy__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __deepcopy__(slf: Py<Self>, _memo: Bound<'_, PyAny>) -> Py<Self> {
+        slf
     }
 }
 
@@ -536,6 +641,122 @@ impl PyMovingHorizon {
         })?;
         array2(py, jac, rows, cols)
     }
+
+    // ---- copies, pickles and checkpoints ------------------------------------------------------
+    /// An independent copy: the settings, the history and the work buffers are copied, the
+    /// model's GPs (immutable) are shared; the copy continues exactly as the original would.
+    fn __copy__(&self, py: Python<'_>) -> Self {
+        Self {
+            core: self.core.clone(),
+            model: self.model.clone_ref(py),
+        }
+    }
+
+    fn __deepcopy__(&self, py: Python<'_>, _memo: Bound<'_, PyAny>) -> Self {
+        self.__copy__(py)
+    }
+
+    /// Pickles as (MovingHorizon, constructor arguments, `__getstate__()`).
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let p = self.core.problem();
+        let n = p.dim_x();
+        let stage = Py::new(
+            py,
+            PyStageModel {
+                model: self.model.clone_ref(py),
+            },
+        )?;
+        let solver = Py::new(
+            py,
+            PyWindowSolver {
+                solver: BoxLsqSolver::new(),
+                opts: self.core.options().clone(),
+            },
+        )?;
+        let (lower, upper) = self.core.x_bounds();
+        let args = (
+            stage,
+            p.eta(),
+            PyArray1::from_slice(py, p.q0()),
+            PyArray1::from_slice(py, p.r0()),
+            array2(py, p.p2_sqrt().to_vec(), n, n)?,
+            p.form() == Form::Filtering,
+            self.core.history().horizon(),
+            None::<Py<PyAny>>,
+            PyArray1::from_slice(py, lower),
+            PyArray1::from_slice(py, upper),
+            solver,
+        );
+        let cls = py.get_type::<Self>();
+        (cls, args, self.__getstate__(py)?).into_pyobject(py)
+    }
+
+    /// The history as a dict of plain values: `t`, `window_t0` (ints), `u` (rows, m), `y`
+    /// (rows, p), `present` (rows,) bool, `priors` (k, n), `x_window` (nodes, n).
+    fn __getstate__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let s = self.core.history_state();
+        let p = self.core.problem();
+        let (n, m, dy) = (p.dim_x(), p.dim_u(), p.dim_y());
+        let rows = s.present.len();
+        let d = PyDict::new(py);
+        d.set_item("t", s.t)?;
+        d.set_item("window_t0", s.window_t0)?;
+        d.set_item("u", array2(py, s.u, rows, m)?)?;
+        d.set_item("y", array2(py, s.y, rows, dy)?)?;
+        d.set_item("present", PyArray1::from_vec(py, s.present))?;
+        let k = s.priors.len() / n;
+        d.set_item("priors", array2(py, s.priors, k, n)?)?;
+        let nodes = s.x_window.len() / n;
+        d.set_item("x_window", array2(py, s.x_window, nodes, n)?)?;
+        if let Model::Gp(gp) = &self.model {
+            for (name, part) in GP_CACHE_PARTS.iter().zip(gp.cache()) {
+                d.set_item(format!("cache_{name}"), PyArray1::from_vec(py, part))?;
+            }
+        }
+        Ok(d)
+    }
+
+    /// Restores a history from `__getstate__` of an estimator with the same settings. Every
+    /// entry is checked (a ValueError names it); on error nothing changes.
+    fn __setstate__(&mut self, state: Bound<'_, PyDict>) -> PyResult<()> {
+        let p = self.core.problem();
+        let (n, m, dy) = (p.dim_x(), p.dim_u(), p.dim_y());
+        let present = state_item(&state, "present")?;
+        let present = present
+            .cast::<PyArrayDyn<bool>>()
+            .map_err(|_| PyValueError::new_err("present: must be a bool array"))?;
+        if present.ndim() != 1 {
+            return Err(PyValueError::new_err("present: must be 1-D"));
+        }
+        let s = HistoryState {
+            t: state_usize(&state, "t")?,
+            u: state_rows(&state, "u", m)?,
+            y: state_rows(&state, "y", dy)?,
+            present: present.readonly().as_array().iter().copied().collect(),
+            priors: state_rows(&state, "priors", n)?,
+            x_window: state_rows(&state, "x_window", n)?,
+            window_t0: state_usize(&state, "window_t0")?,
+        };
+        // The learned model's cache of the last evaluation (see `GpStageModel::cache`).
+        let gp = match &self.model {
+            Model::Gp(gp) => {
+                let mut parts: [Vec<f64>; 9] = Default::default();
+                for (part, name) in parts.iter_mut().zip(GP_CACHE_PARTS) {
+                    *part = state_rows_1d(&state, &format!("cache_{name}"))?;
+                }
+                let mut gp = gp.clone();
+                gp.set_cache(parts)
+                    .map_err(|e| PyValueError::new_err(format!("cache_{e}")))?;
+                Some(gp)
+            }
+            Model::Callback { .. } => None,
+        };
+        self.core.set_history_state(s)?;
+        if let Some(gp) = gp {
+            self.model = Model::Gp(gp);
+        }
+        Ok(())
+    }
 }
 
 /// What one `MovingHorizon.update` did: `x_window` (nodes, n), `x_prior` (n,), `P` (n, n) or
@@ -642,6 +863,28 @@ impl PyWindowSolver {
             solver: BoxLsqSolver::new(),
             opts,
         })
+    }
+
+    /// Pickles as its constructor call with the settings (the work buffers are not kept).
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let o = &self.opts;
+        let interior = match o.interior {
+            InteriorMode::Auto => "auto",
+            InteriorMode::Always => "always",
+            InteriorMode::Never => "never",
+        };
+        let args = (
+            o.max_iter,
+            o.gtol,
+            o.xtol,
+            o.ftol,
+            o.dtol,
+            interior,
+            o.interior_zone,
+            o.mu_init,
+            o.mu_final,
+        );
+        (py.get_type::<Self>(), args).into_pyobject(py)
     }
 
     /// Minimises the window's cost over lower ≤ z ≤ upper from `z0`. Returns (z, cost, status,

@@ -13,9 +13,9 @@ use super::error::detach_interruptible;
 // Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
 // python/gpmhe/rgp.py, which validates inputs and calls these once per step.
 
-use crate::rgp::{Rgp, RgpBasis, RgpEkf};
+use crate::rgp::{Rgp, RgpBasis, RgpEkf, RgpEkfState};
 use faer::MatRef;
-use pyo3::types::PyFloat;
+use pyo3::types::{PyDict, PyFloat, PyList, PyTuple};
 
 /// A (mean, variance) pair of 1-D arrays.
 type MeanVar<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
@@ -36,6 +36,17 @@ fn mat_to_array2<'py>(py: Python<'py>, m: MatRef<'_, f64>) -> PyResult<Bound<'py
 #[derive(Clone)]
 pub struct RgpCore {
     inner: Rgp,
+    /// The constructor's arguments (for pickling).
+    args: RgpArgs,
+}
+
+/// `RecursiveGPCore(lower, upper, n_points, sigma_k, l, sigma_r, sigma_p)`'s arguments.
+#[derive(Clone)]
+struct RgpArgs {
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+    n_points: Vec<usize>,
+    params: [f64; 4],
 }
 
 #[pymethods]
@@ -60,8 +71,15 @@ impl RgpCore {
             sigma_r,
             sigma_p,
         )?;
+        let args = RgpArgs {
+            lower: slice1("lower", &lower)?.to_vec(),
+            upper: slice1("upper", &upper)?.to_vec(),
+            n_points,
+            params: [sigma_k, l, sigma_r, sigma_p],
+        };
         Ok(Self {
             inner: Rgp::new(basis),
+            args,
         })
     }
 
@@ -149,6 +167,50 @@ impl RgpCore {
     fn jitter(&self) -> f64 {
         self.inner.basis().jitter()
     }
+
+    // ---- copies and pickles -----------------------------------------------------------------
+    fn __copy__(&self) -> Self {
+        self.clone()
+    }
+
+    fn __deepcopy__(&self, _memo: Bound<'_, PyAny>) -> Self {
+        self.clone()
+    }
+
+    /// Pickles as (RecursiveGPCore, constructor arguments, (mean, cov as stored)).
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let nb = self.inner.mean().len();
+        let state = (
+            PyArray1::from_slice(py, self.inner.mean()),
+            array2(py, self.inner.cov_raw(), nb, nb)?,
+        );
+        (py.get_type::<Self>(), self.args.to_tuple(py)?, state).into_pyobject(py)
+    }
+
+    /// Restores the weights exactly from `(mean, cov)` as `__reduce__` gives them.
+    fn __setstate__(
+        &mut self,
+        state: (PyReadonlyArray1<'_, f64>, PyReadonlyArray2<'_, f64>),
+    ) -> PyResult<()> {
+        let (c, _, _) = slice2("cov", &state.1)?;
+        Ok(self.inner.set_weights_raw(slice1("mean", &state.0)?, c)?)
+    }
+}
+
+impl RgpArgs {
+    fn to_tuple<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let [k, l, r, p] = self.params;
+        (
+            PyArray1::from_slice(py, &self.lower),
+            PyArray1::from_slice(py, &self.upper),
+            self.n_points.clone(),
+            k,
+            l,
+            r,
+            p,
+        )
+            .into_pyobject(py)
+    }
 }
 
 /// Dimension n + Σ n_b (N in augmented mode) from which the per-step calls of `RGPEKFCore` release the GIL.
@@ -175,6 +237,8 @@ pub struct RgpEkfCore {
     h_const: Option<Vec<f64>>,
     /// Per-step copies of the inputs and of the user functions' results (a few values each).
     buf: StepBuffers,
+    /// The constructor arguments of the GPs (for pickling).
+    gp_args: Vec<RgpArgs>,
 }
 
 #[derive(Default)]
@@ -291,6 +355,7 @@ impl RgpEkfCore {
         augmented: bool,
     ) -> PyResult<Self> {
         let (p, _, _) = slice2("P0", &p0)?;
+        let gp_args = gps.iter().map(|g| g.args.clone()).collect();
         let gps = gps.iter().map(|g| g.inner.clone()).collect();
         Ok(Self {
             inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
@@ -298,6 +363,7 @@ impl RgpEkfCore {
             e_const: None,
             h_const: None,
             buf: StepBuffers::default(),
+            gp_args,
         })
     }
 
@@ -540,5 +606,139 @@ impl RgpEkfCore {
     #[getter]
     fn log_likelihood(&self) -> f64 {
         self.inner.log_likelihood()
+    }
+
+    // ---- copies, pickles and checkpoints ------------------------------------------------------
+    /// An independent copy (the scratch buffers start empty); it continues exactly as the
+    /// original would.
+    fn __copy__(&self) -> Self {
+        Self {
+            inner: self.inner.clone(),
+            a_const: self.a_const.clone(),
+            e_const: self.e_const.clone(),
+            h_const: self.h_const.clone(),
+            buf: StepBuffers::default(),
+            gp_args: self.gp_args.clone(),
+        }
+    }
+
+    fn __deepcopy__(&self, _memo: Bound<'_, PyAny>) -> Self {
+        self.__copy__()
+    }
+
+    /// Pickles as (RGPEKFCore, constructor arguments, `__getstate__()`).
+    fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let n = self.inner.dim_x();
+        let gps = PyList::empty(py);
+        for (g, args) in self.inner.gps().iter().zip(&self.gp_args) {
+            let core = RgpCore {
+                inner: g.clone(),
+                args: args.clone(),
+            };
+            gps.append(Py::new(py, core)?)?;
+        }
+        let args = (
+            PyArray1::from_slice(py, &self.inner.state().mu[..n]),
+            array2(py, vec![0.0; n * n], n, n)?,
+            gps,
+            self.inner.augmented(),
+        );
+        (py.get_type::<Self>(), args, self.__getstate__(py)?).into_pyobject(py)
+    }
+
+    /// The state as a dict of arrays: `mu` (N,), `cov` (N, N) as stored, `gp_mean_<i>`,
+    /// `gp_cov_<i>` per GP, `j`, `dvar`, `mu_zp`, `z_pred`, `inferred` (bool), `innovation` (p,), `S`
+    /// (p, p), `log_likelihood`, and `A_const`, `e_const`, `H_const` when set.
+    fn __getstate__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let st = self.inner.state();
+        let (n, nt, q) = (
+            self.inner.dim_x(),
+            self.inner.dim_total(),
+            self.inner.n_gps(),
+        );
+        let d = PyDict::new(py);
+        d.set_item("mu", PyArray1::from_vec(py, st.mu))?;
+        d.set_item("cov", array2(py, st.cov, nt, nt)?)?;
+        for (i, (m, c)) in st.gp_means.into_iter().zip(st.gp_covs).enumerate() {
+            let nb = m.len();
+            d.set_item(format!("gp_mean_{i}"), PyArray1::from_vec(py, m))?;
+            d.set_item(format!("gp_cov_{i}"), array2(py, c, nb, nb)?)?;
+        }
+        d.set_item("j", PyArray1::from_vec(py, st.j))?;
+        d.set_item("dvar", PyArray1::from_vec(py, st.dvar))?;
+        d.set_item("mu_zp", PyArray1::from_vec(py, st.mu_zp))?;
+        d.set_item("z_pred", PyArray1::from_vec(py, st.z_pred))?;
+        d.set_item("inferred", st.inferred)?;
+        let p = st.innovation.len();
+        d.set_item("innovation", PyArray1::from_vec(py, st.innovation))?;
+        d.set_item("S", array2(py, st.s, p, p)?)?;
+        d.set_item("log_likelihood", st.log_likelihood)?;
+        for (key, m, cols) in [
+            ("A_const", &self.a_const, n),
+            ("e_const", &self.e_const, q),
+            ("H_const", &self.h_const, n),
+        ] {
+            if let Some(m) = m {
+                d.set_item(key, array2(py, m.clone(), m.len() / cols.max(1), cols)?)?;
+            }
+        }
+        Ok(d)
+    }
+
+    /// Restores the state from `__getstate__` of an estimator with the same dimensions and GPs.
+    /// Every entry is checked (a ValueError names it); on error nothing changes.
+    fn __setstate__(&mut self, state: Bound<'_, PyDict>) -> PyResult<()> {
+        let vec = |key: &str| -> PyResult<Vec<f64>> {
+            let item = state
+                .get_item(key)?
+                .ok_or_else(|| PyValueError::new_err(format!("{key}: missing from the state")))?;
+            let a = item
+                .cast::<PyArrayDyn<f64>>()
+                .map_err(|_| PyValueError::new_err(format!("{key}: must be a float64 array")))?;
+            Ok(a.readonly().as_array().iter().copied().collect())
+        };
+        let scalar = |key: &str| -> PyResult<Bound<'_, PyAny>> {
+            state
+                .get_item(key)?
+                .ok_or_else(|| PyValueError::new_err(format!("{key}: missing from the state")))
+        };
+        let q = self.inner.n_gps();
+        let mut gp_means = Vec::with_capacity(q);
+        let mut gp_covs = Vec::with_capacity(q);
+        for i in 0..q {
+            gp_means.push(vec(&format!("gp_mean_{i}"))?);
+            gp_covs.push(vec(&format!("gp_cov_{i}"))?);
+        }
+        let st = RgpEkfState {
+            mu: vec("mu")?,
+            cov: vec("cov")?,
+            gp_means,
+            gp_covs,
+            j: vec("j")?,
+            dvar: vec("dvar")?,
+            mu_zp: vec("mu_zp")?,
+            z_pred: vec("z_pred")?,
+            inferred: scalar("inferred")?
+                .extract::<bool>()
+                .map_err(|_| PyValueError::new_err("inferred: must be a bool"))?,
+            innovation: vec("innovation")?,
+            s: vec("S")?,
+            log_likelihood: scalar("log_likelihood")?
+                .extract::<f64>()
+                .map_err(|_| PyValueError::new_err("log_likelihood: must be a float"))?,
+        };
+        let consts = ["A_const", "e_const", "H_const"]
+            .into_iter()
+            .map(|k| match state.contains(k)? {
+                true => vec(k).map(Some),
+                false => Ok(None),
+            })
+            .collect::<PyResult<Vec<_>>>()?;
+        self.inner.set_state(st)?;
+        let mut consts = consts.into_iter();
+        self.a_const = consts.next().flatten();
+        self.e_const = consts.next().flatten();
+        self.h_const = consts.next().flatten();
+        Ok(())
     }
 }

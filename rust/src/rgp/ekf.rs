@@ -64,6 +64,119 @@ pub struct RgpEkf {
     log_likelihood: f64,
 }
 
+/// The state of an [`RgpEkf`] that carries from one step to the next (everything but the scratch
+/// buffers), for exact copies and checkpoints: μ, C as stored (N × N row-major, with its stale
+/// upper entries), each GP's weights as stored, the last J rows, noise variances and μ_z^p,
+/// whether a prediction step has run since the last update, and the last innovation, its
+/// covariance (p × p row-major) and log-likelihood.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RgpEkfState {
+    pub mu: Vec<f64>,
+    pub cov: Vec<f64>,
+    pub gp_means: Vec<Vec<f64>>,
+    pub gp_covs: Vec<Vec<f64>>,
+    pub j: Vec<f64>,
+    pub dvar: Vec<f64>,
+    pub mu_zp: Vec<f64>,
+    /// z of the last completed prediction (what `z_pred` reports).
+    pub z_pred: Vec<f64>,
+    pub inferred: bool,
+    pub innovation: Vec<f64>,
+    pub s: Vec<f64>,
+    pub log_likelihood: f64,
+}
+
+fn mat_raw(m: &Mat<f64>) -> Vec<f64> {
+    let c = m.ncols();
+    (0..m.nrows() * c).map(|k| m[(k / c, k % c)]).collect()
+}
+
+impl RgpEkf {
+    /// The recursive GPs (their weights are only current in the pure-prediction mode).
+    pub fn gps(&self) -> &[Rgp] {
+        &self.gps
+    }
+
+    /// A copy of the state (see [`RgpEkfState`]).
+    pub fn state(&self) -> RgpEkfState {
+        RgpEkfState {
+            mu: self.mu.clone(),
+            cov: mat_raw(&self.cov),
+            gp_means: self.gps.iter().map(|g| g.mean().to_vec()).collect(),
+            gp_covs: self.gps.iter().map(|g| g.cov_raw()).collect(),
+            j: self.j.clone(),
+            dvar: self.dvar.clone(),
+            mu_zp: self.mu_zp.clone(),
+            z_pred: self.z_pred.clone(),
+            inferred: self.inferred,
+            innovation: self.innovation.clone(),
+            s: mat_raw(&self.s),
+            log_likelihood: self.log_likelihood,
+        }
+    }
+
+    /// Replaces the state by `st` (from [`RgpEkf::state`] of an estimator with the same
+    /// dimensions and GPs). Every length is checked against this estimator's, every value must be
+    /// finite; an error names the entry and changes nothing.
+    pub fn set_state(&mut self, st: RgpEkfState) -> Result<()> {
+        let (nt, q) = (self.nt, self.gps.len());
+        check_len("mu", &st.mu, nt)?;
+        check_len("cov", &st.cov, nt * nt)?;
+        if st.gp_means.len() != q || st.gp_covs.len() != q {
+            return Err(Error::invalid(
+                "gp_weights",
+                format!("expected the weights of {q} GPs"),
+            ));
+        }
+        check_len("j", &st.j, self.j.len())?;
+        check_len("dvar", &st.dvar, q)?;
+        check_len("mu_zp", &st.mu_zp, q)?;
+        check_len("z_pred", &st.z_pred, q)?;
+        let p = st.innovation.len();
+        check_len("S", &st.s, p * p)?;
+        for (name, v) in [
+            ("mu", &st.mu),
+            ("cov", &st.cov),
+            ("j", &st.j),
+            ("dvar", &st.dvar),
+            ("mu_zp", &st.mu_zp),
+            ("z_pred", &st.z_pred),
+            ("innovation", &st.innovation),
+            ("S", &st.s),
+        ] {
+            check_finite(name, v)?;
+        }
+        if st.log_likelihood.is_nan() {
+            return Err(Error::invalid("log_likelihood", "must not be NaN"));
+        }
+        let mut gps = self.gps.clone();
+        for (i, (g, (m, c))) in gps
+            .iter_mut()
+            .zip(st.gp_means.iter().zip(&st.gp_covs))
+            .enumerate()
+        {
+            let nb = g.basis.n_basis();
+            check_len(&format!("gp_mean_{i}"), m, nb)?;
+            check_len(&format!("gp_cov_{i}"), c, nb * nb)?;
+            check_finite(&format!("gp_mean_{i}"), m)?;
+            check_finite(&format!("gp_cov_{i}"), c)?;
+            g.set_weights_raw(m, c)?;
+        }
+        self.gps = gps;
+        self.mu = st.mu;
+        self.cov = Mat::from_fn(nt, nt, |r, c| st.cov[r * nt + c]);
+        self.j = st.j;
+        self.dvar = st.dvar;
+        self.mu_zp = st.mu_zp;
+        self.z_pred = st.z_pred;
+        self.inferred = st.inferred;
+        self.innovation = st.innovation;
+        self.s = Mat::from_fn(p, p, |r, c| st.s[r * p + c]);
+        self.log_likelihood = st.log_likelihood;
+        Ok(())
+    }
+}
+
 impl RgpEkf {
     /// `x0` (n), `p0` (n × n row-major), the GPs (their current weights initialise the GP block,
     /// C_z = K for a fresh RGP), `augmented` = false for the pure-prediction mode of §3.2.

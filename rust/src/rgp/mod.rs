@@ -59,7 +59,7 @@ mod ekf;
 mod recursive;
 
 pub use basis::RgpBasis;
-pub use ekf::RgpEkf;
+pub use ekf::{RgpEkf, RgpEkfState};
 pub use recursive::Rgp;
 
 fn check_positive(arg: &str, v: f64) -> Result<()> {

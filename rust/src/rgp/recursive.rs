@@ -44,6 +44,27 @@ impl Rgp {
         self.cov.as_ref()
     }
 
+    /// The weights' covariance C_z as stored (row-major n_b × n_b), for an exact copy.
+    pub fn cov_raw(&self) -> Vec<f64> {
+        let nb = self.basis.n_basis();
+        (0..nb * nb).map(|k| self.cov[(k / nb, k % nb)]).collect()
+    }
+
+    /// Replaces μ_z and C_z by exactly these values (as [`Rgp::mean`], [`Rgp::cov_raw`] gave
+    /// them; not symmetrised). On error nothing changes.
+    pub fn set_weights_raw(&mut self, mean: &[f64], cov: &[f64]) -> Result<()> {
+        let nb = self.basis.n_basis();
+        check_len("mean", mean, nb)?;
+        check_len("cov", cov, nb * nb)?;
+        check_finite("mean", mean)?;
+        check_finite("cov", cov)?;
+        self.mean.copy_from_slice(mean);
+        for (k, v) in cov.iter().enumerate() {
+            self.cov[(k / nb, k % nb)] = *v;
+        }
+        Ok(())
+    }
+
     /// Replaces the weights' mean and covariance (row-major n_b × n_b, symmetrised).
     pub fn set_weights(&mut self, mean: &[f64], cov: &[f64]) -> Result<()> {
         let nb = self.basis.n_basis();
