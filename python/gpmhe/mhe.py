@@ -375,8 +375,15 @@ class GPMHE:
         Raises
         ------
         ValueError
-            On bad input (shape, NaN or inf, a required u missing) or if a `KnownModel` callable
-            fails at the window's start point; the estimator is then unchanged.
+            On bad input (shape, NaN or inf, a required u missing) or bad output of a
+            `KnownModel` callable; the estimator is then unchanged.
+        Exception
+            Any exception a `KnownModel` callable raises (``KeyboardInterrupt`` included) is
+            passed on with the estimator unchanged, except an ``ArithmeticError`` or
+            ``RuntimeError`` at a trial point of the solver, which only rejects that point.
+        RuntimeError
+            If the estimator is already being updated (from another thread, or from inside its
+            own model callable).
 
         Warns
         -----
