@@ -6,14 +6,17 @@
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]);
 //! * [`history`]: the last M + 1 steps, the arrival priors, the previous window;
 //! * [`lsq`]: the window as the solver's least-squares problem ([`WindowLsq`]);
-//! * [`estimator`]: [`MovingHorizon`], one update = window, warm start, solve, record.
+//! * [`estimator`]: [`MovingHorizon`], one update = window, warm start, solve, record;
+//! * [`bank`]: [`EstimatorBank`], n independent estimators updated together (in parallel).
 
+pub mod bank;
 pub mod estimator;
 pub mod history;
 pub mod lsq;
 pub mod problem;
 pub mod stage;
 
+pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings};
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
 pub use lsq::WindowLsq;

@@ -1,0 +1,355 @@
+//! A bank of independent moving-horizon estimators on one model, updated together: n
+//! [`MovingHorizon`]s, each with its own copy of the model (for [`GpStageModel`] a clone: the GPs
+//! are shared through their `Arc`, only the small evaluation cache and workspace are per
+//! estimator), built from one template with per-estimator x̂(0), state box and Q0, R0.
+//!
+//! [`EstimatorBank::par_update`] runs the n updates of one sample in parallel on rayon's thread
+//! pool (models that are `Send`, e.g. the learned GPs); [`EstimatorBank::update_each`] runs them
+//! one after another with a model the caller provides (a Python callback that needs the GIL).
+//! Each estimator does exactly what a lone `MovingHorizon` would with the same data, so the
+//! results do not depend on the number of threads. A solver failure of one estimator is reported
+//! in its `UpdateReport` and does not stop the others; an error (bad model output, an interrupt)
+//! stops the update and leaves every estimator as it was.
+
+use rayon::prelude::*;
+
+use super::estimator::{MovingHorizon, UpdateReport};
+use super::problem::WindowProblem;
+use crate::error::{check_len, Error, Result};
+
+/// One estimator of the bank and its model.
+#[derive(Debug, Clone)]
+pub struct Member<M> {
+    pub estimator: MovingHorizon,
+    pub model: M,
+}
+
+/// What differs between the estimators of a bank: x̂(0), the state box and the diagonals of
+/// Q0 (n) and R0 (p).
+#[derive(Debug, Clone)]
+pub struct MemberSettings {
+    pub x0: Vec<f64>,
+    pub lower: Vec<f64>,
+    pub upper: Vec<f64>,
+    pub q0: Vec<f64>,
+    pub r0: Vec<f64>,
+}
+
+/// The data of one sample for every estimator: `u` (n_estimators × m, row-major), `y`
+/// (n_estimators × p) and `present` (n_estimators; false: estimator i's y is missing and its
+/// row of `y` is ignored).
+#[derive(Debug, Clone, Copy)]
+pub struct BankSample<'a> {
+    pub u: &'a [f64],
+    pub y: &'a [f64],
+    pub present: &'a [bool],
+}
+
+/// See the module documentation.
+#[derive(Debug, Clone)]
+pub struct EstimatorBank<M> {
+    members: Vec<Member<M>>,
+}
+
+impl<M: Clone> EstimatorBank<M> {
+    /// One estimator per entry of `settings`, each with `template`'s horizon, weights η, P2,
+    /// form and solver settings (its history is not used) and a clone of `model`.
+    pub fn new(template: &MovingHorizon, model: &M, settings: &[MemberSettings]) -> Result<Self> {
+        if settings.is_empty() {
+            return Err(Error::invalid("n", "must be at least 1"));
+        }
+        let p = template.problem();
+        let horizon = template.history().horizon();
+        let members = settings
+            .iter()
+            .map(|s| {
+                let problem = WindowProblem::new(
+                    p.dim_x(),
+                    p.dim_u(),
+                    p.dim_y(),
+                    p.eta(),
+                    &s.q0,
+                    &s.r0,
+                    p.p2_sqrt(),
+                    p.form(),
+                )?;
+                let estimator = MovingHorizon::new(
+                    problem,
+                    horizon,
+                    &s.x0,
+                    &s.lower,
+                    &s.upper,
+                    template.options().clone(),
+                )?;
+                Ok(Member {
+                    estimator,
+                    model: model.clone(),
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { members })
+    }
+
+    pub fn len(&self) -> usize {
+        self.members.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.members.is_empty()
+    }
+
+    pub fn members(&self) -> &[Member<M>] {
+        &self.members
+    }
+
+    /// Estimator i and its model (None if out of range).
+    pub fn member(&self, i: usize) -> Option<&Member<M>> {
+        self.members.get(i)
+    }
+
+    /// Mutable access to estimator i (to restore a saved state; None if out of range).
+    pub fn member_mut(&mut self, i: usize) -> Option<&mut Member<M>> {
+        self.members.get_mut(i)
+    }
+
+    /// (dim_x, dim_u, dim_y) of the estimators.
+    pub fn dims(&self) -> (usize, usize, usize) {
+        let p = self.members[0].estimator.problem();
+        (p.dim_x(), p.dim_u(), p.dim_y())
+    }
+
+    /// Checks the sample's sizes; Ok gives estimator i's (u, y) through [`Self::row`].
+    fn check_sample(&self, s: &BankSample<'_>) -> Result<()> {
+        let (_, m, p) = self.dims();
+        let k = self.len();
+        check_len("U", s.u, k * m)?;
+        check_len("Y", s.y, k * p)?;
+        if s.present.len() != k {
+            return Err(Error::invalid(
+                "Y",
+                format!("needs one presence flag per estimator ({k})"),
+            ));
+        }
+        Ok(())
+    }
+
+    fn row<'a>(s: &BankSample<'a>, i: usize, m: usize, p: usize) -> (&'a [f64], Option<&'a [f64]>) {
+        let u = &s.u[i * m..(i + 1) * m];
+        let y = s.present[i].then(|| &s.y[i * p..(i + 1) * p]);
+        (u, y)
+    }
+
+    /// Keeps the reports, or restores every estimator from `backup` and returns the first error.
+    fn finish(
+        &mut self,
+        results: Vec<Result<UpdateReport>>,
+        backup: Vec<Member<M>>,
+    ) -> Result<Vec<UpdateReport>> {
+        match results.into_iter().collect::<Result<Vec<_>>>() {
+            Ok(reports) => Ok(reports),
+            Err(e) => {
+                self.members = backup;
+                Err(e)
+            }
+        }
+    }
+
+    /// One update of every estimator, one after another, with the model `with_model` gives
+    /// for each member's stored model (e.g. a Python callback bound to the GIL). On error
+    /// every estimator is as it was.
+    pub fn update_each(
+        &mut self,
+        sample: BankSample<'_>,
+        mut step: impl FnMut(&mut MovingHorizon, &mut M, &[f64], Option<&[f64]>) -> Result<UpdateReport>,
+    ) -> Result<Vec<UpdateReport>> {
+        self.check_sample(&sample)?;
+        let (_, m, p) = self.dims();
+        let backup = self.members.clone();
+        let mut results = Vec::with_capacity(self.len());
+        for (i, member) in self.members.iter_mut().enumerate() {
+            let (u, y) = Self::row(&sample, i, m, p);
+            let r = step(&mut member.estimator, &mut member.model, u, y);
+            let stop = r.is_err();
+            results.push(r);
+            if stop {
+                break;
+            }
+        }
+        self.finish(results, backup)
+    }
+}
+
+impl<M: Clone + Send + Sync> EstimatorBank<M> {
+    /// One update of every estimator in parallel (rayon's global pool), `step` doing estimator
+    /// i's update with its own model. On error every estimator is as it was.
+    pub fn par_update_with(
+        &mut self,
+        sample: BankSample<'_>,
+        step: impl Fn(&mut MovingHorizon, &mut M, &[f64], Option<&[f64]>) -> Result<UpdateReport> + Sync,
+    ) -> Result<Vec<UpdateReport>> {
+        self.check_sample(&sample)?;
+        let (_, m, p) = self.dims();
+        let backup = self.members.clone();
+        let results: Vec<Result<UpdateReport>> = self
+            .members
+            .par_iter_mut()
+            .enumerate()
+            .map(|(i, member)| {
+                let (u, y) = Self::row(&sample, i, m, p);
+                step(&mut member.estimator, &mut member.model, u, y)
+            })
+            .collect();
+        self.finish(results, backup)
+    }
+}
+
+impl<M: super::stage::StageModel + Clone + Send + Sync> EstimatorBank<M> {
+    /// One update of every estimator in parallel with its own model (see
+    /// [`Self::par_update_with`]).
+    pub fn par_update(&mut self, sample: BankSample<'_>) -> Result<Vec<UpdateReport>> {
+        self.par_update_with(sample, |est, model, u, y| est.update(model, u, y))
+    }
+}
+
+/// The number of threads [`EstimatorBank::par_update`] runs on (rayon's global pool: one per
+/// core unless `RAYON_NUM_THREADS` says otherwise).
+pub fn bank_threads() -> usize {
+    rayon::current_num_threads()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mhe::{Form, StageEval, StageModel};
+    use crate::solver::SolverOptions;
+
+    /// x(t+1) = 0.9 x + u, y = x; fails (bad output) at u ≥ `fail_above`.
+    #[derive(Clone)]
+    struct Scalar {
+        fail_above: f64,
+    }
+
+    impl StageModel for Scalar {
+        fn dim_x(&self) -> usize {
+            1
+        }
+        fn dim_u(&self) -> usize {
+            1
+        }
+        fn dim_y(&self) -> usize {
+            1
+        }
+        fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+            let k = d.len() / 2;
+            out.resize(k, 1, 1, 1);
+            for i in 0..k {
+                if d[2 * i + 1] >= self.fail_above {
+                    return Err(Error::invalid("model", "refused"));
+                }
+                out.mean_x[i] = 0.9 * d[2 * i] + d[2 * i + 1];
+                out.dmean_x[2 * i] = 0.9;
+                out.dmean_x[2 * i + 1] = 1.0;
+                out.mean_y[i] = d[2 * i];
+                out.dmean_y[2 * i] = 1.0;
+            }
+            Ok(())
+        }
+    }
+
+    fn template() -> MovingHorizon {
+        let problem =
+            WindowProblem::new(1, 1, 1, 0.9, &[0.1], &[0.1], &[1.0], Form::Prediction).unwrap();
+        MovingHorizon::new(
+            problem,
+            3,
+            &[0.0],
+            &[-10.0],
+            &[10.0],
+            SolverOptions::default(),
+        )
+        .unwrap()
+    }
+
+    fn settings(x0: f64, r0: f64) -> MemberSettings {
+        MemberSettings {
+            x0: vec![x0],
+            lower: vec![-10.0],
+            upper: vec![10.0],
+            q0: vec![0.1],
+            r0: vec![r0],
+        }
+    }
+
+    #[test]
+    fn the_bank_matches_lone_estimators_bit_for_bit() {
+        let model = Scalar { fail_above: 100.0 };
+        let set = [settings(0.0, 0.1), settings(1.0, 0.5), settings(-2.0, 0.2)];
+        let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
+        let mut lone: Vec<_> = bank.members().to_vec();
+        for t in 0..6 {
+            let u = [0.1 * t as f64, 0.0, -0.1];
+            let y = [1.0, 2.0 + t as f64, 0.5];
+            let present = [true, t % 2 == 0, true];
+            let sample = BankSample {
+                u: &u,
+                y: &y,
+                present: &present,
+            };
+            let reports = if t % 2 == 0 {
+                bank.par_update(sample).unwrap()
+            } else {
+                bank.update_each(sample, |e, m, u, y| e.update(m, u, y))
+                    .unwrap()
+            };
+            for (i, l) in lone.iter_mut().enumerate() {
+                let y_i = present[i].then(|| &y[i..i + 1]);
+                let r = l.estimator.update(&mut l.model, &u[i..i + 1], y_i).unwrap();
+                assert_eq!(r.x_window, reports[i].x_window);
+                assert_eq!(r.covariance, reports[i].covariance);
+                assert_eq!(r.cost.to_bits(), reports[i].cost.to_bits());
+            }
+        }
+    }
+
+    #[test]
+    fn an_error_leaves_every_estimator_unchanged() {
+        let model = Scalar { fail_above: 5.0 };
+        let set = [settings(0.0, 0.1), settings(0.0, 0.1)];
+        let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
+        let ok = BankSample {
+            u: &[0.0, 0.0],
+            y: &[1.0, 1.0],
+            present: &[true, true],
+        };
+        bank.par_update(ok).unwrap();
+        let before: Vec<_> = bank
+            .members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect();
+        // Estimator 1's input is outside the model's range: its update fails, 0's is undone.
+        let bad = BankSample {
+            u: &[0.0, 9.0],
+            y: &[1.0, 9.0],
+            present: &[true, true],
+        };
+        assert!(bank.par_update(bad).is_err());
+        assert!(bank
+            .update_each(bad, |e, m, u, y| e.update(m, u, y))
+            .is_err());
+        let after: Vec<_> = bank
+            .members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect();
+        assert_eq!(before, after);
+        // Wrong sizes are refused up front.
+        let short = BankSample {
+            u: &[0.0],
+            y: &[1.0, 1.0],
+            present: &[true, true],
+        };
+        assert!(bank.par_update(short).is_err());
+        assert!(EstimatorBank::new(&template(), &model, &[]).is_err());
+    }
+}
