@@ -7,7 +7,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 
 * Gaussian processes: `GaussianProcess`, `MultiOutputGP` (with `ConvergenceWarning`,
   `NotFittedError`);
-* moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`;
+* moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`, and
+  `EstimatorBank`, many of them updated together (in parallel);
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
 * `NumericalError`: a numerical failure on valid input;
 * `gpmhe.baselines`: EKF baselines on filterpy; `gpmhe.systems`: the papers' example plants.
@@ -18,6 +19,7 @@ See the user guide, starting with *Notation*.
 from gpmhe._core import NumericalError
 from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 from gpmhe.mhe import GPMHE
+from gpmhe.bank import EstimatorBank  # noqa: E402  (after GPMHE, which it builds on)
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.rgp import RGPEKF, RecursiveGP
 
@@ -30,6 +32,7 @@ __all__ = [
     "NotFittedError",
     # MHE
     "GPMHE",
+    "EstimatorBank",
     "KnownModel",
     "LearnedModel",
     # RGP-dKF

@@ -32,11 +32,11 @@ type Arr2<'py> = Bound<'py, PyArray2<f64>>;
 /// point is rejected, a failed solve keeps the warm start), as an interrupt if it is not an
 /// `Exception` (KeyboardInterrupt, SystemExit), else as bad model output; the last two stop the
 /// update.
-struct CallbackModel<'a, 'py> {
-    func: &'a Bound<'py, PyAny>,
-    predict: Option<&'a Bound<'py, PyAny>>,
-    dims: (usize, usize, usize),
-    err: Option<PyErr>,
+pub(super) struct CallbackModel<'a, 'py> {
+    pub(super) func: &'a Bound<'py, PyAny>,
+    pub(super) predict: Option<&'a Bound<'py, PyAny>>,
+    pub(super) dims: (usize, usize, usize),
+    pub(super) err: Option<PyErr>,
 }
 
 impl CallbackModel<'_, '_> {
@@ -145,7 +145,7 @@ impl StageModel for CallbackModel<'_, '_> {
 }
 
 /// The model behind an estimator: a Python callback (known model) or the learned GPs.
-enum Model {
+pub(super) enum Model {
     Callback {
         stage_eval: Py<PyAny>,
         predict: Option<Py<PyAny>>,
@@ -155,7 +155,7 @@ enum Model {
 }
 
 impl Model {
-    fn clone_ref(&self, py: Python<'_>) -> Self {
+    pub(super) fn clone_ref(&self, py: Python<'_>) -> Self {
         match self {
             Model::Callback {
                 stage_eval,
@@ -341,8 +341,8 @@ impl PyStageModel {
 /// holds the public attributes): `update(u, y)` is one whole update in one call.
 #[pyclass(name = "MovingHorizon", module = "gpmhe._core")]
 pub(super) struct PyMovingHorizon {
-    core: MovingHorizon,
-    model: Model,
+    pub(super) core: MovingHorizon,
+    pub(super) model: Model,
 }
 
 impl PyMovingHorizon {
@@ -693,7 +693,7 @@ impl PyMovingHorizon {
 
     /// The history as a dict of plain values: `t`, `window_t0` (ints), `u` (rows, m), `y`
     /// (rows, p), `present` (rows,) bool, `priors` (k, n), `x_window` (nodes, n).
-    fn __getstate__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+    pub(super) fn __getstate__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let s = self.core.history_state();
         let p = self.core.problem();
         let (n, m, dy) = (p.dim_x(), p.dim_u(), p.dim_y());
@@ -718,7 +718,7 @@ impl PyMovingHorizon {
 
     /// Restores a history from `__getstate__` of an estimator with the same settings. Every
     /// entry is checked (a ValueError names it); on error nothing changes.
-    fn __setstate__(&mut self, state: Bound<'_, PyDict>) -> PyResult<()> {
+    pub(super) fn __setstate__(&mut self, state: Bound<'_, PyDict>) -> PyResult<()> {
         let p = self.core.problem();
         let (n, m, dy) = (p.dim_x(), p.dim_u(), p.dim_y());
         let present = state_item(&state, "present")?;

@@ -1,8 +1,9 @@
-//! The pyo3 binding, the only code that knows Python: one file per area (gp, mhe, rgp), with the
+//! The pyo3 binding, the only code that knows Python: one file per area (gp, mhe, bank, rgp), with the
 //! array conversions (`convert`) and the error mapping (`error`) in one place each. A method
 //! converts its arguments, calls the core (without the GIL around the numerics) and maps the
 //! error; the algorithms live in the core modules.
 
+mod bank;
 mod convert;
 mod error;
 mod gp;
@@ -22,6 +23,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<mhe::PyStageModel>()?;
     m.add_class::<mhe::PyMovingHorizon>()?;
     m.add_class::<mhe::PyUpdateReport>()?;
+    m.add_class::<bank::PyEstimatorBank>()?;
     // Window solver
     m.add_class::<mhe::PyWindowSolver>()?;
     m.add_class::<rgp::RgpCore>()?;

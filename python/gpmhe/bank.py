@@ -1,0 +1,395 @@
+"""EstimatorBank: n independent GPMHE estimators on one model, updated together.
+
+This module validates the bank's settings and every sample's input, holds the public attributes
+(one row per estimator) and builds a standalone `GPMHE` from any estimator (``bank[i]``). The
+estimators themselves live in one Rust object (`gpmhe._core.EstimatorBank`, rust/src/mhe/bank.rs
+through rust/src/python/bank.rs): one ``update(U, Y)`` is one Rust call that updates all of them,
+in parallel on every core for a `LearnedModel`.
+"""
+
+from __future__ import annotations
+
+import operator
+import warnings
+
+import numpy as np
+
+from gpmhe import _core
+from gpmhe._threads import exclusive
+from gpmhe._validation import MAX_ABS, float_array, integer, positive_diagonal, within_limits
+from gpmhe.mhe import GPMHE
+
+__all__ = ["EstimatorBank"]
+
+#: The keyword settings of GPMHE the bank takes (x0 is its own argument).
+_SETTINGS = ("horizon", "eta", "P2", "Q0", "R0", "x_bounds", "form", "solver", "solver_options")
+
+#: The most estimators in one bank (a guard against a mistyped n, not a limit of the method).
+_MAX_ESTIMATORS = 10_000_000
+
+
+def _per_estimator(name, value, k, d):
+    """The diagonals (k, d) of Q0 or R0 given once for all estimators (as GPMHE takes it: a
+    scalar, the diagonal (d,) or a diagonal matrix (d, d)) or once per estimator ((k,) scalars
+    when k != d, (k, d) diagonals when k != d, or (k, d, d) diagonal matrices)."""
+    a = float_array(name, 1.0 if value is None else value)
+    if a.ndim == 0 or a.shape == (d,) or a.shape == (d, d):
+        return np.tile(positive_diagonal(name, a, d, allow_full=False), (k, 1))
+    if a.shape in ((k,), (k, d), (k, d, d)):
+        return np.array([positive_diagonal(f"{name}[{i}]", a[i], d, allow_full=False)
+                         for i in range(k)]).reshape(k, d)
+    raise ValueError(f"{name}: expected one value (a scalar, shape ({d},) or ({d}, {d})) or one "
+                     f"per estimator (shape ({k},), ({k}, {d}) or ({k}, {d}, {d})), got {a.shape}")
+
+
+def _rows(name, value, k, d):
+    """A (d,) vector for all estimators or (k, d) rows, as a new (k, d) float64 array (inf
+    allowed where ``name`` is a bound)."""
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be an array of numbers") from None
+    if a.shape == (d,):
+        a = np.tile(a, (k, 1))
+    elif a.shape != (k, d):
+        raise ValueError(f"{name}: expected shape ({d},) or ({k}, {d}), got {a.shape}")
+    return np.ascontiguousarray(a)
+
+
+class EstimatorBank:
+    """n independent `GPMHE` estimators on one model, updated together with one call per sample.
+
+    Every estimator has the same model, dimensions and settings (those of `GPMHE`) except its
+    initial estimate ``x0``, its state box ``x_bounds`` and its weights ``Q0``, ``R0``, which may
+    be given once for all or once per estimator. ``update(U, Y)`` takes one row of inputs and
+    outputs per estimator and updates all of them in one call into the Rust core: with a
+    `LearnedModel` the estimators are solved in parallel on all cores (rayon, without the GIL);
+    with a `KnownModel`, whose functions are Python, they run one after another in that call
+    (with the GIL). Each estimator gives, bit for bit, what a separate `GPMHE` with its settings
+    gives on its rows of data: the bank is a faster way to run many of them, e.g. for a Monte
+    Carlo study or one estimator per unit of a fleet.
+
+    Parameters
+    ----------
+    model : LearnedModel or KnownModel
+        The model of every estimator. A `LearnedModel`'s GPs are shared by the estimators, not
+        copied.
+    n : int
+        The number of estimators, >= 1.
+    x0 : array_like of shape (dim_x,) or (n, dim_x)
+        The initial estimates x̂(0): one for all estimators or one row per estimator; each must
+        lie in its ``x_bounds``.
+    **gpmhe_options
+        The settings of `GPMHE`: ``horizon``, ``eta``, ``P2``, ``form``, ``solver_options`` as
+        there (the same for all estimators), and
+
+        * ``Q0``, ``R0``: one value as `GPMHE` takes it (a scalar, the diagonal or a diagonal
+          matrix) or one per estimator: shape (n,) scalars, (n, dim) diagonals or
+          (n, dim, dim) diagonal matrices (where n equals the dimension, a 1-D or square 2-D
+          value is read as one value for all);
+        * ``x_bounds``: a pair (lower, upper), each of shape (dim_x,) (one box for all) or
+          (n, dim_x) (one per estimator);
+        * ``solver``: only "gauss-newton" (the Rust solver) is supported.
+
+    Attributes
+    ----------
+    x : ndarray of shape (n, dim_x)
+        Row i is estimator i's current estimate (`GPMHE.x`).
+    P : ndarray of shape (n, dim_x, dim_x)
+        The covariance estimates (`GPMHE.P`).
+    x_prior : ndarray of shape (n, dim_x)
+        The arrival priors of the last windows.
+    x_window : ndarray of shape (n, M_t + 1, dim_x)
+        The last windows' optimal trajectories.
+    cost : ndarray of shape (n,)
+        The last windows' optimal costs.
+    success : ndarray of shape (n,), bool
+        Whether each window's solver converged.
+    nit, nfev : ndarray of shape (n,), int
+        Iterations and window evaluations of each estimator's last update.
+    projected_gradient : ndarray of shape (n,)
+        Each solver's final projected gradient.
+    t : int
+        Number of updates since construction.
+    threads : int
+        The number of threads an update runs on (1 for a `KnownModel`).
+    model, horizon, eta, form, P2, solver_options
+        The common settings.
+    x0, Q0, R0 : ndarray of shape (n, dim_x), (n, dim_x), (n, dim_y)
+        Each estimator's x̂(0) and the diagonals of its Q0 and R0.
+    x_bounds : tuple of two ndarrays of shape (n, dim_x)
+        Each estimator's box (lower, upper).
+    dim_x, dim_y, dim_u : int
+        The model's dimensions.
+
+    Raises
+    ------
+    ValueError
+        If a setting is invalid (as for `GPMHE`, naming the argument and, for a per-estimator
+        value, the estimator), a keyword is not a setting of `GPMHE`, or ``solver`` is not
+        "gauss-newton".
+
+    See Also
+    --------
+    GPMHE : One estimator.
+
+    Notes
+    -----
+    A solver failure of one estimator (its ``success`` False) does not stop the others; one
+    `RuntimeWarning` per update names the estimators that failed. An error (bad input, or an
+    exception raised by a `KnownModel` function) leaves every estimator as it was.
+
+    Examples
+    --------
+    Three estimators of the batch reactor from different initial estimates, each with its own
+    measurements:
+
+    >>> import numpy as np
+    >>> from gpmhe import EstimatorBank, KnownModel
+    >>> from gpmhe.systems import batch_reactor as br
+    >>> model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+    >>> x0 = [[3.0, 1.0], [1.0, 3.0], [2.0, 2.0]]
+    >>> bank = EstimatorBank(model, 3, x0, horizon=5, Q0=1e-3, R0=1e-2, x_bounds=br.X_BOUNDS)
+    >>> runs = [br.simulate(br.X_TRUE0, 10, np.random.default_rng(s)) for s in range(3)]
+    >>> for t in range(10):
+    ...     x_hat = bank.update(None, [y[t] for _, y in runs])
+    >>> bank.x.shape, bank.t, bool(bank.success.all())
+    ((3, 2), 10, True)
+    >>> len(bank), bank[1].t
+    (3, 10)
+    """
+
+    def __init__(self, model, n, x0, **gpmhe_options):
+        for key in gpmhe_options:
+            if key not in _SETTINGS:
+                raise ValueError(f"{key}: not a setting of GPMHE (expected one of {', '.join(_SETTINGS)})")
+        for attr in ("dim_x", "dim_y", "dim_u", "_make_window"):
+            if not hasattr(model, attr):
+                raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
+        k = integer("n", n, low=1, high=_MAX_ESTIMATORS)
+        solver = gpmhe_options.get("solver", "gauss-newton")
+        if not (isinstance(solver, str) and solver == "gauss-newton"):
+            raise ValueError(f"solver: the bank runs only 'gauss-newton', got {solver!r}")
+        d, p = model.dim_x, model.dim_y
+        opts = dict(gpmhe_options)
+        q0 = _per_estimator("Q0", opts.pop("Q0", None), k, d)
+        r0 = _per_estimator("R0", opts.pop("R0", None), k, p) if p else np.zeros((k, 0))
+        bounds = opts.pop("x_bounds", None)
+        if bounds is None:
+            lb, ub = np.full((k, d), -np.inf), np.full((k, d), np.inf)
+        else:
+            try:
+                lb, ub = bounds
+            except (TypeError, ValueError):
+                raise ValueError("x_bounds: must be a pair (lower, upper)") from None
+            lb, ub = _rows("x_bounds", lb, k, d), _rows("x_bounds", ub, k, d)
+            if np.any(np.isnan(lb)) or np.any(np.isnan(ub)):
+                raise ValueError("x_bounds: contains NaN")
+            bad = np.flatnonzero(np.any(lb >= ub, axis=1))
+            if bad.size:
+                raise ValueError(f"x_bounds: lower must be < upper (estimator {bad[0]})")
+        x0 = _rows("x0", float_array("x0", x0), k, d)
+        bad = np.flatnonzero(np.any((x0 < lb) | (x0 > ub), axis=1))
+        if bad.size:
+            raise ValueError(f"x0: must lie inside x_bounds (estimator {bad[0]})")
+        # Estimator 0 as a GPMHE: validates the common settings once and is the core's template.
+        template = GPMHE(model, x0=x0[0], Q0=q0[0], R0=r0[0] if p else None,
+                         x_bounds=(lb[0], ub[0]), **opts)
+        self._core = _core.EstimatorBank(template._core.window, x0, lb, ub, q0,
+                                         np.ascontiguousarray(r0))
+        self.model = model
+        self.dim_x, self.dim_y, self.dim_u = d, p, model.dim_u
+        self.horizon, self.eta, self.form = template.horizon, template.eta, template.form
+        self.P2, self.solver_options = template.P2, template.solver_options
+        self.solver = "gauss-newton"
+        self.x0, self.Q0, self.R0, self.x_bounds = x0, q0, r0, (lb, ub)
+        self._p0 = template.P
+        self._reset_attributes()
+
+    def _reset_attributes(self):
+        k, d = len(self), self.dim_x
+        self.t = 0
+        self.x, self.x_prior = self.x0.copy(), self.x0.copy()
+        self.x_window = self.x0[:, None, :].copy()
+        self.P = np.tile(self._p0, (k, 1, 1))
+        self.cost, self.success = np.zeros(k), np.ones(k, dtype=bool)
+        self.nit, self.nfev = np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.int64)
+        self.projected_gradient = np.zeros(k)
+        self._status, self._interior, self._error = [""] * k, np.zeros(k, dtype=np.int64), [None] * k
+        del d
+
+    def __len__(self):
+        return len(self._core)
+
+    @property
+    def threads(self):
+        """The number of threads an update runs on (1 for a `KnownModel`)."""
+        return _core.EstimatorBank.threads() if self._core.parallel else 1
+
+    # ----------------------------------------------------------------------------------------
+    def _check_sample(self, U, Y):
+        k, m, p = len(self), self.dim_u, self.dim_y
+        if U is None:
+            if m:
+                raise ValueError(f"U: required (dim_u = {m})")
+            U = np.zeros((k, 0))
+        else:
+            U = float_array("U", U)
+            if U.shape != (k, m):
+                raise ValueError(f"U: expected shape ({k}, {m}), got {U.shape}")
+        if Y is None:
+            return U, np.zeros((k, p)), np.zeros(k, dtype=bool)
+        try:
+            Y = np.array(Y, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("Y: must be an array of numbers (NaN for missing values)") from None
+        if Y.shape != (k, p):
+            raise ValueError(f"Y: expected shape ({k}, {p}), got {Y.shape}")
+        missing = np.isnan(Y)
+        present = ~missing.any(axis=1)
+        Y[missing] = 0.0
+        if not within_limits(Y):
+            if not np.all(np.isfinite(Y)):
+                raise ValueError("Y: contains inf (NaN marks a missing value)")
+            raise ValueError(f"Y: contains a value of magnitude > {MAX_ABS:g}")
+        Y[~present] = 0.0
+        return U, Y, present
+
+    def update(self, U, Y):
+        """Add one sample for every estimator, solve their windows and update the estimates.
+
+        Row i of ``U`` and ``Y`` is estimator i's (u(t), y(t)) (`GPMHE.update`). All estimators
+        are updated in one call into the Rust core: in parallel on all cores for a
+        `LearnedModel`, one after another for a `KnownModel`.
+
+        Parameters
+        ----------
+        U : array_like of shape (n, dim_u) or None
+            The inputs; None when the model has no input (dim_u = 0).
+        Y : array_like of shape (n, dim_y) or None
+            The outputs. A NaN marks a missing value: a row with any NaN means estimator i has
+            no measurement at this step (as ``GPMHE.update(u, None)``; the row's other values are
+            not used). None: no estimator has a measurement.
+
+        Returns
+        -------
+        ndarray of shape (n, dim_x)
+            The new estimates ``x``.
+
+        Raises
+        ------
+        ValueError
+            On bad input (shape, inf, a required U missing) or bad output of a `KnownModel`
+            function; every estimator is then unchanged.
+        Exception
+            Any exception a `KnownModel` function raises, as for `GPMHE.update` (every
+            estimator unchanged).
+        RuntimeError
+            If the bank is already being updated (from another thread).
+
+        Warns
+        -----
+        RuntimeWarning
+            Once per update if any estimator's window solver did not converge, naming them.
+            The others are updated as usual.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import EstimatorBank, KnownModel
+        >>> model = KnownModel(lambda x, u: x + u, lambda x, u: x, dim_x=1, dim_y=1, dim_u=1)
+        >>> bank = EstimatorBank(model, 2, [0.0], horizon=3, form="filtering")
+        >>> print(np.round(bank.update([[1.0], [1.0]], [[2.0], [np.nan]]), 3))
+        [[1.]
+         [0.]]
+        """
+        U, Y, present = self._check_sample(U, Y)
+        self._step(U, Y, present)
+        return self.x
+
+    @exclusive  # one update at a time per bank (gpmhe/_threads.py)
+    def _step(self, U, Y, present):
+        r = self._core.update(U, Y, present)
+        self.x_window = r["x_window"]
+        self.x, self.x_prior = self.x_window[:, -1, :].copy(), r["x_prior"]
+        has_p = r["has_P"]
+        self.P = np.where(has_p[:, None, None], r["P"], self.P)
+        self.cost, self.success = r["cost"], r["success"]
+        self.nit, self.nfev = r["nit"].astype(np.int64), r["nfev"].astype(np.int64)
+        self.projected_gradient = r["projected_gradient"]
+        self._status, self._error = r["status"], r["error"]
+        self._interior = r["interior_iterations"].astype(np.int64)
+        self.t += 1
+        failed = np.flatnonzero(~self.success)
+        if failed.size:
+            shown = ", ".join(map(str, failed[:20])) + (", ..." if failed.size > 20 else "")
+            warnings.warn(f"EstimatorBank: the window solver did not converge at t={self.t - 1} "
+                          f"for {failed.size} estimator(s): {shown}; each keeps the better of its "
+                          f"last iterate and its warm start", RuntimeWarning, stacklevel=4)
+
+    def _message(self, i):
+        """Estimator i's `GPMHE.message`."""
+        if self.t == 0:
+            return ""
+        if self._error[i] is not None:
+            return f"solver raised: {self._error[i]}"
+        return (f"{self._status[i]} (projected gradient {self.projected_gradient[i]:.2e}, "
+                f"{self._interior[i]} interior its)")
+
+    # ----------------------------------------------------------------------------------------
+    def _gpmhe(self, i):
+        """A GPMHE with estimator i's settings (and a fresh history)."""
+        lb, ub = self.x_bounds
+        return GPMHE(self.model, x0=self.x0[i], horizon=self.horizon, eta=self.eta, P2=self.P2,
+                     Q0=self.Q0[i], R0=self.R0[i] if self.dim_y else None,
+                     x_bounds=(lb[i], ub[i]), form=self.form, solver="gauss-newton",
+                     solver_options=self.solver_options)
+
+    def __getitem__(self, i):
+        """Estimator i as a standalone `GPMHE`: an independent copy with its settings, history
+        and attributes, which continues exactly (bit for bit) as estimator i would."""
+        k = len(self)
+        i = operator.index(i)
+        if not -k <= i < k:
+            raise IndexError(f"i: the bank has {k} estimators, got {i}")
+        i %= k
+        mhe = self._gpmhe(i)
+        mhe._core.window.__setstate__(self._core.member_state(i))
+        mhe.t = self.t
+        mhe.x, mhe.x_prior = self.x[i].copy(), self.x_prior[i].copy()
+        mhe.x_window, mhe.P = self.x_window[i].copy(), self.P[i].copy()
+        mhe.cost, mhe.success = float(self.cost[i]), bool(self.success[i])
+        mhe.nit, mhe.nfev = int(self.nit[i]), int(self.nfev[i])
+        mhe.projected_gradient = float(self.projected_gradient[i])
+        mhe.message = self._message(i)
+        return mhe
+
+    # ---- copies and pickles -------------------------------------------------------------------
+    _ATTRIBUTES = ("t", "x", "x_prior", "x_window", "P", "cost", "success", "nit", "nfev",
+                   "projected_gradient", "_status", "_interior", "_error")
+
+    def __getstate__(self):
+        """The settings, the attributes and every estimator's core state (pickling needs a
+        picklable model, as for `GPMHE`)."""
+        lb, ub = self.x_bounds
+        settings = dict(horizon=self.horizon, eta=self.eta, P2=self.P2, Q0=self.Q0,
+                        R0=self.R0 if self.dim_y else None, x_bounds=(lb, ub), form=self.form,
+                        solver_options=self.solver_options)
+        return dict(model=self.model, n=len(self), x0=self.x0, settings=settings,
+                    attributes={a: getattr(self, a) for a in self._ATTRIBUTES},
+                    cores=[self._core.member_state(i) for i in range(len(self))])
+
+    def __setstate__(self, state):
+        self.__init__(state["model"], state["n"], state["x0"], **state["settings"])
+        for i, core in enumerate(state["cores"]):
+            self._core.set_member_state(i, core)
+        for a, value in state["attributes"].items():
+            setattr(self, a, value)
+
+    def __deepcopy__(self, memo):
+        import copy
+
+        new = object.__new__(type(self))
+        for key, value in self.__dict__.items():
+            new.__dict__[key] = value if key == "model" else copy.deepcopy(value, memo)
+        return new

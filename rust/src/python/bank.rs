@@ -1,0 +1,315 @@
+//! The estimator bank (`crate::mhe::EstimatorBank`) as `_core.EstimatorBank`: converts one
+//! sample's arrays, calls the core and maps errors. The learned model's bank updates its
+//! estimators in parallel without the GIL; a Python callback model (`gpmhe.KnownModel`) runs
+//! them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/bank.py) validates
+//! the input and holds the public attributes.
+
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::exceptions::{PyIndexError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use super::convert::slice2;
+use super::error::interruptible;
+use super::mhe::{CallbackModel, Model, PyMovingHorizon};
+use crate::mhe::{
+    bank_threads, BankSample, EstimatorBank, GpStageModel, MemberSettings, UpdateReport,
+};
+
+/// The estimators: on the learned GPs (each with its own model clone, the GPs shared), or on a
+/// Python callback model (one for all, kept in `model`).
+enum Inner {
+    Gp(EstimatorBank<GpStageModel>),
+    Callback(EstimatorBank<()>),
+}
+
+/// n independent `MovingHorizon` estimators with the settings of a template, updated together
+/// (see `gpmhe.EstimatorBank`).
+#[pyclass(name = "EstimatorBank", module = "gpmhe._core")]
+pub(super) struct PyEstimatorBank {
+    inner: Inner,
+    /// The template's model (for a callback model, the one every estimator calls).
+    model: Model,
+}
+
+/// The rows of a (k, cols) float64 array as vectors.
+fn rows(name: &str, a: &PyReadonlyArray2<'_, f64>, k: usize) -> PyResult<Vec<Vec<f64>>> {
+    let (data, r, c) = slice2(name, a)?;
+    if r != k {
+        return Err(PyValueError::new_err(format!(
+            "{name}: needs {k} rows, got {r}"
+        )));
+    }
+    Ok((0..k).map(|i| data[i * c..(i + 1) * c].to_vec()).collect())
+}
+
+impl PyEstimatorBank {
+    fn len(&self) -> usize {
+        match &self.inner {
+            Inner::Gp(b) => b.len(),
+            Inner::Callback(b) => b.len(),
+        }
+    }
+
+    /// Estimator i with its model as a standalone `MovingHorizon` (a copy).
+    fn window(&self, py: Python<'_>, i: usize) -> PyResult<PyMovingHorizon> {
+        let out_of_range = || PyIndexError::new_err(format!("i: no estimator {i}"));
+        Ok(match &self.inner {
+            Inner::Gp(b) => {
+                let m = b.member(i).ok_or_else(out_of_range)?;
+                PyMovingHorizon {
+                    core: m.estimator.clone(),
+                    model: Model::Gp(Box::new(m.model.clone())),
+                }
+            }
+            Inner::Callback(b) => PyMovingHorizon {
+                core: b.member(i).ok_or_else(out_of_range)?.estimator.clone(),
+                model: self.model.clone_ref(py),
+            },
+        })
+    }
+
+    /// The reports as a dict of arrays (see `update`).
+    fn reports<'py>(
+        py: Python<'py>,
+        reports: Vec<UpdateReport>,
+        n: usize,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let k = reports.len();
+        let nodes = reports.first().map_or(0, |r| r.x_window.len() / n);
+        let mut x_window = Vec::with_capacity(k * nodes * n);
+        let mut x_prior = Vec::with_capacity(k * n);
+        let mut p = vec![f64::NAN; k * n * n];
+        let mut has_p = vec![false; k];
+        let (mut cost, mut success, mut nit, mut nfev) = (
+            vec![0.0; k],
+            vec![false; k],
+            vec![0usize; k],
+            vec![0usize; k],
+        );
+        let (mut pg, mut interior) = (vec![0.0; k], vec![0usize; k]);
+        let mut status: Vec<Option<&'static str>> = vec![None; k];
+        let mut error: Vec<Option<String>> = vec![None; k];
+        for (i, r) in reports.into_iter().enumerate() {
+            if r.x_window.len() != nodes * n {
+                return Err(PyValueError::new_err(
+                    "internal: windows of different lengths",
+                ));
+            }
+            x_window.extend_from_slice(&r.x_window);
+            x_prior.extend_from_slice(&r.x_prior);
+            if let Some(c) = &r.covariance {
+                p[i * n * n..(i + 1) * n * n].copy_from_slice(c);
+                has_p[i] = true;
+            }
+            cost[i] = r.cost;
+            match r.solve {
+                Ok(s) => {
+                    status[i] = Some(s.status.as_str());
+                    success[i] = s.status.is_success();
+                    (nit[i], nfev[i], pg[i], interior[i]) =
+                        (s.nit, s.nfev, s.projected_gradient, s.interior_iterations);
+                }
+                // As `MovingHorizon.update`'s report of a solver failure.
+                Err(e) => {
+                    (nfev[i], pg[i]) = (1, f64::NAN);
+                    error[i] = Some(e.to_string());
+                }
+            }
+        }
+        let d = PyDict::new(py);
+        d.set_item(
+            "x_window",
+            PyArray1::from_vec(py, x_window).reshape([k, nodes, n])?,
+        )?;
+        d.set_item("x_prior", PyArray1::from_vec(py, x_prior).reshape([k, n])?)?;
+        d.set_item("P", PyArray1::from_vec(py, p).reshape([k, n, n])?)?;
+        d.set_item("has_P", PyArray1::from_vec(py, has_p))?;
+        d.set_item("cost", PyArray1::from_vec(py, cost))?;
+        d.set_item("success", PyArray1::from_vec(py, success))?;
+        d.set_item("nit", PyArray1::from_vec(py, nit))?;
+        d.set_item("nfev", PyArray1::from_vec(py, nfev))?;
+        d.set_item("projected_gradient", PyArray1::from_vec(py, pg))?;
+        d.set_item("interior_iterations", PyArray1::from_vec(py, interior))?;
+        d.set_item("status", status)?;
+        d.set_item("error", error)?;
+        Ok(d)
+    }
+}
+
+#[pymethods]
+impl PyEstimatorBank {
+    /// k estimators with `template`'s model (shared, see the module docs), horizon, weights η,
+    /// P2, form and solver settings; row i of `x0`, `lower`, `upper` (k, n), `q0` (k, n) and
+    /// `r0` (k, p) are estimator i's x̂(0), state box and diagonals of Q0, R0.
+    #[new]
+    fn new(
+        py: Python<'_>,
+        template: PyRef<'_, PyMovingHorizon>,
+        x0: PyReadonlyArray2<'_, f64>,
+        lower: PyReadonlyArray2<'_, f64>,
+        upper: PyReadonlyArray2<'_, f64>,
+        q0: PyReadonlyArray2<'_, f64>,
+        r0: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Self> {
+        let k = x0.shape()[0];
+        let (x0, lower, upper) = (
+            rows("x0", &x0, k)?,
+            rows("x_bounds", &lower, k)?,
+            rows("x_bounds", &upper, k)?,
+        );
+        let (q0, r0) = (rows("Q0", &q0, k)?, rows("R0", &r0, k)?);
+        let settings: Vec<MemberSettings> = (0..k)
+            .map(|i| MemberSettings {
+                x0: x0[i].clone(),
+                lower: lower[i].clone(),
+                upper: upper[i].clone(),
+                q0: q0[i].clone(),
+                r0: r0[i].clone(),
+            })
+            .collect();
+        let inner = match &template.model {
+            Model::Gp(gp) => Inner::Gp(EstimatorBank::new(&template.core, &**gp, &settings)?),
+            Model::Callback { .. } => {
+                Inner::Callback(EstimatorBank::new(&template.core, &(), &settings)?)
+            }
+        };
+        Ok(Self {
+            inner,
+            model: template.model.clone_ref(py),
+        })
+    }
+
+    fn __len__(&self) -> usize {
+        self.len()
+    }
+
+    /// Whether the estimators run in parallel (the learned model) or one after another.
+    #[getter]
+    fn parallel(&self) -> bool {
+        matches!(self.inner, Inner::Gp(_))
+    }
+
+    /// The number of threads a parallel update runs on (rayon's pool: one per core unless
+    /// the environment variable `RAYON_NUM_THREADS` says otherwise).
+    #[staticmethod]
+    fn threads() -> usize {
+        bank_threads()
+    }
+
+    /// One update of every estimator: row i of `u` (k, m) and `y` (k, p) for estimator i,
+    /// `present[i]` False when its y is missing (its row of `y` is ignored). Returns a dict of
+    /// arrays over the estimators: `x_window` (k, nodes, n), `x_prior` (k, n), `P` (k, n, n)
+    /// with `has_P` (k,) (False: H singular, that P is NaN), `cost`, `success`, `nit`, `nfev`,
+    /// `projected_gradient`, `interior_iterations` (k,), and lists `status` (None after a
+    /// solver failure) and `error` (its message, else None). On error no estimator changes.
+    fn update<'py>(
+        &mut self,
+        py: Python<'py>,
+        u: PyReadonlyArray2<'py, f64>,
+        y: PyReadonlyArray2<'py, f64>,
+        present: PyReadonlyArray1<'py, bool>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let (u, _, _) = slice2("U", &u)?;
+        let (y, _, _) = slice2("Y", &y)?;
+        let present = present
+            .as_slice()
+            .map_err(|_| PyValueError::new_err("present: must be a contiguous bool array"))?;
+        let sample = BankSample { u, y, present };
+        let reports = match (&mut self.inner, &self.model) {
+            (Inner::Gp(bank), _) => py.detach(|| bank.par_update(sample))?,
+            (
+                Inner::Callback(bank),
+                Model::Callback {
+                    stage_eval,
+                    predict,
+                    dims,
+                },
+            ) => {
+                let (func, predict) = (stage_eval.bind(py), predict.as_ref().map(|f| f.bind(py)));
+                let mut raised_by_model: Option<PyErr> = None;
+                let run = interruptible(|| {
+                    bank.update_each(sample, |est, _, u, y| {
+                        let mut cb = CallbackModel {
+                            func,
+                            predict,
+                            dims: *dims,
+                            err: None,
+                        };
+                        let r = est.update(&mut cb, u, y);
+                        if r.is_err() {
+                            raised_by_model = cb.err.take();
+                        }
+                        r
+                    })
+                });
+                match run {
+                    (Ok(v), _) => v,
+                    (Err(_), Some(raised)) => return Err(raised),
+                    (Err(e), None) => return Err(raised_by_model.unwrap_or_else(|| e.into())),
+                }
+            }
+            (Inner::Callback(_), Model::Gp(_)) => {
+                return Err(PyValueError::new_err("internal: bank and model disagree"))
+            }
+        };
+        let n = match &self.inner {
+            Inner::Gp(b) => b.dims().0,
+            Inner::Callback(b) => b.dims().0,
+        };
+        Self::reports(py, reports, n)
+    }
+
+    /// Estimator i as a standalone `MovingHorizon` (an independent copy that continues exactly
+    /// as estimator i would).
+    fn member(&self, py: Python<'_>, i: usize) -> PyResult<PyMovingHorizon> {
+        self.window(py, i)
+    }
+
+    /// Estimator i's state as `MovingHorizon.__getstate__` gives it.
+    fn member_state<'py>(&self, py: Python<'py>, i: usize) -> PyResult<Bound<'py, PyDict>> {
+        self.window(py, i)?.__getstate__(py)
+    }
+
+    /// Restores estimator i's state from `member_state` (checked as `MovingHorizon.__setstate__`
+    /// checks it; on error nothing changes).
+    fn set_member_state(
+        &mut self,
+        py: Python<'_>,
+        i: usize,
+        state: Bound<'_, PyDict>,
+    ) -> PyResult<()> {
+        let mut w = self.window(py, i)?;
+        w.__setstate__(state)?;
+        match (&mut self.inner, w.model) {
+            (Inner::Gp(b), Model::Gp(gp)) => {
+                if let Some(m) = b.member_mut(i) {
+                    m.estimator = w.core;
+                    m.model = *gp;
+                }
+            }
+            (Inner::Callback(b), _) => {
+                if let Some(m) = b.member_mut(i) {
+                    m.estimator = w.core;
+                }
+            }
+            (Inner::Gp(_), _) => return Err(PyValueError::new_err("internal: model kind")),
+        }
+        Ok(())
+    }
+
+    /// An independent copy (the GPs stay shared).
+    fn __copy__(&self, py: Python<'_>) -> Self {
+        Self {
+            inner: match &self.inner {
+                Inner::Gp(b) => Inner::Gp(b.clone()),
+                Inner::Callback(b) => Inner::Callback(b.clone()),
+            },
+            model: self.model.clone_ref(py),
+        }
+    }
+
+    fn __deepcopy__(&self, py: Python<'_>, _memo: Bound<'_, PyAny>) -> Self {
+        self.__copy__(py)
+    }
+}

@@ -1,0 +1,226 @@
+"""EstimatorBank: n estimators updated together give, bit for bit, what n separate GPMHE
+estimators give on the same data (learned and known models, both forms, missing outputs,
+per-estimator x0, bounds and weights); bank[i] continues as estimator i; bad input is refused
+with nothing changed; a failing estimator does not stop the others; copies and pickles."""
+
+import copy
+import pickle
+import warnings
+
+import numpy as np
+import pytest
+from conftest import f3, h3, synthetic_learned_model
+from numpy.testing import assert_array_equal
+
+from gpmhe import GPMHE, EstimatorBank, KnownModel
+from gpmhe.systems import batch_reactor as br
+
+K, T = 4, 20
+LEARNED = synthetic_learned_model(30)
+KNOWN = KnownModel(f3, h3, dim_x=2, dim_y=2, dim_u=1)
+
+# Per-estimator settings: x0, boxes and weights differ between the estimators.
+X0 = np.array([[0.0, 0.0], [0.5, -0.5], [-1.0, 1.0], [0.2, 0.1]])
+LB = np.array([[-3.0, -3.0], [-2.0, -3.0], [-3.0, -1.5], [-3.0, -3.0]])
+UB = np.array([[3.0, 3.0], [3.0, 2.0], [3.0, 3.0], [1.0, 3.0]])
+Q0 = np.array([1e-2, 2e-2, 1e-2, 5e-3])  # one scalar per estimator
+R0 = np.array([[1e-1, 1e-1], [5e-2, 1e-1], [1e-1, 2e-1], [1e-1, 1e-1]])  # one diagonal each
+
+
+def _data(seed=3):
+    """Inputs (T, K, 1) and outputs (T, K, 2) of K simulated runs, with missing values."""
+    rng = np.random.default_rng(seed)
+    U = rng.uniform(-1, 1, (T, K, 1))
+    Y = np.empty((T, K, 2))
+    for i in range(K):
+        x = np.array([0.3, -0.2]) + 0.1 * i
+        for t in range(T):
+            Y[t, i] = h3(x, U[t, i]) + 0.05 * rng.standard_normal(2)
+            x = f3(x, U[t, i]) + 0.01 * rng.standard_normal(2)
+    Y[3, 1] = np.nan  # estimator 1 has no output at t = 3
+    Y[7, :, 0] = np.nan  # nobody at t = 7 (one NaN in a row makes the row missing)
+    Y[12, 2, 1] = np.nan
+    return U, Y
+
+
+U_DATA, Y_DATA = _data()
+
+
+def _settings(i, form):
+    return dict(x0=X0[i], horizon=4, Q0=Q0[i], R0=R0[i], x_bounds=(LB[i], UB[i]), form=form)
+
+
+def _bank(model, form, **extra):
+    return EstimatorBank(model, K, X0, horizon=4, Q0=Q0, R0=R0, x_bounds=(LB, UB), form=form,
+                         **extra)
+
+
+def _separate(model, form, **extra):
+    return [GPMHE(model, **_settings(i, form), **extra) for i in range(K)]
+
+
+def _step_separate(mhes, u_rows, y_rows):
+    for i, mhe in enumerate(mhes):
+        y = y_rows[i]
+        mhe.update(u_rows[i], None if np.isnan(y).any() else y)
+
+
+def _assert_same(bank, mhes):
+    for name in ("x", "P", "cost", "success", "nfev", "nit", "x_window", "x_prior",
+                 "projected_gradient"):
+        assert_array_equal(getattr(bank, name), np.array([getattr(m, name) for m in mhes]),
+                           err_msg=name)
+    assert bank.t == mhes[0].t
+
+
+@pytest.mark.parametrize("form", ["prediction", "filtering"])
+@pytest.mark.parametrize("model", [LEARNED, KNOWN], ids=["learned", "known"])
+def test_the_bank_matches_separate_estimators_bit_for_bit(model, form):
+    bank, mhes = _bank(model, form), _separate(model, form)
+    _assert_same(bank, mhes)
+    for t in range(T):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+        _assert_same(bank, mhes)
+    assert bank.threads >= 1 and (bank.threads == 1) == (model is KNOWN)
+
+
+def test_the_batch_reactor_learned_model_and_one_x0_for_all(reactor_gp):
+    k = 3
+    runs = [br.simulate(br.X_TRUE0, 15, np.random.default_rng(s))[1] for s in range(k)]
+    bank = EstimatorBank(reactor_gp, k, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    mhes = [GPMHE(reactor_gp, x0=br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+            for _ in range(k)]
+    for t in range(15):
+        Y = np.array([y[t] for y in runs])
+        bank.update(None, Y)
+        for i in range(k):
+            mhes[i].update(None, Y[i])
+    _assert_same(bank, mhes)
+
+
+@pytest.mark.parametrize("model", [LEARNED, KNOWN], ids=["learned", "known"])
+def test_bank_item_continues_as_the_separate_estimator(model):
+    bank, mhes = _bank(model, "prediction"), _separate(model, "prediction")
+    for t in range(10):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    items = [bank[i] for i in range(K)]
+    assert bank[-1].t == 10 and len(bank) == K
+    for item, mhe in zip(items, mhes):
+        for name in ("t", "cost", "success", "nit", "nfev", "message", "projected_gradient"):
+            assert getattr(item, name) == getattr(mhe, name), name
+        assert_array_equal(item.x_bounds[0], mhe.x_bounds[0])
+        assert_array_equal(item.Q0, mhe.Q0)
+    for t in range(10, T):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+        _step_separate(items, U_DATA[t], Y_DATA[t])
+    _assert_same(bank, mhes)
+    _assert_same(bank, items)
+    with pytest.raises(IndexError):
+        bank[K]
+
+
+def test_bad_input_is_refused_and_changes_nothing():
+    bank, mhes = _bank(LEARNED, "prediction"), _separate(LEARNED, "prediction")
+    bank.update(U_DATA[0], Y_DATA[0])
+    _step_separate(mhes, U_DATA[0], Y_DATA[0])
+    before = copy.deepcopy(bank.__dict__["x"]), bank.t
+    Y_inf = Y_DATA[1].copy()
+    Y_inf[2, 0] = np.inf
+    for U, Y, arg in [(U_DATA[1][:3], Y_DATA[1], "U"), (U_DATA[1], Y_DATA[1][:, :1], "Y"),
+                      (None, Y_DATA[1], "U"), (U_DATA[1], Y_inf, "Y"),
+                      (U_DATA[1] * np.nan, Y_DATA[1], "U"), (U_DATA[1], "no", "Y")]:
+        with pytest.raises(ValueError, match=f"^{arg}:"):
+            bank.update(U, Y)
+    assert_array_equal(bank.x, before[0])
+    assert bank.t == before[1]
+    for t in range(1, 4):  # ... and it continues as the separate estimators
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    _assert_same(bank, mhes)
+
+
+@pytest.mark.parametrize("kwargs, arg", [
+    (dict(n=0), "n"),
+    (dict(n=2.0), "n"),
+    (dict(solver="least-squares"), "solver"),
+    (dict(x_bound=None), "x_bound"),
+    (dict(Q0=[1.0, -1.0, 1.0, 1.0]), r"Q0\[1\]"),
+    (dict(Q0=np.ones((3, 2))), "Q0"),
+    (dict(R0=np.ones((K, 3))), "R0"),
+    (dict(x0=np.zeros((3, 2))), "x0"),
+    (dict(x0=[[0, 0], [0, 0], [0, 0], [5, 0]]), "x0"),
+    (dict(x_bounds=(LB, LB)), "x_bounds"),
+    (dict(x_bounds=(LB[:2], UB[:2])), "x_bounds"),
+    (dict(horizon=0), "horizon"),
+])
+def test_bad_settings_raise_naming_the_argument(kwargs, arg):
+    args = dict(n=K, x0=X0, horizon=4, x_bounds=(LB, UB))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=f"^{arg}"):
+        EstimatorBank(LEARNED, **args)
+    with pytest.raises(ValueError, match="^model"):
+        EstimatorBank(object(), K, X0)
+
+
+def test_a_solver_failure_in_one_estimator_does_not_stop_the_others():
+    # max_iter=1 stops most windows before convergence: those report success False.
+    bank = _bank(LEARNED, "prediction", solver_options=dict(max_iter=1))
+    mhes = _separate(LEARNED, "prediction", solver_options=dict(max_iter=1))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        bank.update(U_DATA[0], Y_DATA[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _step_separate(mhes, U_DATA[0], Y_DATA[0])
+    _assert_same(bank, mhes)
+    failed = np.flatnonzero(~bank.success)
+    assert failed.size > 0
+    assert len(caught) == 1 and issubclass(caught[0].category, RuntimeWarning)
+    assert ", ".join(map(str, failed)) in str(caught[0].message)
+
+
+class _Refuses:
+    """f3 that raises a (non-numerical) ValueError for an input above `limit`."""
+
+    def __init__(self, limit):
+        self.limit = limit
+
+    def __call__(self, x, u):
+        if u[0] > self.limit:
+            raise ValueError("input out of range")
+        return f3(x, u)
+
+
+def test_a_model_exception_leaves_every_estimator_unchanged():
+    model = KnownModel(_Refuses(5.0), h3, dim_x=2, dim_y=2, dim_u=1)
+    bank, mhes = _bank(model, "prediction"), _separate(model, "prediction")
+    bank.update(U_DATA[0], Y_DATA[0])
+    _step_separate(mhes, U_DATA[0], Y_DATA[0])
+    U_bad = U_DATA[1].copy()
+    U_bad[2] = 9.0  # estimator 2's model call fails after 0 and 1 were updated
+    with pytest.raises(ValueError, match="input out of range"):
+        bank.update(U_bad, Y_DATA[1])
+    assert bank.t == 1
+    for t in range(1, 5):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    _assert_same(bank, mhes)
+
+
+@pytest.mark.parametrize("model", [LEARNED, KNOWN], ids=["learned", "known"])
+def test_copies_and_pickles_continue_identically(model):
+    bank = _bank(model, "filtering")
+    for t in range(6):
+        bank.update(U_DATA[t], Y_DATA[t])
+    copies = [copy.deepcopy(bank), copy.copy(bank), pickle.loads(pickle.dumps(bank))]
+    for t in range(6, 12):
+        bank.update(U_DATA[t], Y_DATA[t])
+        for c in copies:
+            c.update(U_DATA[t], Y_DATA[t])
+    for c in copies:
+        for name in ("x", "P", "cost", "success", "nfev", "x_window"):
+            assert_array_equal(getattr(c, name), getattr(bank, name), err_msg=name)
+        assert c.t == bank.t and c[1].message == bank[1].message
