@@ -305,6 +305,46 @@ class MovingHorizon:
         checked (ValueError naming it) and nothing changes on error."""
         ...
 
+class EstimatorBank:
+    """n independent `MovingHorizon` estimators with one template's settings (rust/src/mhe/bank.rs),
+    updated together: in parallel without the GIL on the learned model (its GPs shared), one
+    after another with the GIL on a callback model. See `gpmhe.EstimatorBank`."""
+
+    def __init__(
+        self, template: MovingHorizon, x0: _F, lower: _F, upper: _F, q0: _F, r0: _F
+    ) -> None:
+        """Row i of `x0`, `lower`, `upper` (k, n), `q0` (k, n), `r0` (k, p): estimator i's
+        x̂(0), box and diagonals of Q0, R0; the rest (model, η, P2, form, horizon, solver
+        settings) from `template`."""
+        ...
+    def __len__(self) -> int: ...
+    @property
+    def parallel(self) -> bool:
+        """Whether updates run in parallel (the learned model)."""
+        ...
+    @staticmethod
+    def threads() -> int:
+        """Threads of a parallel update (rayon's pool; `RAYON_NUM_THREADS`)."""
+        ...
+    def update(self, u: _F, y: _F, present: npt.NDArray[np.bool_]) -> dict[str, Any]:
+        """One update of every estimator (rows of `u` (k, m), `y` (k, p); `present[i]` False:
+        estimator i's y is missing). Returns arrays over the estimators: `x_window`
+        (k, nodes, n), `x_prior` (k, n), `P` (k, n, n) with `has_P` (k,), `cost`, `success`,
+        `nit`, `nfev`, `projected_gradient`, `interior_iterations` (k,), and lists `status`,
+        `error`. On error no estimator changes."""
+        ...
+    def member(self, i: int) -> MovingHorizon:
+        """Estimator i as an independent `MovingHorizon`."""
+        ...
+    def member_state(self, i: int) -> dict[str, Any]:
+        """Estimator i's `MovingHorizon.__getstate__`."""
+        ...
+    def set_member_state(self, i: int, state: dict[str, Any]) -> None:
+        """Restore estimator i from `member_state` (checked; nothing changes on error)."""
+        ...
+    def __copy__(self) -> EstimatorBank: ...
+    def __deepcopy__(self, memo: Any) -> EstimatorBank: ...
+
 class WindowSolver:
     """The real-time bounded Gauss-Newton window solver (rust/src/solver/): settings (given to
     `MovingHorizon`) and work buffers for solving a set window directly."""
