@@ -224,3 +224,15 @@ def test_copies_and_pickles_continue_identically(model):
         for name in ("x", "P", "cost", "success", "nfev", "x_window"):
             assert_array_equal(getattr(c, name), getattr(bank, name), err_msg=name)
         assert c.t == bank.t and c[1].message == bank[1].message
+
+
+def test_pickles_keep_per_estimator_weights_when_n_equals_dim_x():
+    q0 = np.array([[1e-2, 2e-2], [3e-2, 4e-2]])  # (n, dim_x) with n = dim_x = 2: one each
+    bank = EstimatorBank(KNOWN, 2, X0[:2], horizon=3, Q0=q0[:, :, None] * np.eye(2))
+    assert_array_equal(bank.Q0, q0)
+    bank.update(U_DATA[0][:2], Y_DATA[0][:2])
+    restored = pickle.loads(pickle.dumps(bank))
+    assert_array_equal(restored.Q0, q0)
+    for b in (bank, restored):
+        b.update(U_DATA[1][:2], Y_DATA[1][:2])
+    assert_array_equal(restored.x, bank.x)

@@ -207,7 +207,7 @@ class EstimatorBank:
         self._reset_attributes()
 
     def _reset_attributes(self):
-        k, d = len(self), self.dim_x
+        k = len(self)
         self.t = 0
         self.x, self.x_prior = self.x0.copy(), self.x0.copy()
         self.x_window = self.x0[:, None, :].copy()
@@ -216,7 +216,6 @@ class EstimatorBank:
         self.nit, self.nfev = np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.int64)
         self.projected_gradient = np.zeros(k)
         self._status, self._interior, self._error = [""] * k, np.zeros(k, dtype=np.int64), [None] * k
-        del d
 
     def __len__(self):
         return len(self._core)
@@ -372,9 +371,11 @@ class EstimatorBank:
         """The settings, the attributes and every estimator's core state (pickling needs a
         picklable model, as for `GPMHE`)."""
         lb, ub = self.x_bounds
-        settings = dict(horizon=self.horizon, eta=self.eta, P2=self.P2, Q0=self.Q0,
-                        R0=self.R0 if self.dim_y else None, x_bounds=(lb, ub), form=self.form,
-                        solver_options=self.solver_options)
+        # Q0, R0 as (n, dim, dim) diagonal matrices: unambiguous also where n equals the dimension.
+        settings = dict(horizon=self.horizon, eta=self.eta, P2=self.P2,
+                        Q0=self.Q0[:, :, None] * np.eye(self.dim_x),
+                        R0=self.R0[:, :, None] * np.eye(self.dim_y) if self.dim_y else None,
+                        x_bounds=(lb, ub), form=self.form, solver_options=self.solver_options)
         return dict(model=self.model, n=len(self), x0=self.x0, settings=settings,
                     attributes={a: getattr(self, a) for a in self._ATTRIBUTES},
                     cores=[self._core.member_state(i) for i in range(len(self))])

@@ -14,8 +14,59 @@
 use rayon::prelude::*;
 
 use super::estimator::{MovingHorizon, UpdateReport};
+use super::history::HistoryState;
 use super::problem::WindowProblem;
+use super::stage::GpStageModel;
 use crate::error::{check_len, Error, Result};
+
+/// The part of a model's state an update changes and an error must undo (what a checkpoint
+/// saves): nothing for a stateless model, the evaluation cache for [`GpStageModel`]. Cheaper
+/// than a clone of the whole model (whose work buffers need no undo).
+pub trait ModelState {
+    type State: Send;
+    fn save_state(&self) -> Self::State;
+    fn restore_state(&mut self, state: Self::State);
+}
+
+impl ModelState for () {
+    type State = ();
+    fn save_state(&self) {}
+    fn restore_state(&mut self, _: ()) {}
+}
+
+impl ModelState for GpStageModel {
+    type State = [Vec<f64>; 9];
+    fn save_state(&self) -> Self::State {
+        self.cache()
+    }
+    fn restore_state(&mut self, state: Self::State) {
+        // The model's own cache always fits it; were it refused, the cache would keep the
+        // failed update's points, which only changes which values are reused.
+        let _ = self.set_cache(state);
+    }
+}
+
+/// What an update of one estimator changes: its history and its model's state.
+struct Saved<S> {
+    history: HistoryState,
+    model: S,
+}
+
+impl<M: ModelState> Member<M> {
+    fn save(&self) -> Saved<M::State> {
+        Saved {
+            history: self.estimator.history_state(),
+            model: self.model.save_state(),
+        }
+    }
+
+    fn restore(&mut self, saved: Saved<M::State>) {
+        // The history's own state is always valid; the estimator keeps no other state between
+        // updates (see `MovingHorizon::set_history_state`).
+        let _ = self.estimator.set_history_state(saved.history);
+        self.model.restore_state(saved.model);
+    }
+}
 
 /// One estimator of the bank and its model.
 #[derive(Debug, Clone)]
@@ -51,7 +102,7 @@ pub struct EstimatorBank<M> {
     members: Vec<Member<M>>,
 }
 
-impl<M: Clone> EstimatorBank<M> {
+impl<M: Clone + ModelState> EstimatorBank<M> {
     /// One estimator per entry of `settings`, each with `template`'s horizon, weights η, P2,
     /// form and solver settings (its history is not used) and a clone of `model`.
     pub fn new(template: &MovingHorizon, model: &M, settings: &[MemberSettings]) -> Result<Self> {
@@ -139,19 +190,25 @@ impl<M: Clone> EstimatorBank<M> {
         (u, y)
     }
 
-    /// Keeps the reports, or restores every estimator from `backup` and returns the first error.
+    /// Keeps the reports, or restores every estimator from `saved` and returns the first error.
     fn finish(
         &mut self,
         results: Vec<Result<UpdateReport>>,
-        backup: Vec<Member<M>>,
+        saved: Vec<Saved<M::State>>,
     ) -> Result<Vec<UpdateReport>> {
         match results.into_iter().collect::<Result<Vec<_>>>() {
             Ok(reports) => Ok(reports),
             Err(e) => {
-                self.members = backup;
+                for (member, s) in self.members.iter_mut().zip(saved) {
+                    member.restore(s);
+                }
                 Err(e)
             }
         }
+    }
+
+    fn save_all(&self) -> Vec<Saved<M::State>> {
+        self.members.iter().map(Member::save).collect()
     }
 
     /// One update of every estimator, one after another, with the model `with_model` gives
@@ -164,7 +221,7 @@ impl<M: Clone> EstimatorBank<M> {
     ) -> Result<Vec<UpdateReport>> {
         self.check_sample(&sample)?;
         let (_, m, p) = self.dims();
-        let backup = self.members.clone();
+        let saved = self.save_all();
         let mut results = Vec::with_capacity(self.len());
         for (i, member) in self.members.iter_mut().enumerate() {
             let (u, y) = Self::row(&sample, i, m, p);
@@ -175,13 +232,14 @@ impl<M: Clone> EstimatorBank<M> {
                 break;
             }
         }
-        self.finish(results, backup)
+        self.finish(results, saved)
     }
 }
 
-impl<M: Clone + Send + Sync> EstimatorBank<M> {
+impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
     /// One update of every estimator in parallel (rayon's global pool), `step` doing estimator
-    /// i's update with its own model. On error every estimator is as it was.
+    /// i's update with its own model; on one thread (one estimator, or a pool of one) on the
+    /// calling thread. On error every estimator is as it was.
     pub fn par_update_with(
         &mut self,
         sample: BankSample<'_>,
@@ -189,21 +247,21 @@ impl<M: Clone + Send + Sync> EstimatorBank<M> {
     ) -> Result<Vec<UpdateReport>> {
         self.check_sample(&sample)?;
         let (_, m, p) = self.dims();
-        let backup = self.members.clone();
-        let results: Vec<Result<UpdateReport>> = self
-            .members
-            .par_iter_mut()
-            .enumerate()
-            .map(|(i, member)| {
-                let (u, y) = Self::row(&sample, i, m, p);
-                step(&mut member.estimator, &mut member.model, u, y)
-            })
-            .collect();
-        self.finish(results, backup)
+        let saved: Vec<_> = self.members.par_iter().map(Member::save).collect();
+        let run = |(i, member): (usize, &mut Member<M>)| {
+            let (u, y) = Self::row(&sample, i, m, p);
+            step(&mut member.estimator, &mut member.model, u, y)
+        };
+        let results: Vec<Result<UpdateReport>> = if self.len() == 1 || bank_threads() == 1 {
+            self.members.iter_mut().enumerate().map(run).collect()
+        } else {
+            self.members.par_iter_mut().enumerate().map(run).collect()
+        };
+        self.finish(results, saved)
     }
 }
 
-impl<M: super::stage::StageModel + Clone + Send + Sync> EstimatorBank<M> {
+impl<M: super::stage::StageModel + Clone + ModelState + Send + Sync> EstimatorBank<M> {
     /// One update of every estimator in parallel with its own model (see
     /// [`Self::par_update_with`]).
     pub fn par_update(&mut self, sample: BankSample<'_>) -> Result<Vec<UpdateReport>> {
@@ -227,6 +285,12 @@ mod tests {
     #[derive(Clone)]
     struct Scalar {
         fail_above: f64,
+    }
+
+    impl ModelState for Scalar {
+        type State = ();
+        fn save_state(&self) {}
+        fn restore_state(&mut self, _: ()) {}
     }
 
     impl StageModel for Scalar {

@@ -16,7 +16,7 @@ pub mod lsq;
 pub mod problem;
 pub mod stage;
 
-pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings};
+pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings, ModelState};
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
 pub use lsq::WindowLsq;
