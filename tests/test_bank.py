@@ -5,6 +5,8 @@ with nothing changed; a failing estimator does not stop the others; copies and p
 
 import copy
 import pickle
+import signal
+import time
 import warnings
 
 import numpy as np
@@ -236,3 +238,36 @@ def test_pickles_keep_per_estimator_weights_when_n_equals_dim_x():
     for b in (bank, restored):
         b.update(U_DATA[1][:2], Y_DATA[1][:2])
     assert_array_equal(restored.x, bank.x)
+
+
+@pytest.mark.skipif(not hasattr(signal, "setitimer"), reason="needs signal.setitimer")
+def test_a_signal_stops_a_parallel_update_promptly_with_every_estimator_unchanged():
+    n = 30_000  # ~1-2 s per update without the interrupt
+    bank = EstimatorBank(synthetic_learned_model(300), n, [0.0, 0.0], horizon=15)
+    x, P = bank.x.copy(), bank.P.copy()
+    states = [bank._core.member_state(i) for i in (0, n - 1)]  # updated and restored; never run
+    fired = []
+
+    def handler(signum, frame):
+        fired.append(time.perf_counter())
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGALRM, handler)
+    due = time.perf_counter() + 0.2
+    signal.setitimer(signal.ITIMER_REAL, 0.2)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            bank.update(np.zeros((n, 1)), np.full((n, 2), 0.3))
+        raised = time.perf_counter()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    assert fired, "the update finished before the signal"
+    assert raised - due < 1.0
+    assert bank.t == 0
+    assert_array_equal(bank.x, x)
+    assert_array_equal(bank.P, P)
+    for i, state in zip((0, n - 1), states):
+        after = bank._core.member_state(i)
+        for key in state:
+            assert_array_equal(after[key], state[key], err_msg=f"{i}: {key}")

@@ -11,6 +11,10 @@
 //! in its `UpdateReport` and does not stop the others; an error (bad model output, an interrupt)
 //! stops the update and leaves every estimator as it was.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::time::Duration;
+
 use rayon::prelude::*;
 
 use super::estimator::{MovingHorizon, UpdateReport};
@@ -18,6 +22,10 @@ use super::history::HistoryState;
 use super::problem::WindowProblem;
 use super::stage::GpStageModel;
 use crate::error::{check_len, Error, Result};
+
+/// How often the thread waiting for a parallel update runs its interrupt check (which itself
+/// runs the installed check at most every `interrupt::INTERVAL`).
+const POLL: Duration = Duration::from_millis(10);
 
 /// The part of a model's state an update changes and an error must undo (what a checkpoint
 /// saves): nothing for a stateless model, the evaluation cache for [`GpStageModel`]. Cheaper
@@ -190,15 +198,18 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         (u, y)
     }
 
-    /// Keeps the reports, or restores every estimator from `saved` and returns the first error.
+    /// Keeps the reports, or (after an error or an `interrupt`) restores every estimator from
+    /// `saved` and returns the interrupt or the first error.
     fn finish(
         &mut self,
         results: Vec<Result<UpdateReport>>,
         saved: Vec<Saved<M::State>>,
+        interrupt: Option<Error>,
     ) -> Result<Vec<UpdateReport>> {
-        match results.into_iter().collect::<Result<Vec<_>>>() {
-            Ok(reports) => Ok(reports),
-            Err(e) => {
+        let results = results.into_iter().collect::<Result<Vec<_>>>();
+        match (results, interrupt) {
+            (Ok(reports), None) => Ok(reports),
+            (Err(e), None) | (_, Some(e)) => {
                 for (member, s) in self.members.iter_mut().zip(saved) {
                     member.restore(s);
                 }
@@ -232,14 +243,16 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
                 break;
             }
         }
-        self.finish(results, saved)
+        self.finish(results, saved, None)
     }
 }
 
 impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
     /// One update of every estimator in parallel (rayon's global pool), `step` doing estimator
     /// i's update with its own model; on one thread (one estimator, or a pool of one) on the
-    /// calling thread. On error every estimator is as it was.
+    /// calling thread. Meanwhile the calling thread runs its interrupt check
+    /// (`crate::interrupt`): an interrupt stops the update. On error or interrupt every
+    /// estimator is as it was.
     pub fn par_update_with(
         &mut self,
         sample: BankSample<'_>,
@@ -252,12 +265,53 @@ impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
             let (u, y) = Self::row(&sample, i, m, p);
             step(&mut member.estimator, &mut member.model, u, y)
         };
-        let results: Vec<Result<UpdateReport>> = if self.len() == 1 || bank_threads() == 1 {
-            self.members.iter_mut().enumerate().map(run).collect()
-        } else {
-            self.members.par_iter_mut().enumerate().map(run).collect()
-        };
-        self.finish(results, saved)
+        if self.len() == 1 || bank_threads() == 1 {
+            // On this thread: the core's own interrupt checks run as for a lone estimator.
+            let results = self.members.iter_mut().enumerate().map(run).collect();
+            return self.finish(results, saved, None);
+        }
+        if rayon::current_thread_index().is_some() {
+            // Called from inside the pool: no waiting thread to poll interrupts on.
+            let results = self.members.par_iter_mut().enumerate().map(run).collect();
+            return self.finish(results, saved, None);
+        }
+        // The pool does the work while this thread polls its interrupt check (the binding's runs
+        // Python's signal handlers): on an interrupt no further estimator starts, those running
+        // finish, and every estimator is restored.
+        let stop = AtomicBool::new(false);
+        let members = &mut self.members;
+        let (results, interrupt) = rayon::in_place_scope(|scope| {
+            let (tx, rx) = mpsc::channel();
+            let (stop, run) = (&stop, &run);
+            scope.spawn(move |_| {
+                let results: Vec<Result<UpdateReport>> = members
+                    .par_iter_mut()
+                    .enumerate()
+                    .map(|item| match stop.load(Ordering::Relaxed) {
+                        true => Err(Error::interrupted("bank update stopped")),
+                        false => run(item),
+                    })
+                    .collect();
+                let _ = tx.send(results);
+            });
+            let mut interrupt = None;
+            loop {
+                match rx.recv_timeout(POLL) {
+                    Ok(results) => break (results, interrupt),
+                    Err(mpsc::RecvTimeoutError::Timeout) => {
+                        if interrupt.is_none() {
+                            if let Err(e) = crate::interrupt::check() {
+                                stop.store(true, Ordering::Relaxed);
+                                interrupt = Some(e);
+                            }
+                        }
+                    }
+                    // The worker panicked: the scope re-raises its panic when it ends.
+                    Err(mpsc::RecvTimeoutError::Disconnected) => break (Vec::new(), interrupt),
+                }
+            }
+        });
+        self.finish(results, saved, interrupt)
     }
 }
 
@@ -281,10 +335,12 @@ mod tests {
     use crate::mhe::{Form, StageEval, StageModel};
     use crate::solver::SolverOptions;
 
-    /// x(t+1) = 0.9 x + u, y = x; fails (bad output) at u ≥ `fail_above`.
+    /// x(t+1) = 0.9 x + u, y = x; fails (bad output) at u ≥ `fail_above`; each evaluation
+    /// takes `delay`.
     #[derive(Clone)]
     struct Scalar {
         fail_above: f64,
+        delay: std::time::Duration,
     }
 
     impl ModelState for Scalar {
@@ -304,6 +360,7 @@ mod tests {
             1
         }
         fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+            std::thread::sleep(self.delay);
             let k = d.len() / 2;
             out.resize(k, 1, 1, 1);
             for i in 0..k {
@@ -346,7 +403,10 @@ mod tests {
 
     #[test]
     fn the_bank_matches_lone_estimators_bit_for_bit() {
-        let model = Scalar { fail_above: 100.0 };
+        let model = Scalar {
+            fail_above: 100.0,
+            delay: Duration::ZERO,
+        };
         let set = [settings(0.0, 0.1), settings(1.0, 0.5), settings(-2.0, 0.2)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
         let mut lone: Vec<_> = bank.members().to_vec();
@@ -377,7 +437,10 @@ mod tests {
 
     #[test]
     fn an_error_leaves_every_estimator_unchanged() {
-        let model = Scalar { fail_above: 5.0 };
+        let model = Scalar {
+            fail_above: 5.0,
+            delay: Duration::ZERO,
+        };
         let set = [settings(0.0, 0.1), settings(0.0, 0.1)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
         let ok = BankSample {
@@ -415,5 +478,42 @@ mod tests {
         };
         assert!(bank.par_update(short).is_err());
         assert!(EstimatorBank::new(&template(), &model, &[]).is_err());
+    }
+
+    #[test]
+    fn an_interrupt_stops_the_update_and_leaves_every_estimator_unchanged() {
+        let model = Scalar {
+            fail_above: 100.0,
+            delay: Duration::from_millis(2),
+        };
+        let set: Vec<_> = (0..40).map(|i| settings(i as f64 * 0.1, 0.1)).collect();
+        let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
+        let (u, y, present) = (vec![0.0; 40], vec![1.0; 40], vec![true; 40]);
+        let sample = BankSample {
+            u: &u,
+            y: &y,
+            present: &present,
+        };
+        let before: Vec<_> = bank
+            .members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect();
+        let _guard = crate::interrupt::install(|| Err(Error::interrupted("test")));
+        let started = std::time::Instant::now();
+        let err = bank.par_update(sample).unwrap_err();
+        assert_eq!(err, Error::interrupted("test"));
+        // 40 estimators × several 2 ms evaluations would take far longer on any pool.
+        assert!(
+            started.elapsed() < Duration::from_millis(500),
+            "{:?}",
+            started.elapsed()
+        );
+        let after: Vec<_> = bank
+            .members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect();
+        assert_eq!(before, after);
     }
 }

@@ -1,7 +1,8 @@
 //! The estimator bank (`crate::mhe::EstimatorBank`) as `_core.EstimatorBank`: converts one
 //! sample's arrays, calls the core and maps errors. The learned model's bank updates its
-//! estimators in parallel without the GIL; a Python callback model (`gpmhe.KnownModel`) runs
-//! them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/bank.py) validates
+//! estimators in parallel without the GIL (the calling thread meanwhile runs Python's signal
+//! handlers: Ctrl-C stops the update with every estimator unchanged); a Python callback model
+//! (`gpmhe.KnownModel`) runs them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/bank.py) validates
 //! the input and holds the public attributes.
 
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -10,7 +11,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::convert::slice2;
-use super::error::interruptible;
+use super::error::{detach_interruptible, interruptible};
 use super::mhe::{CallbackModel, Model, PyMovingHorizon};
 use crate::mhe::{
     bank_threads, BankSample, EstimatorBank, GpStageModel, MemberSettings, UpdateReport,
@@ -217,7 +218,7 @@ impl PyEstimatorBank {
             .map_err(|_| PyValueError::new_err("present: must be a contiguous bool array"))?;
         let sample = BankSample { u, y, present };
         let reports = match (&mut self.inner, &self.model) {
-            (Inner::Gp(bank), _) => py.detach(|| bank.par_update(sample))?,
+            (Inner::Gp(bank), _) => detach_interruptible(py, || bank.par_update(sample))?,
             (
                 Inner::Callback(bank),
                 Model::Callback {
