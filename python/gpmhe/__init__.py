@@ -19,7 +19,7 @@ See the user guide, starting with *Notation*.
 from gpmhe._core import NumericalError
 from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 from gpmhe.mhe import GPMHE
-from gpmhe.bank import EstimatorBank  # noqa: E402  (after GPMHE, which it builds on)
+from gpmhe.bank import EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.rgp import RGPEKF, RecursiveGP
 
