@@ -10,6 +10,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 * moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`;
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
 * `NumericalError`: a numerical failure on valid input;
+* `monte_carlo`: Monte Carlo studies of estimators over many seeds, serially or on a Dask cluster
+  (`gpmhe.study`);
 * `gpmhe.baselines`: EKF baselines on filterpy; `gpmhe.systems`: the papers' example plants.
 
 See the user guide, starting with *Notation*.
@@ -20,6 +22,7 @@ from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFitt
 from gpmhe.mhe import GPMHE
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.rgp import RGPEKF, RecursiveGP
+from gpmhe.study import monte_carlo
 
 __all__ = [
     "NumericalError",
@@ -35,5 +38,7 @@ __all__ = [
     # RGP-dKF
     "RecursiveGP",
     "RGPEKF",
+    # studies
+    "monte_carlo",
 ]
 __version__ = "0.1.0"
