@@ -268,7 +268,14 @@ class StudyResult:
 
     Examples
     --------
-    See `monte_carlo`.
+    `monte_carlo` builds it; the table can also be read back (e.g. from a saved CSV):
+
+    >>> import pandas as pd
+    >>> from gpmhe.study import StudyResult
+    >>> table = pd.DataFrame({"estimator": ["a", "b"], "seed": [0, 0], "rmse": [0.1, None],
+    ...                       "unconverged": [0, None], "error": [None, "ValueError: bad"]})
+    >>> StudyResult(table, {}, ["rmse"])
+    StudyResult(2 runs, 1 failed)
     """
 
     def __init__(self, table: Any, times: Dict[Tuple[str, int], np.ndarray], metrics: Sequence[str]):
