@@ -161,6 +161,19 @@ def test_cluster_failure_in_row(client):
     assert list(r.table.error) == [None, "ValueError: bad seed"]
 
 
+def test_unpicklable_payload_is_named(client):
+    import threading
+
+    lock = threading.Lock()
+
+    def simulate_with_lock(seed):
+        with lock:
+            return simulate(seed)
+
+    with pytest.raises(ValueError, match="^simulate: must pickle"):
+        gpmhe.monte_carlo({"MHE": mhe}, simulate_with_lock, [0], client=client, progress=False)
+
+
 def simulate_dies_once(seed, marker):
     """Kills its worker process the first time it runs seed 1 (the marker file says it did)."""
     marker = pathlib.Path(marker)

@@ -487,7 +487,12 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
         threads = max(1, sum(client.nthreads().values()))
         chunk_size = max(1, math.ceil(len(names) * len(seeds) / (8 * threads)))
     chunk_size = min(chunk_size, len(seeds))
-    [shared] = client.scatter([payload], broadcast=True, hash=False)
+    try:
+        [shared] = client.scatter([payload], broadcast=True, hash=False)
+    except Exception as exc:
+        raise ValueError(f"{_unpicklable(payload)}: must pickle to be sent to the cluster "
+                         f"(module-level functions, or closures over picklable objects): "
+                         f"{_message(exc)}") from exc
     futures = {}
     for name in names:
         for i in range(0, len(seeds), chunk_size):
@@ -509,6 +514,18 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
         bar.close()
         client.cancel(list(futures) + [shared])
     return rows
+
+
+def _unpicklable(payload):
+    """The name of the first argument of the payload that cloudpickle cannot pickle."""
+    import cloudpickle
+
+    for name, obj in zip(("estimators", "simulate", "metrics"), payload):
+        try:
+            cloudpickle.dumps(obj)
+        except Exception:
+            return name
+    return "estimators, simulate, metrics"
 
 
 class _Progress:
