@@ -254,7 +254,7 @@ def _message(exc):
 class StudyResult:
     """The result of `monte_carlo`.
 
-    Attributes
+    Parameters
     ----------
     table : pandas.DataFrame
         One row per (estimator, seed) run, in the order of ``estimators`` then ``seeds``: columns
@@ -264,7 +264,16 @@ class StudyResult:
         ``(estimator, seed) -> ndarray (T,)``: the time of every update in seconds (failed runs
         are absent).
     metrics : list of str
-        The metric names.
+        The metric names (columns of ``table``).
+
+    Attributes
+    ----------
+    table : pandas.DataFrame
+        As given.
+    times : dict
+        As given.
+    metrics : list of str
+        As given.
 
     Examples
     --------
