@@ -5,6 +5,7 @@ worker killed during a study. The functions sent to the cluster are module-level
 import functools
 import os
 import pathlib
+import sys
 
 import numpy as np
 import pytest
@@ -196,3 +197,10 @@ def test_killed_worker_is_retried(serial, client, tmp_path):
 
 def test_default_metrics_names():
     assert list(default_metrics()) == ["rmse", "rmse_late", "final_error", "ms_per_update"]
+
+
+@pytest.mark.parametrize("module, kwargs", [("pandas", {}), ("distributed", {"client": object()})])
+def test_missing_extra_names_the_install_line(monkeypatch, module, kwargs):
+    monkeypatch.setitem(sys.modules, module, None)  # `import module` raises ImportError
+    with pytest.raises(ImportError, match=r"pip install 'gpmhe\[distributed\]'"):
+        gpmhe.monte_carlo({"MHE": mhe}, simulate, [0], progress=False, **kwargs)
