@@ -29,7 +29,7 @@ def _public_api():
         if name != "NumericalError":
             obj = getattr(gpmhe, name)
             objects[f"{obj.__module__}.{obj.__qualname__}"] = obj
-    for modname in ("gpmhe.baselines", "gpmhe.systems.batch_reactor",
+    for modname in ("gpmhe.baselines", "gpmhe.study", "gpmhe.systems.batch_reactor",
                     "gpmhe.systems.second_order"):
         module = importlib.import_module(modname)
         for name, obj in vars(module).items():

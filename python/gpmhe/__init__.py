@@ -11,6 +11,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
   `EstimatorBank`, many of them updated together (in parallel);
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
 * `NumericalError`: a numerical failure on valid input;
+* `monte_carlo`: Monte Carlo studies of estimators over many seeds, serially or on a Dask cluster
+  (`gpmhe.study`);
 * `gpmhe.baselines`: EKF baselines on filterpy; `gpmhe.systems`: the papers' example plants.
 
 See the user guide, starting with *Notation*.
@@ -22,6 +24,7 @@ from gpmhe.mhe import GPMHE
 from gpmhe.bank import EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.rgp import RGPEKF, RecursiveGP
+from gpmhe.study import monte_carlo
 
 __all__ = [
     "NumericalError",
@@ -38,5 +41,7 @@ __all__ = [
     # RGP-dKF
     "RecursiveGP",
     "RGPEKF",
+    # studies
+    "monte_carlo",
 ]
 __version__ = "0.1.0"

@@ -12,6 +12,7 @@ All estimates are of x(t) from outputs up to t−1 (the MHE's prediction form, t
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 import warnings
@@ -93,6 +94,79 @@ def run_estimators(seed, steps, solver, n_restarts=3, log=_progress, models=None
             xs[t] = ekf.x.ravel()
         results[name] = (xs, ts, 0)
     return x, results, models
+
+
+# ----------------------------------------------- the same runs as monte_carlo factories (benches)
+
+
+@functools.lru_cache(maxsize=None)
+def _seed_model(seed, n_traj, incr, n_restarts):
+    """The learned model run_estimators fits for this seed (the seed's rng draws the 5- then the
+    3-trajectory data; the fit uses random_state=seed), fitted once per process."""
+    from gpmhe import LearnedModel
+    from gpmhe.systems import batch_reactor as br
+
+    rng = np.random.default_rng(seed)
+    data = {n: br.training_data(n, rng=rng) for n in (5, 3)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return LearnedModel.from_trajectories(*data[n_traj], n_restarts=n_restarts,
+                                              random_state=seed, f_residual=incr)
+
+
+def study_simulate(seed, steps):
+    """run_estimators' run for this seed as ``monte_carlo``'s (U, Y, X): the seed's rng draws the
+    training data first (discarded here), then the run; Y = y(0..steps−1), X = x(0..steps)."""
+    from gpmhe.systems import batch_reactor as br
+
+    rng = np.random.default_rng(seed)
+    for n in (5, 3):
+        br.training_data(n, rng=rng)
+    x, y = br.simulate(br.X_TRUE0, steps, rng)
+    return None, y[:steps], x
+
+
+def study_estimator(seed, kind, solver="gauss-newton", n_restarts=3):
+    """A fresh estimator of run_estimators for this seed: kind is "gp5", "gp5-incr", "gp3",
+    "exact" (MHEs with `solver`), "ekf" (filterpy's EKF) or "gp-ekf" (GP-EKF on the 5-trajectory
+    model); the EKFs are wrapped in `gpmhe.study.FilterAdapter` (update, then predict)."""
+    from gpmhe import GPMHE, KnownModel
+    from gpmhe.baselines import GPEKF, ExactEKF
+    from gpmhe.study import FilterAdapter
+    from gpmhe.systems import batch_reactor as br
+
+    Q, R = br.SIGMA_W**2 * np.eye(2), br.SIGMA_V**2 * np.eye(1)
+    if kind == "ekf":
+        return FilterAdapter(ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_PRIOR0,
+                                      np.eye(2), Q, R))
+    if kind == "gp-ekf":
+        return FilterAdapter(GPEKF(_seed_model(seed, 5, False, n_restarts), br.X_PRIOR0,
+                                   np.eye(2), Q, R))
+    if kind == "exact":
+        model = KnownModel(br.f_batch, br.h_batch, 2, 1, f_jacobian=br.f_jacobian_batch,
+                           h_jacobian=br.h_jacobian_batch, vectorized=True)
+    else:
+        n_traj, incr = {"gp5": (5, False), "gp5-incr": (5, True), "gp3": (3, False)}[kind]
+        model = _seed_model(seed, n_traj, incr, n_restarts)
+    return GPMHE(model, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver=solver, **br.MHE_SETTINGS)
+
+
+def study_factories(solvers, n_restarts=3, increment_model=True):
+    """run_estimators' estimators as ``monte_carlo`` factories (name -> factory(seed)), named and
+    ordered as run_estimators names them."""
+    factories = {}
+    for sv in solvers:
+        tag = f" [{sv}]" if len(solvers) > 1 else ""
+        kinds = [("GP-MHE (5 traj.)", "gp5")]
+        kinds += [("GP-MHE (5, incr. f)", "gp5-incr")] if increment_model else []
+        kinds += [("GP-MHE (3 traj.)", "gp3"), ("exact-model MHE", "exact")]
+        for name, kind in kinds:
+            factories[name + tag] = functools.partial(study_estimator, kind=kind, solver=sv,
+                                                      n_restarts=n_restarts)
+    factories["filterpy EKF (exact)"] = functools.partial(study_estimator, kind="ekf")
+    factories["GP-EKF (5 traj.)"] = functools.partial(study_estimator, kind="gp-ekf",
+                                                      n_restarts=n_restarts)
+    return factories
 
 
 def rmse(est, truth, start):
