@@ -336,11 +336,12 @@ mod tests {
     use crate::solver::SolverOptions;
 
     /// x(t+1) = 0.9 x + u, y = x; fails (bad output) at u ≥ `fail_above`; each evaluation
-    /// takes `delay`.
+    /// takes `delay` and is counted in `calls` (shared by all clones).
     #[derive(Clone)]
     struct Scalar {
         fail_above: f64,
         delay: std::time::Duration,
+        calls: std::sync::Arc<std::sync::atomic::AtomicUsize>,
     }
 
     impl ModelState for Scalar {
@@ -360,6 +361,8 @@ mod tests {
             1
         }
         fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+            self.calls
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             std::thread::sleep(self.delay);
             let k = d.len() / 2;
             out.resize(k, 1, 1, 1);
@@ -406,6 +409,7 @@ mod tests {
         let model = Scalar {
             fail_above: 100.0,
             delay: Duration::ZERO,
+            calls: Default::default(),
         };
         let set = [settings(0.0, 0.1), settings(1.0, 0.5), settings(-2.0, 0.2)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
@@ -440,6 +444,7 @@ mod tests {
         let model = Scalar {
             fail_above: 5.0,
             delay: Duration::ZERO,
+            calls: Default::default(),
         };
         let set = [settings(0.0, 0.1), settings(0.0, 0.1)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
@@ -484,11 +489,14 @@ mod tests {
     fn an_interrupt_stops_the_update_and_leaves_every_estimator_unchanged() {
         let model = Scalar {
             fail_above: 100.0,
-            delay: Duration::from_millis(2),
+            delay: Duration::from_millis(1),
+            calls: Default::default(),
         };
-        let set: Vec<_> = (0..40).map(|i| settings(i as f64 * 0.1, 0.1)).collect();
+        // 200 estimators of several 1 ms evaluations each: a whole update takes several times
+        // the interrupt check's interval on any pool.
+        let set: Vec<_> = (0..200).map(|i| settings(i as f64 * 0.02, 0.1)).collect();
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
-        let (u, y, present) = (vec![0.0; 40], vec![1.0; 40], vec![true; 40]);
+        let (u, y, present) = (vec![0.0; 200], vec![1.0; 200], vec![true; 200]);
         let sample = BankSample {
             u: &u,
             y: &y,
@@ -500,14 +508,24 @@ mod tests {
             .map(|m| m.estimator.history_state())
             .collect();
         let _guard = crate::interrupt::install(|| Err(Error::interrupted("test")));
-        let started = std::time::Instant::now();
         let err = bank.par_update(sample).unwrap_err();
         assert_eq!(err, Error::interrupted("test"));
-        // 40 estimators × several 2 ms evaluations would take far longer on any pool.
+        // A whole update evaluates each of the 200 windows several times; after the interrupt no
+        // further estimator starts, so at most those already running (one per thread) finish.
+        let calls = model.calls.load(std::sync::atomic::Ordering::Relaxed);
+        drop(_guard);
+        let full = {
+            let counted = Scalar {
+                calls: Default::default(),
+                ..model.clone()
+            };
+            let mut twin = EstimatorBank::new(&template(), &counted, &set).unwrap();
+            twin.par_update(sample).unwrap();
+            counted.calls.load(std::sync::atomic::Ordering::Relaxed)
+        };
         assert!(
-            started.elapsed() < Duration::from_millis(500),
-            "{:?}",
-            started.elapsed()
+            calls * 2 < full,
+            "{calls} of {full} evaluations after an interrupt"
         );
         let after: Vec<_> = bank
             .members()
