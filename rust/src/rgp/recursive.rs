@@ -68,17 +68,14 @@ impl Rgp {
     /// Replaces the weights' mean and covariance (row-major n_b × n_b, symmetrised).
     pub fn set_weights(&mut self, mean: &[f64], cov: &[f64]) -> Result<()> {
         let nb = self.basis.n_basis();
-        check_len("mean", mean, nb)?;
         check_len("cov", cov, nb * nb)?;
-        check_finite("mean", mean)?;
-        check_finite("cov", cov)?;
-        self.mean.copy_from_slice(mean);
-        for i in 0..nb {
-            for jj in 0..nb {
-                self.cov[(i, jj)] = 0.5 * (cov[i * nb + jj] + cov[jj * nb + i]);
-            }
-        }
-        Ok(())
+        let sym: Vec<f64> = (0..nb * nb)
+            .map(|k| {
+                let (i, j) = (k / nb, k % nb);
+                0.5 * (cov[i * nb + j] + cov[j * nb + i])
+            })
+            .collect();
+        self.set_weights_raw(mean, &sym)
     }
 
     /// J_k for one input (for tests and diagnostics).
