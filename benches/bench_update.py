@@ -112,8 +112,8 @@ def time_split(model, kw, y, steps):
     one full window evaluation (all M+1 points new: the window states moved by 1e-9)."""
     est = GPMHE(model, br.X_PRIOR0, **kw)
     est.update(None, y[0])
-    timed = _TimedCore(est._core.window)
-    est._core.window = timed
+    timed = _TimedCore(est._core)
+    est._core = timed
     total, evals = [], []
     for t in range(1, steps):
         t0 = time.perf_counter()

@@ -104,7 +104,7 @@ def test_missing_outputs(gp5):
     check_sane(xs)
     assert rmse(xs[29:], x[30:61]) < 0.6
     # window after t = 59: 15 stages (times 45..59), outputs missing at t % 3 == 1 (5 of them)
-    assert est._core.window.n_residuals == 2 + 15 * 2 + 10
+    assert est._core.n_residuals == 2 + 15 * 2 + 10
 
 
 def simulate3(x0, steps, rng, sw=0.01, sv=0.02):
@@ -185,7 +185,7 @@ def test_non_convergence_warning_as_error_leaves_a_consistent_estimator(gp5, sol
         warnings.simplefilter("error", RuntimeWarning)
         with pytest.raises(RuntimeWarning, match="did not converge at t=0"):
             est.update(None, y[0])
-    assert est.t == est._core.window.t
+    assert est.t == est._core.t
     assert est.t == (1 if solver == "gauss-newton" else 0)
     np.testing.assert_array_equal(est.x, est.x_window[-1])
     assert est.x_window.shape[0] == est.t + 1
@@ -200,7 +200,7 @@ def test_solver_failure_keeps_a_finite_estimate(gp5):
         est.update(None, y[1])
     assert not est.success
     assert np.all(np.isfinite(est.x)) and np.all(np.isfinite(est.x_window))
-    win = est._core.window
+    win = est._core
     assert est.cost == pytest.approx(win.cost(est.x_window.reshape(-1)))
 
 

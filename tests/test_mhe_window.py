@@ -251,7 +251,7 @@ def test_solvers_reach_the_same_cost_on_single_windows(reactor_model, bounds):
                 **br.MHE_SETTINGS)
     for t in range(30):
         est.update(None, y[t])
-    win = est._core.window
+    win = est._core
     nodes = est.x_window.shape[0]
     z0 = np.clip(est.x_window.reshape(-1) + 0.05 * rng.standard_normal(2 * nodes),
                  np.tile(lb, nodes) + 1e-3, np.tile(ub, nodes) - 1e-3)

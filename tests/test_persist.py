@@ -94,10 +94,10 @@ def test_gpmhe_copy_is_independent():
     mhe = _mhe(LEARNED, "prediction", "gauss-newton")
     _run(mhe, 0, 6)
     other = copy.deepcopy(mhe)
-    assert other._core.window is not mhe._core.window
+    assert other._core is not mhe._core
     _run(other, 6, 9)  # advancing the copy leaves the original where it was
-    assert (mhe.t, mhe._core.window.t) == (6, 6)
-    assert (other.t, other._core.window.t) == (9, 9)
+    assert (mhe.t, mhe._core.t) == (6, 6)
+    assert (other.t, other._core.t) == (9, 9)
 
 
 def test_filterpy_saver_records_independent_states():
@@ -111,7 +111,7 @@ def test_filterpy_saver_records_independent_states():
     assert saver.x.shape == (8, 2)
     assert_array_equal(saver.x[-1], mhe.x)
     # Each record holds its own core, at its own time.
-    assert [c.window.t for c in saver._DL["_core"]] == list(range(1, 9))
+    assert [c.t for c in saver._DL["_core"]] == list(range(1, 9))
 
 
 def test_known_model_pickles_with_module_functions_and_names_a_lambda():
@@ -148,7 +148,7 @@ def test_models_and_gps_copy_and_pickle():
 def test_moving_horizon_state_is_validated_and_atomic():
     mhe = _mhe(LEARNED, "prediction", "gauss-newton")
     _run(mhe, 0, 6)
-    core = mhe._core.window
+    core = mhe._core
     state = core.__getstate__()
     before = pickle.dumps(core)
     for key, value in [("u", state["u"][:-1]), ("priors", np.full_like(state["priors"], np.nan)),

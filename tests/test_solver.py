@@ -185,7 +185,7 @@ def test_first_step_horizon_one_and_missing_outputs(reactor_gp):
             if t == 0:
                 assert est.x_window.shape[0] == (2 if form == "prediction" else 1)
             # least-squares on the same window from a perturbed start does not do better
-            win, nodes = est._core.window, est.x_window.shape[0]
+            win, nodes = est._core, est.x_window.shape[0]
             LB, UB = np.tile(lb, nodes), np.tile(ub, nodes)
             z0 = np.clip(est.x_window.reshape(-1) + 0.1 * rng.standard_normal(2 * nodes),
                          LB + 1e-3, UB - 1e-3)
@@ -253,7 +253,7 @@ def test_covariance_from_the_block_factorisation_matches_the_dense_one(reactor_g
     for t in range(6):
         est.update(None, y[t])
     z = est.x_window.reshape(-1)
-    H = est._core.window.gn_hessian(z)
+    H = est._core.gn_hessian(z)
     dense = 4.0 * np.linalg.inv(H)[-2:, -2:]
     assert np.allclose(est.P, dense, rtol=1e-8, atol=1e-12)
 

@@ -79,7 +79,7 @@ class RecordingCore:
 def test_one_estimator_from_two_threads_raises_a_clear_error_and_stays_consistent(learned):
     ys = outputs(3)
     shared = GPMHE(learned, x0=[3.0, 1.0], x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
-    shared._core.window = recorder = RecordingCore(shared._core.window)
+    shared._core = recorder = RecordingCore(shared._core)
     refused = []
 
     def hammer():

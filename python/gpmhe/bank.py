@@ -195,7 +195,7 @@ class EstimatorBank:
         # Estimator 0 as a GPMHE: validates the common settings once and is the core's template.
         template = GPMHE(model, x0=x0[0], Q0=q0[0], R0=r0[0] if p else None,
                          x_bounds=(lb[0], ub[0]), **opts)
-        self._core = _core.EstimatorBank(template._core.window, x0, lb, ub, q0,
+        self._core = _core.EstimatorBank(template._core, x0, lb, ub, q0,
                                          np.ascontiguousarray(r0))
         self.model = model
         self.dim_x, self.dim_y, self.dim_u = d, p, model.dim_u
@@ -353,7 +353,7 @@ class EstimatorBank:
             raise IndexError(f"i: the bank has {k} estimators, got {i}")
         i %= k
         mhe = self._gpmhe(i)
-        mhe._core.window.__setstate__(self._core.member_state(i))
+        mhe._core.__setstate__(self._core.member_state(i))
         mhe.t = self.t
         mhe.x, mhe.x_prior = self.x[i].copy(), self.x_prior[i].copy()
         mhe.x_window, mhe.P = self.x_window[i].copy(), self.P[i].copy()

@@ -10,7 +10,6 @@ Rust window between ``prepare`` and ``commit``. See *Architecture* in the docume
 
 from __future__ import annotations
 
-import copy
 import inspect
 import warnings
 
@@ -66,19 +65,6 @@ def _rows(name, value):
         return list(value)
     except TypeError:
         raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
-
-
-class _Unsaved:
-    """Holds the Rust estimator core (with the history). `copy.deepcopy` (also filterpy's Saver,
-    at every save) clones the core: the settings, the history and the work buffers are copied,
-    the model's GPs (immutable) are shared, so a copy is independent and cheap. Pickling goes
-    through the core's ``__reduce__``."""
-
-    def __init__(self, window):
-        self.window = window
-
-    def __deepcopy__(self, memo):
-        return _Unsaved(copy.deepcopy(self.window, memo))
 
 
 class GPMHE:
@@ -290,9 +276,9 @@ class GPMHE:
         self.x_bounds = (lb, ub)
         x0 = self._check_x0(x0)
         rust_solver = self._rust_solver() if solver == "gauss-newton" else None
-        self._core = _Unsaved(model._make_window(
+        self._core = model._make_window(
             self.eta, q0, r0, p2_sqrt, form == "filtering", horizon=self.horizon, x0=x0,
-            lower=lb, upper=ub, solver=rust_solver))
+            lower=lb, upper=ub, solver=rust_solver)
         self.reset(x0)
 
     # ----------------------------------------------------------------------------------------
@@ -331,7 +317,7 @@ class GPMHE:
         (0, array([2.]))
         """
         x0 = self._check_x0(x0)
-        self._core.window.reset(x0)
+        self._core.reset(x0)
         self.t = 0
         self.x = x0.copy()
         self.x_prior = x0.copy()
@@ -471,7 +457,7 @@ class GPMHE:
         """One update with validated input: the Rust core does it in one call ("gauss-newton"),
         or stages the window for a SciPy solver and records its solution. Nothing changes
         before the core has recorded the step."""
-        core = self._core.window
+        core = self._core
         y = y if present else None
         if self.solver == "gauss-newton":
             rep = core.update(u, y)
@@ -568,8 +554,8 @@ class GPMHE:
     }
 
     # ---- checkpoints: save and load ---------------------------------------------------------
-    # (Copies and pickles need no code here: the core holder `_Unsaved` deep-copies the Rust
-    # core and the core pickles itself with its whole state.)
+    # (Copies and pickles need no code here: the Rust core copies and pickles itself with its
+    # whole state; its model's GPs are shared, not copied.)
 
     _CHECKPOINT_VERSION = 1
 
@@ -622,7 +608,7 @@ class GPMHE:
             options = json.dumps(self.solver_options)
         except (TypeError, ValueError) as e:
             raise ValueError(f"solver_options: cannot be saved ({e})") from None
-        core = self._core.window.__getstate__()
+        core = self._core.__getstate__()
         lb, ub = self.x_bounds
         np.savez(
             path, kind="GPMHE", format_version=self._CHECKPOINT_VERSION,
@@ -723,7 +709,7 @@ class GPMHE:
             if state["t"] != t:
                 raise f.error("core_t", f"is {state['t']} but entry 't' is {t}")
             try:
-                mhe._core.window.__setstate__(state)
+                mhe._core.__setstate__(state)
             except ValueError as e:
                 raise f.state_error("core_", e) from None
             mhe.t = t
