@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 import types
 import warnings
-from typing import Any, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import scipy.optimize
@@ -154,43 +154,58 @@ class _Theta:
 # ----------------------------------------------------------------------------- optimisation
 
 
-def _maximise_lml(
-    D: np.ndarray,
-    y: np.ndarray,
+def _exact_lml(D: np.ndarray, y: np.ndarray) -> Callable[[np.ndarray], Tuple[float, np.ndarray]]:
+    """The exact GP's log marginal likelihood and its gradient as a function of theta.
+
+    D and y must be validated (``training_set``): they are handed to the core as they are.
+    """
+
+    def lml(theta: np.ndarray) -> Tuple[float, np.ndarray]:
+        value, grad = _core.log_marginal_likelihood(D, y, np.ascontiguousarray(theta), True)
+        return float(value), np.asarray(grad)
+
+    return lml
+
+
+def _maximise(
+    objective: Callable[[np.ndarray], Tuple[float, np.ndarray]],
     theta0: np.ndarray,
     log_bounds: np.ndarray,
     n_restarts: int,
     rng: np.random.Generator,
     maxiter: int,
-) -> Tuple[np.ndarray, float]:
-    """Best (theta, lml) over L-BFGS-B runs from theta0 and n_restarts uniform random starts.
+) -> Tuple[np.ndarray, float, np.ndarray]:
+    """Best (theta, value, values of all runs) of L-BFGS-B runs maximising ``objective`` from
+    theta0 and n_restarts uniform random starts inside the log-bounds.
 
-    D and y must be validated (``training_set``): the objective hands them to the core as they
-    are. Raises NumericalError if no run produced a finite log marginal likelihood.
+    ``objective(theta)`` returns (value, gradient) of the quantity to maximise (a log marginal
+    likelihood or a training bound, plus a log-prior). Raises NumericalError if no run produced a
+    finite value.
     """
 
-    def objective(theta: np.ndarray) -> Tuple[float, np.ndarray]:
+    def negated(theta: np.ndarray) -> Tuple[float, np.ndarray]:
         try:
-            lml, grad = _core.log_marginal_likelihood(D, y, np.ascontiguousarray(theta), True)
+            value, grad = objective(theta)
         except NumericalError:
             # Outside the numerically usable region: report it as infinitely bad so the line
             # search backs off.
             return np.inf, np.zeros_like(theta)
         except ValueError as err:
-            # D and y are valid, so the only input the core can refuse here is a trial theta
+            # The data are valid, so the only input the core can refuse here is a trial theta
             # beyond what float64 represents (exp(theta) or sigma^2 overflowing): as bad as a
             # numerical failure. Any other ValueError is a genuine input error and surfaces.
             if str(err).startswith("theta"):
                 return np.inf, np.zeros_like(theta)
             raise
-        return -lml, -grad
+        return -value, -grad
 
     starts = [np.clip(theta0, log_bounds[:, 0], log_bounds[:, 1])]
     starts += [rng.uniform(log_bounds[:, 0], log_bounds[:, 1]) for _ in range(n_restarts)]
     best: Optional[Tuple[np.ndarray, float, bool]] = None
+    values = []
     for t0 in starts:
         res = scipy.optimize.minimize(
-            objective,
+            negated,
             t0,
             jac=True,
             method="L-BFGS-B",
@@ -198,6 +213,7 @@ def _maximise_lml(
             # Tighter than SciPy's defaults: the LML is flat near its optimum.
             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9},
         )
+        values.append(-float(res.fun))
         if np.isfinite(res.fun) and (best is None or -res.fun > best[1]):
             best = (np.asarray(res.x, dtype=np.float64), float(-res.fun), _converged(res, log_bounds))
     if best is None:
@@ -210,9 +226,9 @@ def _maximise_lml(
             "fit: L-BFGS-B stopped before convergence (iteration limit, or a failed line search "
             "with a large projected gradient); the best hyperparameters found are used",
             ConvergenceWarning,
-            stacklevel=4,  # _maximise_lml <- _ExactGP._fit <- fit <- the caller of fit
+            stacklevel=4,  # _maximise <- _ExactGP._fit <- fit <- the caller of fit
         )
-    return best[0], best[1]
+    return best[0], best[1], np.array(values)
 
 
 def _converged(res: Any, log_bounds: np.ndarray) -> bool:
@@ -358,7 +374,7 @@ class _ExactGP:
             rows = []
             for o in range(q):  # a loop, not a comprehension: the warning's stacklevel counts frames
                 y = np.ascontiguousarray(Y[:, o])
-                rows.append(_maximise_lml(D, y, theta[o], log_bounds, self.n_restarts, rng, self.maxiter)[0])
+                rows.append(_maximise(_exact_lml(D, y), theta[o], log_bounds, self.n_restarts, rng, self.maxiter)[0])
             theta = np.array(rows)
         self._set_model(_core.MultiGP(D, Y, np.ascontiguousarray(theta)), D, Y)
         return self
