@@ -100,13 +100,19 @@ def reactor_known_model(vectorized=False, jacobians=True):
     return KnownModel(fns[0], fns[1], 2, 1, vectorized=vectorized, **jac)
 
 
-def fitted_reactor_model(rng, n_restarts, n_trajectories=5):
+#: The paper's GP model (zero prior mean, maximum likelihood in natural units).
+PAPER_GP = dict(mean="zero", normalize=False, hyperprior=None)
+
+
+def fitted_reactor_model(rng, n_restarts, n_trajectories=5, **options):
     """A LearnedModel fitted to n_trajectories simulated batch-reactor trajectories (the
-    generator seeded with rng), random_state 0; convergence warnings are not what tests check."""
+    generator seeded with rng), random_state 0, with the paper's GP model unless ``options`` say
+    otherwise; convergence and fit warnings are not what tests check."""
     states, outputs = br.training_data(n_trajectories, rng=rng)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return LearnedModel.from_trajectories(states, outputs, n_restarts=n_restarts, random_state=0)
+        return LearnedModel.from_trajectories(states, outputs, n_restarts=n_restarts, random_state=0,
+                                              **{**PAPER_GP, **options})
 
 
 @pytest.fixture(scope="session")

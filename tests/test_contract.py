@@ -334,7 +334,10 @@ case("LearnedModel.from_trajectories", None, lambda obj, **kw: LearnedModel.from
      **kw, optimizer=None), dict(states=TRAJ_X, outputs=TRAJ_Y, inputs=TRAJ_U, f_residual=False),
      dict(states=[[np.ones((1, 2))], [np.ones(6)]], outputs=[[np.ones((5, 2))]],
           inputs=[[np.ones((3, 1))]], f_residual=NON_BOOL),
-     allow=dict(inputs=[None]), numeric=dict(f_residual=False), generic=dict(f_residual=False))
+     # NaN marks a missing sample in a log (its rows are dropped), so NaN-spoiled logs are valid.
+     allow=dict(inputs=[None] + _spoiled(TRAJ_U)[:2], states=_spoiled(TRAJ_X)[:2],
+                outputs=_spoiled(TRAJ_Y)[:2]),
+     numeric=dict(f_residual=False), generic=dict(f_residual=False))
 for mname, model in (("LearnedModel", LEARNED), ("KnownModel", KNOWN)):
     case(mname, lambda model=model: model, _method("predict"), dict(x=[0.1, 0.2], u=[0.3]),
          dict(x=[[0.1, 0.2, 0.3]], u=[[0.1, 0.2]]),

@@ -49,8 +49,9 @@ class NpzReader:
             if "kind" not in self._f.files or self.string("kind") != kind:
                 raise ValueError(f"path: {self.name} is not a saved {kind} file (its entry "
                                  f"'kind' is missing or not {kind!r})")
+            self.version = 1  # files without an entry are of the first format
             if require_version or "format_version" in self._f.files:
-                version = self.integer("format_version")
+                version = self.version = self.integer("format_version")
                 if version > max_version:
                     raise ValueError(f"path: {self.name} was saved by a newer gpmhe (format "
                                      f"version {version} > {max_version})")

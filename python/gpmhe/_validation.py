@@ -74,10 +74,12 @@ def _check_values(name: str, a: np.ndarray) -> None:
         raise MagnitudeError(f"{name}: contains a value of magnitude > {MAX_ABS:g} (its square overflows)")
 
 
-def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool = False) -> np.ndarray:
+def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool = False,
+                missing: bool = False) -> np.ndarray:
     """A finite C-contiguous float64 array; ``ndim`` fixes the number of dimensions.
 
-    With ``copy`` the result never shares memory with ``value`` (for values an object keeps).
+    With ``copy`` the result never shares memory with ``value`` (for values an object keeps);
+    with ``missing`` NaN entries are allowed (they mark missing samples; inf is not).
     """
     try:
         a = np.array(value, dtype=np.float64, order="C") if copy else np.asarray(value, dtype=np.float64)
@@ -85,7 +87,9 @@ def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool
         raise ValueError(_not_numbers(name, value)) from None
     if ndim is not None and a.ndim != ndim:
         raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
-    _check_values(name, a)
+    if missing and np.any(np.isinf(a)):
+        raise ValueError(f"{name}: contains inf (mark a missing sample with NaN)")
+    _check_values(name, a[~np.isnan(a)] if missing else a)
     return a if a.flags.c_contiguous else np.ascontiguousarray(a)  # (ascontiguousarray makes 0-D 1-D)
 
 

@@ -183,7 +183,7 @@ def GPEKF(model, x0, P0, Q, R):
     ...     ekf.update(y[t])
     ...     ekf.predict()
     >>> print(np.round(ekf.x.ravel(), 1), np.round(x_true[10], 1))  # x̂(10|9) and x(10)
-    [1.6 1.7] [1.5 1.8]
+    [1.7 1.6] [1.5 1.8]
     """
     if not all(hasattr(model, a) for a in ("dim_x", "dim_y", "dim_u", "stage_eval")):
         raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")

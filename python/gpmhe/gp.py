@@ -23,6 +23,7 @@ it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.
 
 from __future__ import annotations
 
+import json
 import os
 import types
 import warnings
@@ -31,9 +32,10 @@ from typing import Any, Callable, Optional, Sequence, Tuple, Union
 import numpy as np
 import scipy.optimize
 
-from gpmhe import _core
+from gpmhe import _core, _priors
 from gpmhe._core import NumericalError
 from gpmhe._npz import NpzReader
+from gpmhe.diagnostics import diagnose, summary_table
 from gpmhe._validation import (
     boolean,
     float_array,
@@ -51,7 +53,7 @@ __all__ = ["GaussianProcess", "MultiOutputGP", "ConvergenceWarning", "NotFittedE
 #: Default hyperparameter bounds in natural units: (sigma_f, every length-scale, sigma_eps).
 DEFAULT_BOUNDS = ((1e-3, 1e3), (1e-3, 1e3), (1e-5, 1e2))
 
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2  # 2: prior mean, normalize, hyperprior
 
 
 class ConvergenceWarning(UserWarning):
@@ -167,6 +169,22 @@ def _exact_lml(D: np.ndarray, y: np.ndarray) -> Callable[[np.ndarray], Tuple[flo
     return lml
 
 
+def _posterior(
+    lml: Callable[[np.ndarray], Tuple[float, np.ndarray]],
+    shift: np.ndarray,
+    prior: Optional[Tuple[np.ndarray, np.ndarray]],
+) -> Callable[[np.ndarray], Tuple[float, np.ndarray]]:
+    """The fit's objective in the optimiser's units t = theta − shift: lml(t + shift) plus the
+    log-prior of t (`gpmhe._priors.log_prior`)."""
+
+    def objective(t: np.ndarray) -> Tuple[float, np.ndarray]:
+        value, grad = lml(t + shift)
+        lp, lp_grad = _priors.log_prior(prior, t)
+        return value + lp, grad + lp_grad
+
+    return objective
+
+
 def _maximise(
     objective: Callable[[np.ndarray], Tuple[float, np.ndarray]],
     theta0: np.ndarray,
@@ -254,17 +272,27 @@ def _settings(est: Any) -> dict:
         n_restarts=est.n_restarts,
         bounds=np.asarray(est.bounds, dtype=np.float64),
         maxiter=est.maxiter,
+        mean=est.mean,
+        normalize=est.normalize,
+        hyperprior=json.dumps(_priors.hyperprior_json(est.hyperprior)),
     )
 
 
 def _settings_from(f: NpzReader) -> dict:
     opt = f.string("optimizer")
-    return dict(
+    settings = dict(
         optimizer=None if opt == "" else opt,
         n_restarts=f.integer("n_restarts"),
         bounds=f.floats("bounds"),
         maxiter=f.integer("maxiter"),
     )
+    if f.version >= 2:  # older files: the zero mean, no hyperprior
+        settings.update(mean=f.string("mean"), normalize=f.boolean("normalize"))
+        try:
+            settings["hyperprior"] = json.loads(f.string("hyperprior"))
+        except ValueError:
+            raise f.error("hyperprior", "is not JSON") from None
+    return settings
 
 
 # ----------------------------------------------------------------------------- the implementation
@@ -298,6 +326,9 @@ class _ExactGP:
         bounds: Any = DEFAULT_BOUNDS,
         random_state: Union[None, int, np.random.Generator] = None,
         maxiter: int = 15000,
+        mean: str = "zero",
+        normalize: bool = False,
+        hyperprior: Any = None,
     ) -> None:
         self._check_hyperparameters(sigma_f, lengthscales, sigma_eps)
         self.optimizer = one_of("optimizer", optimizer, ("L-BFGS-B", None))
@@ -306,9 +337,16 @@ class _ExactGP:
         self.bounds = bounds
         self.random_state = check_random_state("random_state", random_state)
         self.maxiter = integer("maxiter", maxiter, low=1)
+        self.mean = _priors.check_mean(mean)
+        self.normalize = boolean("normalize", normalize)
+        self.hyperprior = _priors.check_hyperprior(hyperprior)
         self._core_model: Optional[_core.MultiGP] = None
         self._D: Optional[np.ndarray] = None
         self._Y: Optional[np.ndarray] = None
+        #: The fit's record for `diagnostics`: natural-unit log-bounds (q, n_d + 2, 2) and the
+        #: objective of every optimiser run per output; None without an optimiser.
+        self._fit_record: Optional[Tuple[np.ndarray, list]] = None
+        self._diagnostics: Optional[list] = None
 
     def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
         """Set sigma_f, lengthscales and sigma_eps (natural units) from the constructor's values."""
@@ -322,7 +360,12 @@ class _ExactGP:
 
     def _set_model(self, model: "_core.MultiGP", D: np.ndarray, Y: np.ndarray) -> None:
         self._core_model, self._D, self._Y = model, D, Y
+        self._diagnostics = None
         self._store(*_Theta.to_natural(model.thetas))
+
+    def _residuals(self) -> np.ndarray:
+        """The targets the GPs regress: y − m(D) with the fitted prior mean."""
+        return _priors.residuals(self._core_model.mean, self._D, self._Y)
 
     def _model(self) -> "_core.MultiGP":
         if self._core_model is None:
@@ -340,7 +383,10 @@ class _ExactGP:
 
     def _refactor(self, theta: Any) -> None:
         """Factor the fitted model again at a new theta (the ``theta`` setter)."""
-        self._set_model(_core.MultiGP(self._D, self._Y, self._theta_rows(theta)), self._D, self._Y)
+        m = self._model()
+        core = _core.MultiGP(self._D, self._residuals(), self._theta_rows(theta), m.mean)
+        self._set_model(core, self._D, self._Y)
+        self._fit_record = None
 
     @property
     def dim(self) -> int:
@@ -367,17 +413,32 @@ class _ExactGP:
         if y_ndim == 1:
             Y = Y.reshape(-1, 1)
         q, nd = Y.shape[1], D.shape[1]
+        coef = _priors.fit_mean(self.mean, D, Y)
+        R = _priors.residuals(coef, D, Y)
         theta = _Theta.from_natural(self.sigma_f, self.lengthscales, self.sigma_eps, q, nd)
+        record = None
         if self.optimizer is not None:
-            log_bounds = _Theta.log_bounds(self.bounds, nd)
-            rng = np.random.default_rng(self.random_state)
-            rows = []
-            for o in range(q):  # a loop, not a comprehension: the warning's stacklevel counts frames
-                y = np.ascontiguousarray(Y[:, o])
-                rows.append(_maximise(_exact_lml(D, y), theta[o], log_bounds, self.n_restarts, rng, self.maxiter)[0])
-            theta = np.array(rows)
-        self._set_model(_core.MultiGP(D, Y, np.ascontiguousarray(theta)), D, Y)
+            theta, record = self._optimise(D, R, theta)
+        self._set_model(_core.MultiGP(D, R, np.ascontiguousarray(theta), coef), D, Y)
+        self._fit_record = record
         return self
+
+    def _optimise(self, D: np.ndarray, R: np.ndarray, theta0: np.ndarray) -> Tuple[np.ndarray, Tuple[np.ndarray, list]]:
+        """(theta (q, n_d + 2), the fit's record) maximising each output's log marginal likelihood
+        plus log-prior from theta0. The optimiser works on theta − log_scales (standardised
+        units with ``normalize``), where the bounds and the hyperprior apply."""
+        q, nd = R.shape[1], D.shape[1]
+        log_bounds = _Theta.log_bounds(self.bounds, nd)
+        shift = _priors.log_scales(self.normalize, D, R)
+        prior = _priors.prior_rows(self.hyperprior, nd)
+        rng = np.random.default_rng(self.random_state)
+        rows, runs = [], []
+        for o in range(q):  # a loop, not a comprehension: the warning's stacklevel counts frames
+            objective = _posterior(_exact_lml(D, np.ascontiguousarray(R[:, o])), shift[o], prior)
+            t, _, values = _maximise(objective, theta0[o] - shift[o], log_bounds, self.n_restarts, rng, self.maxiter)
+            rows.append(t + shift[o])
+            runs.append(values)
+        return np.array(rows), (log_bounds[None, :, :] + shift[:, :, None], runs)
 
     def _log_marginal_likelihood(self, theta: Any, eval_gradient: bool) -> Tuple[np.ndarray, np.ndarray]:
         """(lml (q,), grad (q, n_d + 2) or None) at theta, None for the current one."""
@@ -387,13 +448,81 @@ class _ExactGP:
             lml = m.log_marginal_likelihoods()
             return lml, (m.log_marginal_likelihood_gradients() if eval_gradient else None)
         theta = self._theta_rows(theta)
+        R = self._residuals()
         res = [
             _core.log_marginal_likelihood(
-                self._D, np.ascontiguousarray(self._Y[:, o]), np.ascontiguousarray(theta[o]), bool(eval_gradient)
+                self._D, np.ascontiguousarray(R[:, o]), np.ascontiguousarray(theta[o]), bool(eval_gradient)
             )
             for o in range(m.n_outputs)
         ]
         return np.array([r[0] for r in res]), np.array([r[1] for r in res])
+
+    # -- diagnostics -------------------------------------------------------------------------
+
+    @property
+    def mean_coefficients(self) -> Optional[np.ndarray]:
+        """The fitted prior mean m(d) = b + w·d as rows [b, w...], shape (q, n_d + 1) ((n_d + 1,)
+        for `GaussianProcess`); None for ``mean="zero"``. Raises `NotFittedError` before ``fit``."""
+        coef = self._model().mean
+        return coef[0].copy() if (coef is not None and self._squeeze) else coef
+
+    def diagnostics(self) -> list:
+        """Diagnostics of the fit, one `gpmhe.diagnostics.FitDiagnostics` per output.
+
+        The fitted hyperparameters, which of them sit at a bound, every optimiser run's objective,
+        and leave-one-out errors (closed form, one dense O(N³) factorisation per output, computed
+        once per fit) against the noise level and against a straight line.
+
+        Returns
+        -------
+        list of FitDiagnostics
+            One per output (one for `GaussianProcess`).
+
+        Raises
+        ------
+        NotFittedError
+            Before ``fit``.
+
+        Examples
+        --------
+        A GP held at a tiny sigma_f cannot follow a line that a straight line fits:
+
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 30)[:, None]
+        >>> y = 2.0 * D[:, 0] + 0.1 * np.sin(3.0 * D[:, 0])
+        >>> bad = GaussianProcess(sigma_f=1e-3, sigma_eps=1.0, optimizer=None).fit(D, y)
+        >>> bad.diagnostics()[0].collapsed
+        True
+        >>> GaussianProcess(mean="linear").fit(D, y).diagnostics()[0].collapsed
+        False
+        """
+        m = self._model()
+        if self._diagnostics is None:
+            self._diagnostics = diagnose(self._D, self._residuals(), m.thetas, m.jitters,
+                                         m.log_marginal_likelihoods(), self._fit_record)
+        return list(self._diagnostics)
+
+    def summary(self) -> str:
+        """A printable table of `diagnostics`, one row per output, with the problems found.
+
+        Returns
+        -------
+        str
+            The table.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GaussianProcess
+        >>> D = np.linspace(0.0, 5.0, 30)[:, None]
+        >>> gp = GaussianProcess(mean="linear").fit(D, 2.0 * D[:, 0] + np.sin(D[:, 0]))
+        >>> print(gp.summary().splitlines()[0])
+        GaussianProcess (mean="linear", N=30)
+        """
+        self._model()
+        title = f'{self._kind} (mean="{self.mean}", N={self._D.shape[0]})'
+        return summary_table(title, self.diagnostics())
 
     # -- prediction --------------------------------------------------------------------------
 
@@ -413,10 +542,13 @@ class _ExactGP:
     # -- persistence -------------------------------------------------------------------------
 
     def save(self, path: Union[str, os.PathLike]) -> None:
-        theta, Y = self._model().thetas, self._Y
+        model = self._model()
+        theta, Y = model.thetas, self._Y
         if self._squeeze:
             theta, Y = theta[0], Y[:, 0]
-        np.savez(path, format_version=_FORMAT_VERSION, kind=self._kind, D=self._D, y=Y, theta=theta, **_settings(self))
+        prior_mean = {} if model.mean is None else {"mean_coefficients": model.mean}
+        np.savez(path, format_version=_FORMAT_VERSION, kind=self._kind, D=self._D, y=Y, theta=theta,
+                 **prior_mean, **_settings(self))
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike]) -> "_ExactGP":
@@ -426,15 +558,17 @@ class _ExactGP:
             y_shape, t_shape = ((None,), (D.shape[1] + 2,)) if cls._squeeze else \
                 ((None, None), (None, D.shape[1] + 2))
             Y, theta = f.floats("y", y_shape), f.floats("theta", t_shape)
+            q = 1 if cls._squeeze else Y.shape[1]
             try:
                 gp = cls(**_settings_from(f))
             except ValueError as e:
                 raise ValueError(f"path: {f.name}: bad settings ({e})") from None
+            coef = None if gp.mean == "zero" else f.floats("mean_coefficients", (q, D.shape[1] + 1))
             name = f.name
         if cls._squeeze:
             Y, theta = Y.reshape(-1, 1), theta.reshape(1, -1)
         try:
-            model = _core.MultiGP(D, Y, theta)
+            model = _core.MultiGP(D, _priors.residuals(coef, D, Y), theta, coef)
         except (ValueError, NumericalError) as e:
             raise ValueError(f"path: {name}: entries 'D', 'y', 'theta' do not make a GP ({e})") from None
         gp._set_model(model, D, Y)
@@ -782,6 +916,20 @@ class GaussianProcess(_ExactGP):
         Seed of the random restart points (only used when ``n_restarts`` > 0).
     maxiter : int, default 15000
         Iteration limit of each L-BFGS-B run.
+    mean : {"zero", "constant", "linear"}, default "zero"
+        Prior mean m(d): zero (the paper's model and scikit-learn's), the targets' mean, or
+        b + w·d fitted by least squares; fitted first, then the GP regresses y − m(d) and
+        every prediction adds m(d) (and w to the gradients).
+    normalize : bool, default False
+        Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
+        relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
+        y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
+    hyperprior : None, "default" or dict, default None
+        Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
+        likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
+        ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
+        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5), meant
+        for ``normalize=True``. None: maximum likelihood.
 
     Attributes
     ----------
@@ -804,7 +952,7 @@ class GaussianProcess(_ExactGP):
         log p(y | D, theta) at the current theta.
     dim : int
         Input dimension n_d of the fitted model.
-    optimizer, n_restarts, bounds, random_state, maxiter
+    optimizer, n_restarts, bounds, random_state, maxiter, mean, normalize, hyperprior
         The settings as given.
 
     Raises
@@ -982,6 +1130,20 @@ class MultiOutputGP(_ExactGP):
         Seed of the restart points (one generator shared by all outputs).
     maxiter : int, default 15000
         Iteration limit of each L-BFGS-B run.
+    mean : {"zero", "constant", "linear"}, default "zero"
+        Prior mean m(d): zero (the paper's model and scikit-learn's), the targets' mean, or
+        b + w·d fitted by least squares; fitted first, then the GP regresses y − m(d) and
+        every prediction adds m(d) (and w to the gradients).
+    normalize : bool, default False
+        Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
+        relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
+        y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
+    hyperprior : None, "default" or dict, default None
+        Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
+        likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
+        ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
+        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5), meant
+        for ``normalize=True``. None: maximum likelihood.
 
     Attributes
     ----------
@@ -1004,7 +1166,7 @@ class MultiOutputGP(_ExactGP):
         Training targets.
     jitter : ndarray of shape (q,)
         Diagonal jitter each output's factorisation needed (normally 0).
-    optimizer, n_restarts, bounds, random_state, maxiter
+    optimizer, n_restarts, bounds, random_state, maxiter, mean, normalize, hyperprior
         The settings as given.
 
     See Also

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmhe import _core
+from gpmhe import _core, _training
 from gpmhe._npz import NpzReader
 from gpmhe._validation import (
     MAX_ABS,
@@ -26,7 +26,7 @@ from gpmhe._validation import (
 
 __all__ = ["KnownModel", "LearnedModel"]
 
-_FORMAT_VERSION = 1  # of LearnedModel files
+_FORMAT_VERSION = 2  # of LearnedModel files (2: has_nominal; the GPs' prior means and settings)
 
 
 def _point(x, u, n, m):
@@ -363,19 +363,6 @@ class KnownModel(_SharedOnCopy):
         return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
 
-def _first_trajectory(name, value):
-    """The first trajectory of a list of them (or the one (T+1, k) array given) as a float64
-    array, for its number of columns."""
-    try:
-        first = value if isinstance(value, np.ndarray) and value.ndim == 2 else value[0]
-        a = np.asarray(first, dtype=np.float64)
-    except (TypeError, ValueError, IndexError, KeyError) as exc:
-        raise ValueError(f"{name}: must be a list of trajectories (2-D arrays) ({exc})") from None
-    if a.ndim not in (1, 2):
-        raise ValueError(f"{name}: must be a list of trajectories (2-D arrays), got shape {a.shape} first")
-    return a
-
-
 def check_picklable(owner, callables):
     """Raise `pickle.PicklingError` naming the first of `callables` (name -> callable or None)
     that cannot be pickled (a lambda, a local function, ...)."""
@@ -393,47 +380,17 @@ def check_picklable(owner, callables):
                 f"callable)") from None
 
 
-def _trajectories(states, outputs, inputs, n, p, m):
-    """Regression data (D_f, X_next, X_now, D_h, Y) from lists of measured trajectories."""
-    if isinstance(states, np.ndarray) and states.ndim == 2:
-        states, outputs = [states], [outputs]
-        inputs = None if inputs is None else [inputs]
-    states, outputs = list(states), list(outputs)  # (iterable: _first_trajectory indexed them)
-    if len(states) == 0 or len(outputs) != len(states):
-        raise ValueError(f"outputs, states: need one output trajectory per state trajectory (at least "
-                         f"one), got {len(outputs)} and {len(states)}")
-    if inputs is not None:
-        inputs = list(inputs)
-        if len(inputs) != len(states):
-            raise ValueError("inputs: need one input trajectory per state trajectory")
-    Df, Xn, Xc, Dh, Yh = [], [], [], [], []
-    for i, (X, Y) in enumerate(zip(states, outputs)):
-        X = float_array(f"states[{i}]", X)
-        Y = float_array(f"outputs[{i}]", Y)
-        if Y.ndim == 1:
-            Y = Y[:, None]
-        if X.ndim != 2 or X.shape[0] < 2 or not np.all(np.isfinite(X)):
-            raise ValueError(f"states[{i}]: must be a finite (T+1, n) array with T >= 1")
-        if X.shape[1] != n:
-            raise ValueError(f"states[{i}]: has {X.shape[1]} columns, states[0] has {n}")
-        if Y.shape != (X.shape[0], p) or not np.all(np.isfinite(Y)):
-            raise ValueError(f"outputs[{i}]: must be a finite ({X.shape[0]}, {p}) array")
-        T = X.shape[0] - 1
-        if m:
-            U = float_array(f"inputs[{i}]", inputs[i])
-            if U.ndim == 1:
-                U = U[:, None]
-            if U.shape not in ((T + 1, m), (T, m)) or not np.all(np.isfinite(U)):
-                raise ValueError(f"inputs[{i}]: must be a finite ({T + 1}, {m}) or ({T}, {m}) array")
-        else:
-            U = np.zeros((T + 1, 0))
-        Df.append(np.hstack([X[:T], U[:T]]))
-        Xn.append(X[1:])
-        Xc.append(X[:T])
-        rows = U.shape[0]  # outputs usable where u is known
-        Dh.append(np.hstack([X[:rows], U]))
-        Yh.append(Y[:rows])
-    return (np.vstack(Df), np.vstack(Xn), np.vstack(Xc), np.vstack(Dh), np.vstack(Yh))
+def _dimensions(states, outputs, inputs):
+    """(n, p, m) from the first trajectory of each list."""
+    X0 = _training.first_trajectory("states", states)
+    Y0 = _training.first_trajectory("outputs", outputs)
+    if X0.ndim != 2:
+        raise ValueError("states: must be a list of (T+1, n) arrays")
+    p = 1 if Y0.ndim == 1 else Y0.shape[1]
+    if inputs is None:
+        return X0.shape[1], p, 0
+    U0 = _training.first_trajectory("inputs", inputs)
+    return X0.shape[1], p, 1 if U0.ndim == 1 else U0.shape[1]
 
 
 class LearnedModel(_SharedOnCopy):
@@ -443,11 +400,15 @@ class LearnedModel(_SharedOnCopy):
     d = [x; u]: m_x(d), σ²_x(d) are the f-GPs' posterior means and latent variances, m_y(d),
     σ²_y(d) those of the h-GPs. With ``f_residual=True`` the f-GPs are trained on the increments
     x(t+1) − x(t) and m_x(d) = x + GP mean (a prior mean equal to the identity), otherwise on
-    x(t+1) with zero prior mean, as in the paper [1]_. `GPMHE` adds the variances to its weights:
+    x(t+1), as in the paper [1]_. With a ``nominal`` model (f0, h0), the GPs learn the residuals
+    x(t+1) − f0(x, u) and y − h0(x, u), and m_x = f0 + GP mean, m_y = h0 + GP mean (with their
+    Jacobians added too); the variances are the GPs'. `GPMHE` adds the variances to its weights:
     Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0.
 
-    Usually built with `from_trajectories`. The Rust models of ``f_gp`` and ``h_gp`` are handed to
-    the estimator's window, which evaluates all GPs at all window points in one Rust call.
+    Usually built with `from_trajectories`. Without a nominal model, the Rust models of ``f_gp``
+    and ``h_gp`` are handed to the estimator's window, which evaluates all GPs at all window points
+    in one Rust call; with one, the window calls `stage_eval` (the nominal model's Python
+    callables plus the GPs), as for a `KnownModel`.
 
     Parameters
     ----------
@@ -459,6 +420,9 @@ class LearnedModel(_SharedOnCopy):
         Number of inputs m.
     f_residual : bool, default False
         Whether ``f_gp`` models the increments x(t+1) − x(t) rather than x(t+1).
+    nominal : KnownModel or None, default None
+        The nominal model (f0, h0) whose residuals the GPs model; its dimensions must match.
+        Not together with ``f_residual`` (which is the nominal f0(x, u) = x).
 
     Attributes
     ----------
@@ -470,11 +434,14 @@ class LearnedModel(_SharedOnCopy):
         The dimensions n, p, m.
     f_residual : bool
         As given.
+    nominal : KnownModel or None
+        As given.
 
     Raises
     ------
     ValueError
-        If a GP is not a fitted `MultiOutputGP` or its input dimension is not n + m.
+        If a GP is not a fitted `MultiOutputGP` or its input dimension is not n + m, or the
+        nominal model is not a `KnownModel` of the model's dimensions.
 
     See Also
     --------
@@ -503,10 +470,10 @@ class LearnedModel(_SharedOnCopy):
     >>> model.dim_x, model.dim_y, model.dim_u
     (2, 1, 0)
     >>> print(np.round(model.predict([2.0, 4.0]), 2), np.round(br.f([2.0, 4.0]), 2))
-    [1.87 4.06] [1.88 4.06]
+    [1.88 4.06] [1.88 4.06]
     """
 
-    def __init__(self, f_gp, h_gp, dim_u=0, f_residual=False):
+    def __init__(self, f_gp, h_gp, dim_u=0, f_residual=False, nominal=None):
         from gpmhe.gp import MultiOutputGP
 
         if not isinstance(f_gp, MultiOutputGP) or f_gp._core_model is None:
@@ -520,32 +487,65 @@ class LearnedModel(_SharedOnCopy):
             raise ValueError(f"f_gp, dim_u: input dimension {f_gp.dim} is not dim_x + dim_u = {n + dim_u}")
         if h_gp is not None and h_gp.dim != n + dim_u:
             raise ValueError(f"h_gp, dim_u: input dimension {h_gp.dim} is not dim_x + dim_u = {n + dim_u}")
+        p = 0 if h_gp is None else h_gp.n_outputs
+        if nominal is not None:
+            if not isinstance(nominal, KnownModel):
+                raise ValueError("nominal: must be a gpmhe.KnownModel or None")
+            if (nominal.dim_x, nominal.dim_y, nominal.dim_u) != (n, p, dim_u):
+                raise ValueError(f"nominal: dimensions (dim_x, dim_y, dim_u) = "
+                                 f"{(nominal.dim_x, nominal.dim_y, nominal.dim_u)}, the GPs' are {(n, p, dim_u)}")
+            if f_residual:
+                raise ValueError("nominal, f_residual: give one (f_residual is the nominal f0(x, u) = x)")
         self.f_gp, self.h_gp = f_gp, h_gp
         self.dim_x, self.dim_u = n, int(dim_u)
-        self.dim_y = 0 if h_gp is None else h_gp.n_outputs
+        self.dim_y = p
         self.f_residual = f_residual
+        self.nominal = nominal
 
     @classmethod
-    def from_trajectories(cls, states, outputs, inputs=None, f_residual=False, **gp_options):
+    def from_trajectories(cls, states, outputs, inputs=None, f_residual=False, f_nominal=None,
+                          h_nominal=None, nominal_options=None, max_points=None, warn=True,
+                          **gp_options):
         """Fit the GPs of f and h on measured trajectories.
 
-        The f-GPs regress x(t+1) (or x(t+1) − x(t) with ``f_residual``) on d(t) = [x(t); u(t)],
-        the h-GPs y(t) on d(t), over all trajectories.
+        The f-GPs regress x(t+1) (minus the nominal f0(x(t), u(t)), or minus x(t) with
+        ``f_residual``) on d(t) = [x(t); u(t)], the h-GPs y(t) (minus h0) on d(t), over all
+        trajectories. Unless ``gp_options`` say otherwise the GPs have a linear prior mean fitted
+        by least squares (a zero one with a nominal model, which is then the prior mean),
+        standardised bounds and the default log-normal hyperprior (``mean="linear",
+        normalize=True, hyperprior="default"``); ``mean="zero", normalize=False,
+        hyperprior=None`` is the paper's model. The user guide, *Learned models*, compares them.
 
         Parameters
         ----------
         states : sequence of array_like of shape (T+1, n), or one such array
             Measured state trajectories x(0..T) (T >= 1; T may differ between trajectories).
+            NaN marks a missing sample: a transition is used where x(t), u(t) and x(t+1) are all
+            finite.
         outputs : sequence of array_like of shape (T+1, p) or (T+1,)
-            Measured outputs y(0..T), one per state trajectory.
+            Measured outputs y(0..T), one per state trajectory; an output sample is used where
+            x(t), u(t) and every entry of y(t) are finite.
         inputs : sequence of array_like of shape (T+1, m) or (T, m), or None, default None
             Inputs u(0..T) or u(0..T-1); None when there is no input (m = 0). With T rows,
             the output y(T) is not used.
         f_residual : bool, default False
-            Regress the increments x(t+1) − x(t) (a prior mean equal to the identity).
+            Regress the increments x(t+1) − x(t) (the nominal f0(x, u) = x, computed in Rust).
+        f_nominal, h_nominal : callable or None, default None
+            Nominal model f0(x, u) and h0(x, u) in `KnownModel`'s form (per point, or
+            vectorised with ``nominal_options={"vectorized": True}``); the GPs learn what it
+            misses. None: zero (the GP alone).
+        nominal_options : dict or None, default None
+            `KnownModel` arguments of the nominal model: ``f_jacobian``, ``h_jacobian`` (else
+            finite differences), ``fd_step``, ``vectorized``.
+        max_points : int or None, default None
+            Use at most this many regression points per GP (evenly spaced over the data);
+            exact GPs cost O(N³) to fit and O(N²) per window point.
+        warn : bool, default True
+            Warn (`gpmhe.diagnostics.FitWarning`) when a fitted GP sits at a bound, has
+            collapsed or is miscalibrated (see `diagnostics`).
         **gp_options
             Passed to both `MultiOutputGP` constructors (e.g. ``n_restarts``, ``random_state``,
-            ``optimizer``, ``sigma_eps``).
+            ``optimizer``, ``sigma_eps``, ``mean``, ``normalize``, ``hyperprior``, ``bounds``).
 
         Returns
         -------
@@ -555,12 +555,15 @@ class LearnedModel(_SharedOnCopy):
         Raises
         ------
         ValueError
-            If the trajectories' shapes do not match or contain NaN or inf.
+            If the trajectories' shapes do not match, contain inf, or leave fewer than 2
+            complete samples, or an option is invalid.
 
         Warns
         -----
         ConvergenceWarning
             If a hyperparameter fit did not converge.
+        FitWarning
+            If a fitted GP looks unreliable (with ``warn``); the message has the numbers.
 
         Examples
         --------
@@ -582,27 +585,33 @@ class LearnedModel(_SharedOnCopy):
         """
         from gpmhe.gp import MultiOutputGP
 
-        f_residual = boolean("f_residual", f_residual)
+        f_residual, warn = boolean("f_residual", f_residual), boolean("warn", warn)
+        max_points = _training.check_max_points(max_points)
+        defaults = dict(_training.LEARNED_DEFAULTS)
+        if f_nominal is not None or h_nominal is not None:
+            defaults["mean"] = "zero"  # the nominal model is the prior mean
+        gp_options = {**defaults, **gp_options}
         try:
             MultiOutputGP(**gp_options)  # the options' own checks, before any fit
         except TypeError as exc:
             raise ValueError(f"gp_options: {exc}") from None
-        X0 = _first_trajectory("states", states)
-        Y0 = _first_trajectory("outputs", outputs)
-        if X0.ndim != 2:
-            raise ValueError("states: must be a list of (T+1, n) arrays")
-        n = X0.shape[1]
-        p = 1 if Y0.ndim == 1 else Y0.shape[1]
-        if inputs is None:
-            m = 0
-        else:
-            U0 = _first_trajectory("inputs", inputs)
-            m = 1 if U0.ndim == 1 else U0.shape[1]
-        Df, Xn, Xc, Dh, Yh = _trajectories(states, outputs, inputs, n, p, m)
-        target = Xn - Xc if f_residual else Xn
-        f_gp = MultiOutputGP(**gp_options).fit(Df, target)
-        h_gp = MultiOutputGP(**gp_options).fit(Dh, Yh) if p else None
-        return cls(f_gp, h_gp, dim_u=m, f_residual=f_residual)
+        n, p, m = _dimensions(states, outputs, inputs)
+        nominal = _training.nominal_model(f_nominal, h_nominal, n, p, m, nominal_options)
+        if nominal is not None and f_residual:
+            raise ValueError("f_nominal, f_residual: give one (f_residual is the nominal f0(x, u) = x)")
+        Df, Xn, Xc, Dh, Yh = _training.regression_data(states, outputs, inputs, n, p, m)
+        Df, Xn, Xc = _training.subsample(max_points, Df, Xn, Xc)
+        Dh, Yh = _training.subsample(max_points, Dh, Yh)
+        target_f, target_h = Xn - Xc if f_residual else Xn, Yh
+        if nominal is not None:
+            target_f = Xn - nominal.stage_eval(Df)[0]
+            target_h = Yh - nominal.stage_eval(Dh)[4] if p else Yh
+        f_gp = MultiOutputGP(**gp_options).fit(Df, target_f)
+        h_gp = MultiOutputGP(**gp_options).fit(Dh, target_h) if p else None
+        model = cls(f_gp, h_gp, dim_u=m, f_residual=f_residual, nominal=nominal)
+        if warn:
+            model._warn_problems()
+        return model
 
     def predict(self, x, u=None):
         """One-step prediction m_x(d) at one point d = [x; u].
@@ -638,6 +647,8 @@ class LearnedModel(_SharedOnCopy):
         x, u = _point(x, u, self.dim_x, self.dim_u)
         d = np.concatenate([x, u])[None, :]
         mean = self.f_gp.predict(d)[0]
+        if self.nominal is not None:
+            return mean + self.nominal.predict(x, u)
         return mean + x if self.f_residual else mean
 
     def stage_eval(self, d):
@@ -685,28 +696,110 @@ class LearnedModel(_SharedOnCopy):
         >>> bool(np.all(vx > 0))
         True
         """
-        n, p = self.dim_x, self.dim_y
+        n = self.dim_x
         nd = n + self.dim_u
         d = points("d", d, nd, one_point=True)
         k = d.shape[0]
         mx, vx, dmx, dvx = (np.array(a) for a in self.f_gp.predict_with_gradients(d))
+        if self.nominal is not None:
+            return self._add_nominal(d, (mx, vx, dmx, dvx) + self._h_eval(d, k, nd))
         if self.f_residual:
             mx = mx + d[:, :n]
             dmx[:, np.arange(n), np.arange(n)] += 1.0
+        return (mx, vx, dmx, dvx) + self._h_eval(d, k, nd)
+
+    # ---- diagnostics -------------------------------------------------------------------------
+    def diagnostics(self):
+        """Fit diagnostics of every GP: ``{"f": [...], "h": [...]}``, one
+        `gpmhe.diagnostics.FitDiagnostics` per state and per output (see
+        `MultiOutputGP.diagnostics`).
+
+        Returns
+        -------
+        dict
+            ``"f"``: n diagnostics, ``"h"``: p diagnostics (empty without outputs).
+
+        Examples
+        --------
+        >>> from gpmhe import LearnedModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(3, rng=0)
+        >>> model = LearnedModel.from_trajectories(states, outputs, random_state=0, warn=False)
+        >>> [len(v) for v in model.diagnostics().values()]
+        [2, 1]
+        """
+        return {"f": self.f_gp.diagnostics(), "h": [] if self.h_gp is None else self.h_gp.diagnostics()}
+
+    def summary(self):
+        """A printable table of the GPs' `diagnostics` (one row per GP) with the problems found.
+
+        Returns
+        -------
+        str
+            The tables of the f- and h-GPs.
+
+        Examples
+        --------
+        >>> from gpmhe import LearnedModel
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(3, rng=0)
+        >>> model = LearnedModel.from_trajectories(states, outputs, random_state=0, warn=False)
+        >>> print(model.summary().splitlines()[0])
+        f-GPs (mean="linear", N=90)
+        """
+        from gpmhe.diagnostics import summary_table
+
+        parts = [summary_table(f'f-GPs (mean="{self.f_gp.mean}", N={self.f_gp._D.shape[0]})',
+                               self.f_gp.diagnostics(), [f"x{i + 1}" for i in range(self.dim_x)])]
         if self.h_gp is not None:
-            my, vy, dmy, dvy = self.h_gp.predict_with_gradients(d)
-        else:
-            my, vy, dmy, dvy = np.zeros((k, 0)), np.zeros((k, 0)), np.zeros((k, 0, nd)), np.zeros((k, 0, nd))
-        return mx, vx, dmx, dvx, my, vy, dmy, dvy
+            parts.append(summary_table(f'h-GPs (mean="{self.h_gp.mean}", N={self.h_gp._D.shape[0]})',
+                                       self.h_gp.diagnostics(), [f"y{i + 1}" for i in range(self.dim_y)]))
+        return "\n".join(parts)
+
+    def _warn_problems(self):
+        import warnings
+
+        from gpmhe.diagnostics import FitWarning
+
+        found = [f"{kind}-GP {i + 1}: {problem}" for kind, diags in self.diagnostics().items()
+                 for i, dg in enumerate(diags) for problem in dg.warnings]
+        if found:
+            warnings.warn("LearnedModel: " + "; ".join(found) + " (print model.summary() for all numbers)",
+                          FitWarning, stacklevel=3)
+
+    def _h_eval(self, d, k, nd):
+        """The h-GPs' (mean, var, dmean, dvar) at d (empty arrays for p = 0)."""
+        if self.h_gp is None:
+            return np.zeros((k, 0)), np.zeros((k, 0)), np.zeros((k, 0, nd)), np.zeros((k, 0, nd))
+        return tuple(np.array(a) for a in self.h_gp.predict_with_gradients(d))
+
+    def _add_nominal(self, d, gp_parts):
+        """The GPs' stage values plus the nominal model's means and mean Jacobians."""
+        nom = self.nominal.stage_eval(d)
+        out = list(gp_parts)
+        for i in (0, 2, 4, 6):  # means and their gradients
+            out[i] = np.ascontiguousarray(out[i] + nom[i])
+        return tuple(np.ascontiguousarray(a) for a in out)
+
+    def _predict_f64(self, x, u):
+        """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
+        return np.ascontiguousarray(self.predict(x, u), dtype=np.float64)
 
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
-        """The Rust estimator core on the GPs (see `gpmhe._core.MovingHorizon`)."""
-        h = None if self.h_gp is None else self.h_gp._core_model
-        model = _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u, self.f_residual)
+        """The Rust estimator core on the GPs (see `gpmhe._core.MovingHorizon`); with a nominal
+        model on `stage_eval`, called back from Rust."""
+        if self.nominal is not None:
+            model = _core.StageModel.callback(self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
+                                              predict=self._predict_f64)
+        else:
+            h = None if self.h_gp is None else self.h_gp._core_model
+            model = _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u, self.f_residual)
         return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
 
     def save(self, path):
         """Save both GPs and the settings to one ``.npz`` file (no pickle).
+
+        A nominal model's Python functions are not saved: pass the same nominal model to `load`.
 
         Parameters
         ----------
@@ -741,16 +834,19 @@ class LearnedModel(_SharedOnCopy):
                 gp.save(buf)
                 blobs[name] = np.frombuffer(buf.getvalue(), dtype=np.uint8)
         np.savez(path, kind="LearnedModel", format_version=_FORMAT_VERSION, dim_u=self.dim_u,
-                 f_residual=self.f_residual, **blobs)
+                 f_residual=self.f_residual, has_nominal=self.nominal is not None, **blobs)
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path, nominal=None):
         """Load a model written by `save`.
 
         Parameters
         ----------
         path : str, os.PathLike or file-like object
             The ``.npz`` file.
+        nominal : KnownModel or None, default None
+            The nominal model the saved model was fitted with (required then, refused
+            otherwise).
 
         Returns
         -------
@@ -760,7 +856,8 @@ class LearnedModel(_SharedOnCopy):
         Raises
         ------
         ValueError
-            If the file is not a saved `LearnedModel`.
+            If the file is not a saved `LearnedModel`, or ``nominal`` is missing or not
+            expected.
 
         Examples
         --------
@@ -795,7 +892,11 @@ class LearnedModel(_SharedOnCopy):
                 except ValueError as e:
                     raise f.error(name, f"is not a valid MultiOutputGP ({e})") from None
             dim_u, f_residual = f.integer("dim_u"), f.boolean("f_residual")
+            has_nominal = f.boolean("has_nominal") if f.version >= 2 else False
+            if has_nominal != (nominal is not None):
+                raise ValueError(f"nominal: {f.name} was saved " + (
+                    "with a nominal model: pass it as nominal=" if has_nominal else "without a nominal model"))
             try:
-                return cls(gps["f_gp"], gps["h_gp"], dim_u=dim_u, f_residual=f_residual)
+                return cls(gps["f_gp"], gps["h_gp"], dim_u=dim_u, f_residual=f_residual, nominal=nominal)
             except ValueError as e:
                 raise ValueError(f"path: {f.name}: the GPs do not make a model ({e})") from None

@@ -186,11 +186,18 @@ class _SEPosterior:
 
 
 def _posteriors(gp):
-    """The `_SEPosterior` of each output of a fitted MultiOutputGP."""
-    D, Y = gp.D_train, gp.y_train
+    """The `_SEPosterior` of each output of a fitted MultiOutputGP (on the targets minus its prior
+    mean: an affine mean adds nothing to the Hessian and the variances)."""
+    D, Y = gp.D_train, gp._residuals()
     sf, ls, se, jit = (np.atleast_1d(gp.sigma_f), np.atleast_2d(gp.lengthscales),
                        np.atleast_1d(gp.sigma_eps), np.atleast_1d(gp.jitter))
     return [_SEPosterior(D, Y[:, o], sf[o], ls[o], se[o], jit[o]) for o in range(Y.shape[1])]
+
+
+def _check_no_nominal(model):
+    if getattr(model, "nominal", None) is not None:
+        raise ValueError("model: the bounds do not cover a LearnedModel with a nominal model (the "
+                         "nominal functions' curvature is unknown)")
 
 
 def _model_posteriors(model):
@@ -198,6 +205,7 @@ def _model_posteriors(model):
     once per call of a public function: each factorises its N × N kernel matrix."""
     if not _is_learned(model):
         return None
+    _check_no_nominal(model)
     return {"f": _posteriors(model.f_gp), "h": _posteriors(model.h_gp) if model.dim_y else []}
 
 
@@ -1435,6 +1443,7 @@ def corollary1(model, x_bounds, Q0, R0, tau, delta, L_f, L_h, u_bounds=None, *, 
     out = model.stage_eval(grid.centers)
     grads = {"x": np.asarray(out[2]), "y": np.asarray(out[6])}
     result = {}
+    _check_no_nominal(model)
     for key, gp, size in (("x", model.f_gp, n), ("y", model.h_gp, p)):
         if not size:
             result[key] = [np.zeros(0)] * 3

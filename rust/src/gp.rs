@@ -28,6 +28,7 @@ use crate::linalg::{
     back_substitution, dot_lanes4, forward_substitution, sum_lanes4, sum_of_squares_lanes4,
     DivideByDiagonal,
 };
+use crate::mean::AffineMean;
 
 /// Relative size of the first jitter tried, and of the largest (see the module docs).
 const JITTER_START: f64 = 1e-10;
@@ -686,9 +687,15 @@ pub fn log_marginal_likelihood(
 
 /// q independent GPs on shared inputs, one per output, each with its own θ: the one prediction
 /// interface (a single-output GP is the case q = 1).
+///
+/// With a prior mean ([`MultiGp::with_mean`]) the GPs were trained on the residuals y − m(d) and
+/// every prediction adds m(d) to the means and its gradient to the mean gradients.
 #[derive(Clone, Debug)]
 pub struct MultiGp {
     gps: Vec<Gp>,
+    mean: Option<AffineMean>,
+    /// Rounding of m(d) per output on the training inputs' range (zeros without a mean).
+    mean_rounding: Vec<f64>,
 }
 
 impl MultiGp {
@@ -734,7 +741,46 @@ impl MultiGp {
                 })
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(MultiGp { gps })
+        Ok(Self::bundle(gps))
+    }
+
+    fn bundle(gps: Vec<Gp>) -> Self {
+        let q = gps.len();
+        MultiGp {
+            gps,
+            mean: None,
+            mean_rounding: vec![0.0; q],
+        }
+    }
+
+    /// The same GPs with the prior mean `mean` (q outputs on n_d inputs): the GPs must have
+    /// been trained on the residuals y − m(d).
+    pub fn with_mean(mut self, mean: AffineMean) -> Result<Self> {
+        let (q, nd) = (self.n_outputs(), self.dim());
+        if mean.n_outputs() != q || mean.dim() != nd {
+            return Err(Error::invalid(
+                "mean",
+                format!(
+                    "expected coefficients for {q} outputs on {nd} inputs, got {} on {}",
+                    mean.n_outputs(),
+                    mean.dim()
+                ),
+            ));
+        }
+        let mut scale = vec![0.0f64; nd];
+        for row in self.gps[0].x_train().chunks_exact(nd) {
+            for (s, v) in scale.iter_mut().zip(row) {
+                *s = s.max(v.abs());
+            }
+        }
+        self.mean_rounding = (0..q).map(|o| mean.rounding(o, &scale)).collect();
+        self.mean = Some(mean);
+        Ok(self)
+    }
+
+    /// The prior mean, if any.
+    pub fn mean(&self) -> Option<&AffineMean> {
+        self.mean.as_ref()
     }
 
     /// Bundles fitted GPs; they must share the input dimension and the training inputs.
@@ -748,7 +794,7 @@ impl MultiGp {
                 format!("GP {o} has other training inputs than GP 0"),
             ));
         }
-        Ok(MultiGp { gps })
+        Ok(Self::bundle(gps))
     }
 
     /// Number of outputs q.
@@ -768,9 +814,9 @@ impl MultiGp {
     /// [`Gp::mean_rounding`] and [`Gp::variance_rounding`] of every output into `mean` and
     /// `var` (q values each).
     pub fn rounding_into(&self, mean: &mut [f64], var: &mut [f64]) {
-        for ((m, v), g) in mean.iter_mut().zip(var.iter_mut()).zip(&self.gps) {
-            *m = g.mean_rounding();
-            *v = g.variance_rounding();
+        for (o, g) in self.gps.iter().enumerate() {
+            mean[o] = g.mean_rounding() + self.mean_rounding[o];
+            var[o] = g.variance_rounding();
         }
     }
 
@@ -806,6 +852,10 @@ impl MultiGp {
         for (o, gp) in self.gps.iter().enumerate() {
             gp.predict_block(d, k, o, q, mean, Some(var), Some((dmean, dvar)), ws);
         }
+        if let Some(m) = &self.mean {
+            m.add_values(d, mean);
+            m.add_gradients(dmean);
+        }
         Ok(())
     }
 
@@ -822,6 +872,9 @@ impl MultiGp {
         for (o, gp) in self.gps.iter().enumerate() {
             gp.predict_block(d, k, o, q, mean, Some(var), None, ws);
         }
+        if let Some(m) = &self.mean {
+            m.add_values(d, mean);
+        }
         Ok(())
     }
 
@@ -836,6 +889,9 @@ impl MultiGp {
         let k = self.check_io(d, &[("mean", mean, q)])?;
         for (o, gp) in self.gps.iter().enumerate() {
             gp.predict_block(d, k, o, q, mean, None, None, ws);
+        }
+        if let Some(m) = &self.mean {
+            m.add_values(d, mean);
         }
         Ok(())
     }
@@ -1219,5 +1275,50 @@ mod tests {
             .is_err());
         assert!(MultiGp::new(&x, &y, &[0.0; 5]).is_err());
         assert!(MultiGp::from_gps(vec![]).is_err());
+    }
+
+    #[test]
+    fn prior_mean_shifts_means_and_gradients_only() {
+        let (x, y) = data(25, 2, 7);
+        let thetas = [0.1, -0.2, 0.3, -2.0, 0.0, 0.1, 0.2, -1.5];
+        let mut yy = Vec::new();
+        for v in &y {
+            yy.extend([*v, -2.0 * v]);
+        }
+        let plain = MultiGp::new(&x, &yy, &thetas).unwrap();
+        let coef = vec![1.0, 2.0, -1.0, -3.0, 0.0, 0.5];
+        let with = plain
+            .clone()
+            .with_mean(AffineMean::new(2, 2, coef.clone()).unwrap())
+            .unwrap();
+        let d = [0.3, -0.2, 1.1, 0.4, -0.7, 0.9];
+        let mut ws = GpWorkspace::default();
+        let run = |g: &MultiGp, ws: &mut GpWorkspace| {
+            let (mut m, mut v, mut dm, mut dv) =
+                (vec![0.0; 6], vec![0.0; 6], vec![0.0; 12], vec![0.0; 12]);
+            g.predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, ws)
+                .unwrap();
+            (m, v, dm, dv)
+        };
+        let (m0, v0, dm0, dv0) = run(&plain, &mut ws);
+        let (m1, v1, dm1, dv1) = run(&with, &mut ws);
+        assert_eq!((v0, dv0), (v1, dv1));
+        for j in 0..3 {
+            for o in 0..2 {
+                let row = &coef[o * 3..o * 3 + 3];
+                let prior = row[0] + row[1] * d[2 * j] + row[2] * d[2 * j + 1];
+                assert!((m1[j * 2 + o] - m0[j * 2 + o] - prior).abs() < 1e-12);
+                for l in 0..2 {
+                    let i = (j * 2 + o) * 2 + l;
+                    assert!((dm1[i] - dm0[i] - row[1 + l]).abs() < 1e-12);
+                }
+            }
+        }
+        let mut mo = vec![0.0; 6];
+        with.predict_mean_into(&d, &mut mo, &mut ws).unwrap();
+        assert_eq!(mo, m1);
+        assert!(plain
+            .with_mean(AffineMean::new(1, 2, vec![0.0; 3]).unwrap())
+            .is_err());
     }
 }

@@ -7,6 +7,7 @@ pub mod gp;
 pub mod interrupt;
 pub mod kernel;
 mod linalg;
+pub mod mean;
 pub mod mhe;
 pub mod rgp;
 pub mod solver;

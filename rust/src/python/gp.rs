@@ -12,6 +12,7 @@ use crate::error::Error;
 use crate::kernel::SeArd;
 
 use crate::gp::{log_marginal_likelihood, GpWorkspace, MultiGp};
+use crate::mean::AffineMean;
 use numpy::{IntoPyArray, PyArray1, PyArrayDyn};
 
 /// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
@@ -112,13 +113,16 @@ pub(super) struct PyMultiGp {
 
 #[pymethods]
 impl PyMultiGp {
-    /// MultiGP(x, y, thetas): x (N, n_d), y (N, q), thetas (q, n_d + 2).
+    /// MultiGP(x, y, thetas, mean=None): x (N, n_d), y (N, q), thetas (q, n_d + 2); with a
+    /// prior mean (coefficients (q, n_d + 1), rows [b, w...]), y are the residuals y − m(x).
     #[new]
+    #[pyo3(signature = (x, y, thetas, mean=None))]
     fn py_new(
         py: Python<'_>,
         x: PyReadonlyArray2<'_, f64>,
         y: PyReadonlyArray2<'_, f64>,
         thetas: PyReadonlyArray2<'_, f64>,
+        mean: Option<PyReadonlyArray2<'_, f64>>,
     ) -> PyResult<Self> {
         let (x, n, nd) = slice2("x", &x)?;
         let (y, ny, q) = slice2("y", &y)?;
@@ -134,12 +138,31 @@ impl PyMultiGp {
                 nd + 2
             )));
         }
+        let mean = match &mean {
+            None => None,
+            Some(mean) => {
+                let (coef, qm, cm) = slice2("mean", mean)?;
+                if qm != q || cm != nd + 1 {
+                    return Err(PyValueError::new_err(format!(
+                        "mean: expected shape ({q}, {}), got ({qm}, {cm})",
+                        nd + 1
+                    )));
+                }
+                Some(AffineMean::new(q, nd, coef.to_vec())?)
+            }
+        };
         let inner = detach_interruptible(py, || MultiGp::new(x, y, thetas))?;
-        Ok(Self { inner })
+        Ok(Self {
+            inner: match mean {
+                Some(m) => inner.with_mean(m)?,
+                None => inner,
+            },
+        })
     }
 
     // ---- copies and pickles -----------------------------------------------------------------
-    /// Pickles as `MultiGP(x, y, thetas)`: the same data factorise to the same GP, bit for bit.
+    /// Pickles as `MultiGP(x, y, thetas, mean)`: the same data factorise to the same GP, bit for
+    /// bit.
     fn __reduce__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyTuple>> {
         let gps = self.inner.gps();
         let (q, nd) = (self.inner.n_outputs(), self.inner.dim());
@@ -152,7 +175,12 @@ impl PyMultiGp {
             }
         }
         let thetas: Vec<f64> = gps.iter().flat_map(|g| g.theta()).collect();
-        let args = (x, array2(py, y, n, q)?, array2(py, thetas, q, nd + 2)?);
+        let args = (
+            x,
+            array2(py, y, n, q)?,
+            array2(py, thetas, q, nd + 2)?,
+            self.mean(py)?,
+        );
         (py.get_type::<Self>(), args).into_pyobject(py)
     }
 
@@ -182,6 +210,14 @@ impl PyMultiGp {
     fn thetas<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let data: Vec<f64> = self.inner.gps().iter().flat_map(|g| g.theta()).collect();
         array2(py, data, self.inner.n_outputs(), self.inner.dim() + 2)
+    }
+    /// The prior mean's coefficients (q, n_d + 1), rows [b, w...], or None (zero mean).
+    #[getter]
+    fn mean<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+        self.inner
+            .mean()
+            .map(|m| array2(py, m.coefficients().to_vec(), m.n_outputs(), m.dim() + 1))
+            .transpose()
     }
     /// The diagonal jitter each output's factorisation needed (0 if none).
     #[getter]
