@@ -82,7 +82,7 @@ mod tests {
         let d = [1.0, 2.0, -1.0, 4.0];
         let mut mean = vec![10.0; 4];
         m.add_values(&d, &mut mean);
-        assert_eq!(mean, vec![11.0, 7.0, 5.0, 9.0]);
+        assert_eq!(mean, vec![11.0, 8.0, 5.0, 9.0]);
         let mut g = vec![0.0; 2 * 2 * 2];
         m.add_gradients(&mut g);
         assert_eq!(g, vec![2.0, -1.0, 0.0, 0.5, 2.0, -1.0, 0.0, 0.5]);
