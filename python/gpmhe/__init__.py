@@ -6,7 +6,7 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 ``batch_filter``, attributes ``x`` and ``P``).
 
 * Gaussian processes: `GaussianProcess`, `MultiOutputGP` (with `ConvergenceWarning`,
-  `NotFittedError`);
+  `NotFittedError`), and their fit diagnostics `FitDiagnostics`, `FitWarning`;
 * moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`, and
   `EstimatorBank`, many of them updated together (in parallel);
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
@@ -20,6 +20,7 @@ See the user guide, starting with *Notation*.
 
 from gpmhe._core import NumericalError
 from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
+from gpmhe.diagnostics import FitDiagnostics, FitWarning
 from gpmhe.mhe import GPMHE
 from gpmhe.bank import EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
@@ -33,6 +34,8 @@ __all__ = [
     "MultiOutputGP",
     "ConvergenceWarning",
     "NotFittedError",
+    "FitDiagnostics",
+    "FitWarning",
     # MHE
     "GPMHE",
     "EstimatorBank",

@@ -6,7 +6,6 @@ against the noise level and against a straight line. `GaussianProcess.diagnostic
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
 import numpy as np
@@ -28,21 +27,36 @@ CALIBRATION_LIMIT = 3.0
 class FitWarning(UserWarning):
     """A fitted GP looks unreliable: a hyperparameter sits at a bound, the GP predicts held-out
     targets worse than a straight line (collapsed), or its variances do not match its errors.
-    The message carries the numbers; `LearnedModel.summary` prints them all."""
+    The message carries the numbers; `LearnedModel.summary` prints them all.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> import numpy as np
+    >>> from gpmhe import FitWarning, LearnedModel
+    >>> X = [np.cumsum(np.full((40, 1), 0.1), axis=0)]
+    >>> with warnings.catch_warnings(record=True) as caught:
+    ...     warnings.simplefilter("always")
+    ...     _ = LearnedModel.from_trajectories(X, X, optimizer=None, sigma_f=1e-3, sigma_eps=1.0,
+    ...                                        mean="zero")
+    >>> any(issubclass(w.category, FitWarning) for w in caught)
+    True
+    """
 
 
-@dataclass(frozen=True)
 class FitDiagnostics:
-    """Diagnostics of one fitted GP output.
+    """Diagnostics of one fitted GP output (``diagnostics()`` of the GP classes builds them).
 
-    Attributes
+    Parameters
     ----------
     output : int
         The output's index.
-    sigma_f, sigma_eps : float
-        Fitted signal and noise standard deviations.
+    sigma_f : float
+        Fitted signal standard deviation.
     lengthscales : ndarray of shape (n_d,)
         Fitted length-scales.
+    sigma_eps : float
+        Fitted noise standard deviation.
     at_lower, at_upper : tuple of str
         Hyperparameters (``"sigma_f"``, ``"lengthscales[i]"``, ``"sigma_eps"``) within 0.1 % of
         their lower or upper bound (empty without an optimiser).
@@ -61,20 +75,37 @@ class FitDiagnostics:
         The LOO RMSE of a least-squares straight line b + w·d on the same targets.
     target_std : float
         Standard deviation of the targets the GP regresses.
+
+    Attributes
+    ----------
+    collapsed : bool
+        See the property.
+    problems, warnings : list of str
+        See the properties.
+
+    Notes
+    -----
+    Every parameter is also an attribute of the same name.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpmhe import GaussianProcess
+    >>> D = np.linspace(0.0, 5.0, 30)[:, None]
+    >>> dg = GaussianProcess(mean="linear").fit(D, D[:, 0] + 0.1 * np.sin(D[:, 0])).diagnostics()[0]
+    >>> dg.collapsed, len(dg.restarts)
+    (False, 1)
     """
 
-    output: int
-    sigma_f: float
-    lengthscales: np.ndarray
-    sigma_eps: float
-    at_lower: Tuple[str, ...]
-    at_upper: Tuple[str, ...]
-    restarts: np.ndarray
-    log_marginal_likelihood: float
-    loo_rmse: float
-    loo_z_rms: float
-    line_rmse: float
-    target_std: float
+    def __init__(self, output, sigma_f, lengthscales, sigma_eps, at_lower, at_upper, restarts,
+                 log_marginal_likelihood, loo_rmse, loo_z_rms, line_rmse, target_std):
+        self.output, self.sigma_f, self.lengthscales, self.sigma_eps = output, sigma_f, lengthscales, sigma_eps
+        self.at_lower, self.at_upper, self.restarts = at_lower, at_upper, restarts
+        self.log_marginal_likelihood, self.loo_rmse, self.loo_z_rms = log_marginal_likelihood, loo_rmse, loo_z_rms
+        self.line_rmse, self.target_std = line_rmse, target_std
+
+    def __repr__(self):
+        return f"FitDiagnostics(output={self.output}, problems={self.problems})"
 
     @property
     def collapsed(self) -> bool:
@@ -172,3 +203,4 @@ def summary_table(title: str, diags: List[FitDiagnostics], names: Optional[List[
                     f"{d.line_rmse:9.3g} {d.loo_z_rms:6.2f} {runs:>16}")
         notes += [f"  {name}: {p}" for p in d.problems]
     return "\n".join(rows + (notes or ["  no problems found"]))
+
