@@ -66,7 +66,7 @@ def main():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         data = br.training_data(5, rng=rng)
-        model = LearnedModel.from_trajectories(*data, n_restarts=3, random_state=args.seed)
+        model = LearnedModel.from_trajectories(*data, n_restarts=3, random_state=args.seed, **br.PAPER_GP)
     n_train = sum(len(states) - 1 for states in data[0])
     warnings.simplefilter("ignore", RuntimeWarning)  # a rare unconverged window: not timed here
     threads = EstimatorBank(model, 1, br.X_PRIOR0).threads

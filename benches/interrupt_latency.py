@@ -100,7 +100,7 @@ def main(argv=None):
     states, outputs = br.training_data(5, rng=0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model = LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
+        model = LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0, **br.PAPER_GP)
     cases = {
         "RecursiveGP.update (400 basis, 4e5 points)": rgp_case,
         "GaussianProcess.fit (N = 1000)": lambda: gp_case(1000),

@@ -54,7 +54,7 @@ def make_model(kind, seed):
     states, outputs = br.training_data(5, rng=seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
+        return LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0, **br.PAPER_GP)
 
 
 def run(kind, updates, seed):

@@ -33,7 +33,7 @@ def models():
         states, outputs = br.training_data(n_traj, rng=100)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            gp = LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0)
+            gp = LearnedModel.from_trajectories(states, outputs, n_restarts=1, random_state=0, **br.PAPER_GP)
         out[f"GP, {n_traj} trajectories"] = (gp, {}, ["posterior", "prior"])
     return out
 

@@ -44,7 +44,7 @@ def one_seed(args):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             model = LearnedModel.from_trajectories(*data[3 if case == "gp3" else 5],
-                                                   n_restarts=3, random_state=seed)
+                                                   n_restarts=3, random_state=seed, **br.PAPER_GP)
     form = "filtering" if case == "filtering" else "prediction"
     x, y = br.simulate(br.X_TRUE0, steps, rng)
     out = {}

@@ -28,7 +28,7 @@ models = {}
 for n_traj in (5, 3):
     states, outputs = br.training_data(n_traj, rng=rng)
     models[n_traj] = LearnedModel.from_trajectories(states, outputs, n_restarts=3,
-                                                     random_state=0)
+                                                     random_state=0, **br.PAPER_GP)
 print("f-GP length-scales (5 trajectories):", np.round(models[5].f_gp.lengthscales, 2))
 
 # %%

@@ -47,8 +47,8 @@ def run_estimators(seed, steps, solver, n_restarts=3, log=_progress, models=None
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # optimiser chatter; the best restart is kept
                 models[(n_traj, incr)] = LearnedModel.from_trajectories(
-                    *data[n_traj], n_restarts=n_restarts, random_state=seed, f_residual=incr
-                )
+                    *data[n_traj], n_restarts=n_restarts, random_state=seed, f_residual=incr,
+                    **br.PAPER_GP)
             log(f"  done in {time.perf_counter() - t0:.1f} s")
     x, y = br.simulate(br.X_TRUE0, steps, rng)
     # The vectorised model: one Python call per window evaluation instead of one per point; its
@@ -111,7 +111,7 @@ def _seed_model(seed, n_traj, incr, n_restarts):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return LearnedModel.from_trajectories(*data[n_traj], n_restarts=n_restarts,
-                                              random_state=seed, f_residual=incr)
+                                              random_state=seed, f_residual=incr, **br.PAPER_GP)
 
 
 def study_simulate(seed, steps):
