@@ -223,6 +223,18 @@ class KnownModel(_SharedOnCopy):
         J = (out[1:n + 1] - out[n + 1:]) / (2.0 * steps.T[:, :, None])  # (n, k, size)
         return out[0], np.ascontiguousarray(J.transpose(1, 2, 0))
 
+    def _values(self, d, fn, size, name):
+        """fn's values (k, size) at the points d (k, n + m), without Jacobians (the regression
+        targets of a LearnedModel with this nominal model)."""
+        n = self.dim_x
+        if self.vectorized:
+            v = self._call_batch(fn, d[:, :n].copy(), d[:, n:].copy(), size, name)
+        else:
+            v = np.array([self._call(fn, di[:n].copy(), di[n:].copy(), size, name) for di in d])
+        if not within_limits(v):
+            raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
+        return v.reshape(d.shape[0], size)
+
     def _points_batch(self, d):
         n, p = self.dim_x, self.dim_y
         X, U = d[:, :n].copy(), d[:, n:].copy()  # contiguous; shared by the calls below
@@ -604,8 +616,8 @@ class LearnedModel(_SharedOnCopy):
         Dh, Yh = _training.subsample(max_points, Dh, Yh)
         target_f, target_h = Xn - Xc if f_residual else Xn, Yh
         if nominal is not None:
-            target_f = Xn - nominal.stage_eval(Df)[0]
-            target_h = Yh - nominal.stage_eval(Dh)[4] if p else Yh
+            target_f = Xn - nominal._values(Df, nominal.f, n, "f")
+            target_h = Yh - nominal._values(Dh, nominal.h, p, "h") if p else Yh
         f_gp = MultiOutputGP(**gp_options).fit(Df, target_f)
         h_gp = MultiOutputGP(**gp_options).fit(Dh, target_h) if p else None
         model = cls(f_gp, h_gp, dim_u=m, f_residual=f_residual, nominal=nominal)
@@ -776,10 +788,10 @@ class LearnedModel(_SharedOnCopy):
     def _add_nominal(self, d, gp_parts):
         """The GPs' stage values plus the nominal model's means and mean Jacobians."""
         nom = self.nominal.stage_eval(d)
-        out = list(gp_parts)
+        out = [np.ascontiguousarray(a) for a in gp_parts]
         for i in (0, 2, 4, 6):  # means and their gradients
-            out[i] = np.ascontiguousarray(out[i] + nom[i])
-        return tuple(np.ascontiguousarray(a) for a in out)
+            out[i] = out[i] + nom[i]
+        return tuple(out)
 
     def _predict_f64(self, x, u):
         """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
