@@ -107,7 +107,7 @@ pub struct Gp {
 }
 
 /// Splits θ = log([σ_f, φ_1..φ_nd, σ_ε]) into a kernel and σ_ε, naming `theta` on bad values.
-fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
+pub(crate) fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
     if theta.len() < 3 {
         return Err(Error::invalid(
             "theta",
@@ -140,7 +140,7 @@ fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
 }
 
 /// Checks the training set against the input dimension `nd` and returns N.
-fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
+pub(crate) fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
     let n = y.len();
     if n < 2 {
         return Err(Error::invalid(
@@ -565,7 +565,7 @@ fn substitution(s: &[f64], n: usize, v: &mut [f64], tri: Triangle) {
 /// for n_d ≤ 4 so the inner loop unrolls), then exponentiated by a vectorised exp
 /// ([`scaled_exp`]): the exponentials are the largest part of a kernel column.
 #[inline(always)]
-fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+pub(crate) fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
     #[inline(always)]
     fn fixed<const ND: usize>(x: &[f64], d: &[f64], w: &[f64], out: &mut [f64]) {
         let (Ok(d), Ok(w)) = (<&[f64; ND]>::try_from(d), <&[f64; ND]>::try_from(w)) else {
