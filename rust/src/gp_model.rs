@@ -106,3 +106,78 @@ impl GpModel {
         }
     }
 }
+
+/// The prediction methods every kind of GP model shares, for code written once for all of them
+/// (the binding's array conversions); [`GpModel`] implements it by dispatch.
+pub trait GpPredict: Sync {
+    type Workspace: Default;
+    fn n_outputs(&self) -> usize;
+    fn dim(&self) -> usize;
+    /// Means, latent variances (k × q) and their gradients (k × q × n_d) at k points `d`.
+    fn predict_with_gradients_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        var: &mut [f64],
+        dmean: &mut [f64],
+        dvar: &mut [f64],
+        ws: &mut Self::Workspace,
+    ) -> Result<()>;
+    /// Means and latent variances (k × q each).
+    fn predict_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        var: &mut [f64],
+        ws: &mut Self::Workspace,
+    ) -> Result<()>;
+    /// Means only (k × q).
+    fn predict_mean_into(
+        &self,
+        d: &[f64],
+        mean: &mut [f64],
+        ws: &mut Self::Workspace,
+    ) -> Result<()>;
+}
+
+/// Implements [`GpPredict`] by calling the type's own (inherent) methods of the same names.
+macro_rules! gp_predict {
+    ($t:ty, $ws:ty) => {
+        impl GpPredict for $t {
+            type Workspace = $ws;
+            fn n_outputs(&self) -> usize {
+                <$t>::n_outputs(self)
+            }
+            fn dim(&self) -> usize {
+                <$t>::dim(self)
+            }
+            fn predict_with_gradients_into(
+                &self,
+                d: &[f64],
+                mean: &mut [f64],
+                var: &mut [f64],
+                dmean: &mut [f64],
+                dvar: &mut [f64],
+                ws: &mut $ws,
+            ) -> Result<()> {
+                <$t>::predict_with_gradients_into(self, d, mean, var, dmean, dvar, ws)
+            }
+            fn predict_into(
+                &self,
+                d: &[f64],
+                mean: &mut [f64],
+                var: &mut [f64],
+                ws: &mut $ws,
+            ) -> Result<()> {
+                <$t>::predict_into(self, d, mean, var, ws)
+            }
+            fn predict_mean_into(&self, d: &[f64], mean: &mut [f64], ws: &mut $ws) -> Result<()> {
+                <$t>::predict_mean_into(self, d, mean, ws)
+            }
+        }
+    };
+}
+
+gp_predict!(MultiGp, GpWorkspace);
+gp_predict!(SparseMultiGp, SparseWorkspace);
+gp_predict!(GpModel, ModelWorkspace);

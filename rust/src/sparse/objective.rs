@@ -24,6 +24,7 @@
 use std::ops::Range;
 
 use faer::linalg::matmul::matmul;
+use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
@@ -147,7 +148,8 @@ fn lambdas(p: &Problem, l: MatRef<'_, f64>, k: &[f64]) -> Vec<f64> {
     }
 }
 
-/// K diag(s) Kᵀ for K (m × b column-major) and b weights s.
+/// The lower triangle of K diag(s) Kᵀ (zeros above: see [`mirror_lower`]) for K (m × b
+/// column-major) and b weights s.
 fn weighted_gram(k: &[f64], s: &[f64], m: usize) -> Mat<f64> {
     let b = s.len();
     let mut ks = k.to_vec();
@@ -157,15 +159,27 @@ fn weighted_gram(k: &[f64], s: &[f64], m: usize) -> Mat<f64> {
     let mut out = Mat::zeros(m, m);
     let kr = MatRef::from_column_major_slice(k, m, b);
     let ksr = MatRef::from_column_major_slice(&ks, m, b);
-    matmul(
+    triangular::matmul(
         out.as_mut(),
+        BlockStructure::TriangularLower,
         Accum::Replace,
         ksr,
+        BlockStructure::Rectangular,
         kr.transpose(),
+        BlockStructure::Rectangular,
         1.0,
         Par::Seq,
     );
     out
+}
+
+/// Copies the lower triangle of `a` into its upper triangle.
+fn mirror_lower(a: &mut Mat<f64>) {
+    for j in 0..a.ncols() {
+        for i in 0..j {
+            a[(i, j)] = a[(j, i)];
+        }
+    }
 }
 
 /// One block's share of the forward pass.
@@ -215,6 +229,7 @@ pub(crate) fn fit(p: &Problem) -> Result<Fit> {
             sum_y2_lam += f.sum_y2_lam;
         },
     )?;
+    mirror_lower(&mut s);
     // A = L⁻¹ S L⁻ᵀ (symmetrised), B = I + A.
     let mut a = s.clone();
     solve_lower_triangular_in_place(l.as_ref(), a.as_mut(), Par::Seq);
@@ -474,6 +489,7 @@ fn gradient(p: &Problem, fit: &Fit) -> Result<(Vec<f64>, Vec<f64>)> {
             }
         },
     )?;
+    mirror_lower(&mut u);
     let sig2 = p.sigma_eps * p.sigma_eps;
     let s2 = p.kernel.variance();
     let nf = n as f64;
