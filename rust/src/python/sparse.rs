@@ -141,8 +141,9 @@ impl PySparseMultiGp {
         PyArray1::from_vec(py, self.inner.gps().iter().map(|g| g.jitter()).collect())
     }
 
-    /// The training objective (VFE bound or FITC log marginal likelihood) of each output, (q,).
-    fn objectives<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+    /// The training objective of each output, shape (q,): the VFE bound or FITC's log marginal
+    /// likelihood (named as `MultiGP`'s, the quantity a fit maximises).
+    fn log_marginal_likelihoods<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
         let v = self.inner.gps().iter().map(|g| g.objective()).collect();
         PyArray1::from_vec(py, v)
     }

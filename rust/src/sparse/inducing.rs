@@ -19,6 +19,14 @@ const SELECT_FLOOR: f64 = 1e-8;
 /// row-major) chosen greedily by conditional variance under the kernel of θ = log([σ_f, φ.., σ_ε])
 /// (σ_ε is not used). Fewer than `m` when the floor (module docs) is reached first.
 pub fn select_inducing(x: &[f64], theta: &[f64], m: usize) -> Result<Vec<usize>> {
+    super::dispatch(
+        #[inline(always)]
+        || select(x, theta, m),
+    )
+}
+
+#[inline(always)]
+fn select(x: &[f64], theta: &[f64], m: usize) -> Result<Vec<usize>> {
     let (kernel, _) = crate::gp::hyperparameters(theta)?;
     let nd = kernel.dim();
     if x.is_empty() || x.len() % nd != 0 {
@@ -48,7 +56,7 @@ pub fn select_inducing(x: &[f64], theta: &[f64], m: usize) -> Result<Vec<usize>>
                     (bi, bv)
                 }
             });
-        if !(rp > SELECT_FLOOR * s2) {
+        if rp.is_nan() || rp <= SELECT_FLOOR * s2 {
             break;
         }
         let mut col = vec![0.0; n];

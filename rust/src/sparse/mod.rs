@@ -315,6 +315,26 @@ impl SparseMultiGp {
     }
 }
 
+/// Runs `f` in a build for AVX2 when the CPU has it (detected at run time), else in the portable
+/// one: the element-wise loops below (kernel exponentials, the contractions) then run four lanes
+/// wide. Both builds perform the same operations in the same order (no fused multiply-add), so
+/// their results are identical (as for the exact GP's predictions).
+#[inline(always)]
+pub(crate) fn dispatch<T>(f: impl FnOnce() -> T) -> T {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        fn avx2<T>(f: impl FnOnce() -> T) -> T {
+            f()
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2, checked just above.
+            return unsafe { avx2(f) };
+        }
+    }
+    f()
+}
+
 /// `e` with "output o: " before its message (as `MultiGp::new` reports a failed output).
 fn for_output(e: Error, o: usize) -> Error {
     match e {

@@ -48,6 +48,14 @@ impl SparseGp {
     }
 
     fn predict_block(&self, d: &[f64], out: Out<'_>, ws: &mut SparseWorkspace) {
+        super::dispatch(
+            #[inline(always)]
+            || self.predict_block_impl(d, out, ws),
+        )
+    }
+
+    #[inline(always)]
+    fn predict_block_impl(&self, d: &[f64], out: Out<'_>, ws: &mut SparseWorkspace) {
         let (m, nd) = (self.n_inducing(), self.dim());
         let k = d.len() / nd;
         let w = self.kernel.inv_lengthscales_sq();
