@@ -393,6 +393,17 @@ def check_picklable(owner, callables):
                 f"callable)") from None
 
 
+def _saved_kind(data):
+    """The ``kind`` entry of a saved GP's bytes ('' if unreadable: the loader reports it)."""
+    import io
+
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as f:
+            return str(f["kind"])
+    except Exception:  # noqa: BLE001 (any damage: MultiOutputGP.load names it)
+        return ""
+
+
 def _trajectories(states, outputs, inputs, n, p, m):
     """Regression data (D_f, X_next, X_now, D_h, Y) from lists of measured trajectories."""
     if isinstance(states, np.ndarray) and states.ndim == 2:
@@ -436,6 +447,10 @@ def _trajectories(states, outputs, inputs, n, p, m):
     return (np.vstack(Df), np.vstack(Xn), np.vstack(Xc), np.vstack(Dh), np.vstack(Yh))
 
 
+#: Options only sparse GPs take: given to `LearnedModel.from_trajectories`, they select them.
+_SPARSE_OPTIONS = {"n_inducing", "method", "inducing", "optimize_inducing"}
+
+
 class LearnedModel(_SharedOnCopy):
     """The GP model of GP-MHE: n independent GPs for f and p for h on inputs d = [x; u].
 
@@ -452,7 +467,7 @@ class LearnedModel(_SharedOnCopy):
     Parameters
     ----------
     f_gp : MultiOutputGP
-        Fitted GPs of f: n outputs on n + m inputs.
+        Fitted GPs of f: n outputs on n + m inputs (exact, or sparse: a `SparseMultiOutputGP`).
     h_gp : MultiOutputGP or None
         Fitted GPs of h: p outputs on n + m inputs; None for no outputs (p = 0).
     dim_u : int, default 0
@@ -545,7 +560,9 @@ class LearnedModel(_SharedOnCopy):
             Regress the increments x(t+1) − x(t) (a prior mean equal to the identity).
         **gp_options
             Passed to both `MultiOutputGP` constructors (e.g. ``n_restarts``, ``random_state``,
-            ``optimizer``, ``sigma_eps``).
+            ``optimizer``, ``sigma_eps``). With any of the sparse GPs' own options
+            (``n_inducing``, ``method``, ``inducing``, ``optimize_inducing``) the GPs are
+            `SparseMultiOutputGP` instead, for long trajectories (thousands of samples).
 
         Returns
         -------
@@ -579,9 +596,20 @@ class LearnedModel(_SharedOnCopy):
         (1, 1, 1)
         >>> print(np.round(model.predict([0.5], [0.2]), 2))
         [0.65]
+
+        Sparse GPs with (at most) 6 inducing points each:
+
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(5, rng=0)
+        >>> sparse = LearnedModel.from_trajectories(states, outputs, n_inducing=6)
+        >>> type(sparse.f_gp).__name__, [len(z) for z in sparse.f_gp.inducing_points]
+        ('SparseMultiOutputGP', [6, 6])
         """
         from gpmhe.gp import MultiOutputGP
+        from gpmhe.sparse import SparseMultiOutputGP
 
+        if _SPARSE_OPTIONS & set(gp_options):
+            MultiOutputGP = SparseMultiOutputGP  # noqa: N806 (the class both GPs are built with)
         f_residual = boolean("f_residual", f_residual)
         try:
             MultiOutputGP(**gp_options)  # the options' own checks, before any fit
@@ -778,6 +806,7 @@ class LearnedModel(_SharedOnCopy):
         import io
 
         from gpmhe.gp import MultiOutputGP
+        from gpmhe.sparse import SparseMultiOutputGP
 
         # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
         # Files of gpmhe <= 0.1 have no format version.
@@ -791,7 +820,9 @@ class LearnedModel(_SharedOnCopy):
                 if blob.dtype != np.uint8 or blob.ndim != 1:
                     raise f.error(name, "must be the bytes of a saved MultiOutputGP")
                 try:
-                    gps[name] = MultiOutputGP.load(io.BytesIO(blob.tobytes()))
+                    data = blob.tobytes()
+                    sparse = _saved_kind(data) == SparseMultiOutputGP._kind
+                    gps[name] = (SparseMultiOutputGP if sparse else MultiOutputGP).load(io.BytesIO(data))
                 except ValueError as e:
                     raise f.error(name, f"is not a valid MultiOutputGP ({e})") from None
             dim_u, f_residual = f.integer("dim_u"), f.boolean("f_residual")

@@ -153,13 +153,19 @@ class _SparseGP:
         for o in range(q):  # _maximise is called from here: its warning's stacklevel counts frames
             y = np.ascontiguousarray(Y[:, o])
             z = fixed[o] if fixed is not None else self._select(D, theta[o])
-            # Chosen points: optimise theta, choose again under the fitted kernel, refine theta.
+            # Chosen points: optimise theta, choose again under the fitted kernel, refine theta;
+            # the better of the two rounds is kept.
             rounds = [] if not optimise else [self.n_restarts] if fixed is not None else [self.n_restarts, 0]
+            best = None
             for i, restarts in enumerate(rounds):
                 if i > 0:
                     z = self._select(D, theta[o])
-                theta[o] = _maximise(_objective(D, y, z, self.method), theta[o], log_bounds, restarts, rng,
-                                     self.maxiter)[0]
+                theta[o], value, _ = _maximise(_objective(D, y, z, self.method), theta[o], log_bounds,
+                                               restarts, rng, self.maxiter)
+                if best is None or value > best[0]:
+                    best = (value, theta[o].copy(), z)
+            if best is not None:
+                _, theta[o], z = best
             if optimise and self.optimize_inducing:
                 box = np.tile(np.column_stack([D.min(axis=0), D.max(axis=0)]), (z.shape[0], 1))
                 packed = _maximise(_joint_objective(D, y, self.method), np.concatenate([theta[o], z.ravel()]),
@@ -294,8 +300,9 @@ Examples
 --------
 >>> import numpy as np
 >>> from gpmhe import {cls}
+>>> rng = np.random.default_rng(0)
 >>> D = np.linspace(0.0, 10.0, 500)[:, None]
->>> gp = {cls}(n_inducing=20, sigma_eps=0.05).fit(D, {example_targets})
+>>> gp = {cls}(n_inducing=5).fit(D, {example_targets} + 0.1 * rng.standard_normal({noise_shape}))
 >>> {n_inducing_example}
 """,
     "log_marginal_likelihood": """The training objective: the VFE bound or FITC's log marginal likelihood.
@@ -455,8 +462,9 @@ _DOC_FIELDS = {
     Training targets.""", """Y : array_like of shape (N, q) or (N,)
     Training targets, one column per output (a 1-D Y is one output)."""),
     "example_targets": ("np.sin(D[:, 0])", "np.column_stack([np.sin(D[:, 0]), np.cos(D[:, 0])])"),
-    "n_inducing_example": ("gp.inducing_points.shape\n(20, 1)",
-                           "[z.shape for z in gp.inducing_points]\n[(20, 1), (20, 1)]"),
+    "n_inducing_example": ("gp.inducing_points.shape\n(5, 1)",
+                           "[z.shape for z in gp.inducing_points]\n[(5, 1), (5, 1)]"),
+    "noise_shape": ("500", "(500, 2)"),
     "theta_shape": ("(n_d + 2,)", "(q, n_d + 2)"),
     "obj_type": ("float", "ndarray of shape (q,)"),
     "k_shape": ("(k,)", "(k, q)"),
@@ -569,16 +577,16 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
 
     Examples
     --------
-    2,000 noisy samples of sin, 30 inducing points:
+    2,000 noisy samples of sin, 10 inducing points:
 
     >>> import numpy as np
     >>> from gpmhe import SparseGaussianProcess
     >>> rng = np.random.default_rng(0)
     >>> D = rng.uniform(0.0, 10.0, (2000, 1))
     >>> y = np.sin(D[:, 0]) + 0.1 * rng.standard_normal(2000)
-    >>> gp = SparseGaussianProcess(n_inducing=30).fit(D, y)
+    >>> gp = SparseGaussianProcess(n_inducing=10).fit(D, y)
     >>> gp
-    SparseGaussianProcess(method='vfe', m=30, N=2000, fitted)
+    SparseGaussianProcess(method='vfe', m=10, N=2000, fitted)
     >>> mean = gp.predict([[1.0], [2.5]])
     >>> print(np.round(mean, 2), np.round(np.sin([1.0, 2.5]), 2))
     [0.84 0.6 ] [0.84 0.6 ]
@@ -628,7 +636,7 @@ class SparseMultiOutputGP(_SparseGP, MultiOutputGP):
     >>> from gpmhe import SparseMultiOutputGP
     >>> D = np.random.default_rng(0).uniform(-1.0, 1.0, (1000, 2))
     >>> Y = np.column_stack([np.sin(D[:, 0]), D[:, 0] * D[:, 1]])
-    >>> gp = SparseMultiOutputGP(n_inducing=40, sigma_eps=0.01).fit(D, Y)
+    >>> gp = SparseMultiOutputGP(n_inducing=40, sigma_eps=0.01, optimizer=None).fit(D, Y)
     >>> gp
     SparseMultiOutputGP(q=2, n_d=2, N=1000, method='vfe', m=[40, 40], fitted)
     >>> print(np.round(gp.predict([[0.5, 0.2]]), 2))
