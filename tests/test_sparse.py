@@ -208,7 +208,7 @@ def test_copies_pickles_and_files_are_bit_identical(tmp_path):
     Y = np.column_stack([y, y**2])
     Dt = np.random.default_rng(1).uniform(-2, 2, (5, 2))
     models = [SparseGaussianProcess(n_inducing=12, method="fitc").fit(D, y),
-              SparseMultiOutputGP(n_inducing=[12, 8][0], optimizer=None).fit(D, Y),
+              SparseMultiOutputGP(n_inducing=12, optimizer=None).fit(D, Y),
               SparseMultiOutputGP(inducing=[D[:5], D[5:12]], optimizer=None).fit(D, Y)]
     for gp in models:
         path = tmp_path / "gp.npz"
@@ -322,3 +322,25 @@ def test_gpmhe_with_sparse_gps_on_the_batch_reactor():
             sparse = LearnedModel.from_trajectories(*data, n_restarts=1, random_state=seed, n_inducing=30)
         ratios.append(_rmse(sparse, x, y) / _rmse(exact, x, y))
     assert np.mean(ratios) < 1.05, ratios
+
+
+def test_bank_and_gp_ekf_run_on_sparse_gps():
+    from gpmhe import EstimatorBank
+    from gpmhe.baselines import GPEKF
+
+    states, outputs = br.training_data(3, rng=3, steps=20)
+    model = LearnedModel.from_trajectories(states, outputs, n_inducing=8, optimizer=None,
+                                           sigma_f=2.0, lengthscales=2.0, sigma_eps=0.05)
+    _, ys = br.simulate(br.X_TRUE0, 8, np.random.default_rng(4))
+    kw = dict(horizon=4, Q0=1e-3, R0=1e-2, x_bounds=br.X_BOUNDS)
+    x0 = [[3.0, 1.0], [1.0, 3.0]]
+    bank = EstimatorBank(model, 2, x0, **kw)
+    singles = [GPMHE(model, x, **kw) for x in x0]
+    for yt in ys:
+        out = bank.update(None, [yt, yt])
+        assert_array_equal(out, np.array([s.update(None, yt) for s in singles]))
+    ekf = GPEKF(model, x0=[3.0, 1.0], P0=0.1 * np.eye(2), Q=1e-3 * np.eye(2), R=1e-2)
+    for yt in ys:
+        ekf.update(yt)
+        ekf.predict()
+    assert np.all(np.isfinite(ekf.x))

@@ -550,10 +550,9 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
     ----------
     inducing_points : ndarray of shape (m, n_d)
         The fitted inducing inputs.
-    sigma_f, lengthscales, sigma_eps, theta, D_train, y_train, dim
-        As for `GaussianProcess`.
-    jitter : float
-        Diagonal jitter added to K(Z, Z) to factor it (normally 0).
+    sigma_f, lengthscales, sigma_eps, theta, D_train, y_train, dim, jitter
+        As for `GaussianProcess` (``jitter``: the diagonal jitter added to K(Z, Z) to factor it,
+        normally 0).
     log_marginal_likelihood_value : float
         The training objective at the current theta (the VFE bound or FITC's log marginal
         likelihood).

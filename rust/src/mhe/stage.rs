@@ -135,8 +135,9 @@ pub trait StageModel {
 /// the same coordinates is copied instead of recomputed. A moving-horizon window starts from the
 /// previous solution shifted by one step, so its first evaluation recomputes only the new point.
 ///
-/// The GPs (exact or sparse, [`GpModel`]) are immutable and shared (`Arc`): a clone copies only the workspace and the cache, so
-/// copying an estimator (`copy.deepcopy`, filterpy's `Saver`) does not copy the training data.
+/// The GPs (exact or sparse, [`GpModel`]) are immutable and shared (`Arc`): a clone copies only
+/// the workspace and the cache, so copying an estimator (`copy.deepcopy`, filterpy's `Saver`)
+/// does not copy the training data.
 #[derive(Debug, Clone)]
 pub struct GpStageModel {
     f: Arc<GpModel>,

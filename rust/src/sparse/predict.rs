@@ -14,12 +14,14 @@ use super::{SparseGp, SparseMultiGp};
 use crate::error::{Error, Result};
 use crate::gp::kernel_column;
 
-/// Scratch memory for batch predictions (m × k buffers); it only grows.
+/// Scratch memory for batch predictions (m × k buffers and one of n_d); it only grows, so once
+/// sized for the largest batch in use, predictions allocate nothing.
 #[derive(Default, Clone, Debug)]
 pub struct SparseWorkspace {
     kstar: Vec<f64>,
     v: Vec<f64>,
     w: Vec<f64>,
+    g: Vec<f64>,
 }
 
 /// Where one output's results go: point j's value at `[j * q + o]`, its gradient at
@@ -68,12 +70,13 @@ impl SparseGp {
             mut grads,
         } = out;
         ws.kstar.resize(m * k, 0.0);
+        ws.g.resize(nd, 0.0);
         let kstar = &mut ws.kstar[..m * k];
-        let mut g = vec![0.0; nd];
+        let g = &mut ws.g[..];
         for (j, dj) in d.chunks_exact(nd).enumerate() {
             let kc = &mut kstar[j * m..(j + 1) * m];
             kernel_column(&self.z, dj, w, s2, kc);
-            let s = self.weighted(kc, &self.t, &mut g);
+            let s = self.weighted(kc, &self.t, g);
             mean[j * q + o] = s;
             if let Some((dmean, _)) = grads.as_mut() {
                 let gm = &mut dmean[(j * q + o) * nd..(j * q + o + 1) * nd];
@@ -107,11 +110,11 @@ impl SparseGp {
             let s = self.weighted(
                 &ws.kstar[j * m..(j + 1) * m],
                 &ws.v[j * m..(j + 1) * m],
-                &mut g,
+                &mut ws.g,
             );
             let gv = &mut dvar[(j * q + o) * nd..(j * q + o + 1) * nd];
             for l in 0..nd {
-                gv[l] = 2.0 * w[l] * (dj[l] * s - g[l]);
+                gv[l] = 2.0 * w[l] * (dj[l] * s - ws.g[l]);
             }
         }
     }
