@@ -6,6 +6,9 @@ copies, pickles and files; input errors; and GP-MHE on the batch reactor against
 import copy
 import io
 import pickle
+import signal
+import threading
+import time
 import warnings
 
 import numpy as np
@@ -344,3 +347,29 @@ def test_bank_and_gp_ekf_run_on_sparse_gps():
         ekf.update(yt)
         ekf.predict()
     assert np.all(np.isfinite(ekf.x))
+
+
+@pytest.mark.skipif(not hasattr(signal, "setitimer"), reason="needs signal.setitimer")
+def test_signal_during_a_long_sparse_fit_interrupts_it_promptly_and_keeps_the_gp():
+    assert threading.current_thread() is threading.main_thread()
+    D, y, _, _ = problem(300_000, 2, 10)
+    gp = SparseGaussianProcess(n_inducing=200, method="fitc").fit(D[:50], y[:50])
+    before = gp.predict(D[:5])
+    fired = []
+
+    def handler(signum, frame):
+        fired.append(time.perf_counter())
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGALRM, handler)
+    signal.setitimer(signal.ITIMER_REAL, 0.3)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            gp.fit(D, y)  # tens of seconds
+        raised = time.perf_counter()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    assert fired, "the fit finished before the signal"
+    assert raised - fired[0] < 1.0  # the core checks between waves of blocks (~0.05 s of work)
+    assert_array_equal(gp.predict(D[:5]), before)
