@@ -247,7 +247,10 @@ def test_learned_model_and_gpmhe_continue_bit_identically():
     est = GPMHE(model, br.X_PRIOR0, **kw)
     for yt in ys[:6]:
         est.update(None, yt)
-    for other in (copy.deepcopy(est), pickle.loads(pickle.dumps(est))):
+    checkpoint = io.BytesIO()
+    est.save(checkpoint)
+    checkpoint.seek(0)
+    for other in (copy.deepcopy(est), pickle.loads(pickle.dumps(est)), GPMHE.load(checkpoint, model)):
         assert_array_equal(np.array([other.update(None, yt).copy() for yt in ys[6:]]), out_ref[6:])
 
 

@@ -487,6 +487,28 @@ fn contract_impl(p: &Problem, k: &[f64], g: &[f64], cols: &Range<usize>, nd: usi
     out
 }
 
+/// The contractions of G_uu with ∂Kuu: (Σ G∘K, Σ G∘K∘(z_il − z_jl)² per l), and ∂F/∂Z through
+/// Kuu added to `gz` (K symmetric: z_i enters row and column i).
+fn contract_uu(p: &Problem, guu: &Mat<f64>, kuu: &Mat<f64>, gz: &mut [f64]) -> (f64, Vec<f64>) {
+    let (m, nd) = (p.m(), p.kernel.dim());
+    let w = p.kernel.inv_lengthscales_sq();
+    let (mut gk, mut gl) = (0.0, vec![0.0; nd]);
+    for i in 0..m {
+        let zi = &p.z[i * nd..(i + 1) * nd];
+        for j in 0..m {
+            let g = guu[(i, j)] * kuu[(i, j)];
+            gk += g;
+            let zj = &p.z[j * nd..(j + 1) * nd];
+            for l in 0..nd {
+                let diff = zi[l] - zj[l];
+                gl[l] += g * diff * diff;
+                gz[i * nd + l] -= 2.0 * g * diff * w[l];
+            }
+        }
+    }
+    (gk, gl)
+}
+
 /// ∂F/∂θ and ∂F/∂Z from a forward pass (module docs).
 fn gradient(p: &Problem, fit: &Fit) -> Result<(Vec<f64>, Vec<f64>)> {
     let (n, m, nd) = (p.n(), p.m(), p.kernel.dim());
@@ -546,23 +568,9 @@ fn gradient(p: &Problem, fit: &Fit) -> Result<(Vec<f64>, Vec<f64>)> {
         }
         SparseMethod::Fitc => (acc.sum_g, acc.sum_g),
     };
-    // Contractions of G_uu with ∂Kuu (symmetric: z_i enters row and column i).
     let w = p.kernel.inv_lengthscales_sq();
-    let (mut gk_uu, mut gl_uu) = (0.0, vec![0.0; nd]);
     let mut gz = acc.gz;
-    for i in 0..m {
-        let zi = &p.z[i * nd..(i + 1) * nd];
-        for j in 0..m {
-            let g = guu[(i, j)] * fit.kuu[(i, j)];
-            gk_uu += g;
-            let zj = &p.z[j * nd..(j + 1) * nd];
-            for l in 0..nd {
-                let diff = zi[l] - zj[l];
-                gl_uu[l] += g * diff * diff;
-                gz[i * nd + l] -= 2.0 * g * diff * w[l];
-            }
-        }
-    }
+    let (gk_uu, gl_uu) = contract_uu(p, &guu, &fit.kuu, &mut gz);
     let mut grad = vec![0.0; nd + 2];
     grad[0] = 2.0 * (acc.gk + gk_uu) + 2.0 * s2 * g_kdiag;
     for l in 0..nd {
