@@ -6,7 +6,9 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 ``batch_filter``, attributes ``x`` and ``P``).
 
 * Gaussian processes: `GaussianProcess`, `MultiOutputGP` (with `ConvergenceWarning`,
-  `NotFittedError`), and their fit diagnostics `FitDiagnostics`, `FitWarning`;
+  `NotFittedError`), their fit diagnostics `FitDiagnostics`, `FitWarning`, and their sparse
+  (inducing-point) forms `SparseGaussianProcess`, `SparseMultiOutputGP` for thousands of
+  training points;
 * moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`, and
   `EstimatorBank`, many of them updated together (in parallel);
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
@@ -21,6 +23,7 @@ See the user guide, starting with *Notation*.
 from gpmhe._core import NumericalError
 from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 from gpmhe.diagnostics import FitDiagnostics, FitWarning
+from gpmhe.sparse import SparseGaussianProcess, SparseMultiOutputGP
 from gpmhe.mhe import GPMHE
 from gpmhe.bank import EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
@@ -32,6 +35,8 @@ __all__ = [
     # GP
     "GaussianProcess",
     "MultiOutputGP",
+    "SparseGaussianProcess",
+    "SparseMultiOutputGP",
     "ConvergenceWarning",
     "NotFittedError",
     "FitDiagnostics",

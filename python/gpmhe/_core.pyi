@@ -66,6 +66,72 @@ def log_marginal_likelihood(
     eval_gradient: bool = False,
 ) -> tuple[float, npt.NDArray[np.float64]]: ...
 
+# ===== sparse GP =====
+
+class SparseMultiGP:
+    """q independent sparse SE-ARD GPs on shared inputs, each with its own theta and inducing
+    inputs (rust/src/sparse/); gpmhe.SparseGaussianProcess is q = 1. The prediction methods are
+    MultiGP's."""
+
+    def __init__(
+        self,
+        x: npt.NDArray[np.float64],
+        y: npt.NDArray[np.float64],
+        z: list[npt.NDArray[np.float64]],
+        thetas: npt.NDArray[np.float64],
+        method: str,
+        mean: npt.NDArray[np.float64] | None = None,
+    ) -> None: ...
+    @property
+    def n_outputs(self) -> int: ...
+    @property
+    def dim(self) -> int: ...
+    @property
+    def n_train(self) -> int: ...
+    @property
+    def method(self) -> str: ...
+    @property
+    def thetas(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def inducing(self) -> list[npt.NDArray[np.float64]]: ...
+    @property
+    def mean(self) -> npt.NDArray[np.float64] | None: ...
+    @property
+    def jitters(self) -> npt.NDArray[np.float64]: ...
+    def log_marginal_likelihoods(self) -> npt.NDArray[np.float64]:
+        """The training objective of each output (VFE bound or FITC log marginal likelihood)."""
+    def predict(
+        self, d: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
+    def predict_with_gradients(
+        self, d: npt.NDArray[np.float64]
+    ) -> tuple[
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+        npt.NDArray[np.float64],
+    ]: ...
+    def predict_mean(self, d: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+    # immutable: copies are the object itself; pickles as SparseMultiGP(x, y, z, thetas, method, mean)
+    def __copy__(self) -> SparseMultiGP: ...
+    def __deepcopy__(self, memo: Any) -> SparseMultiGP: ...
+    def __reduce__(self) -> tuple[Any, ...]: ...
+
+def sparse_objective(
+    x: npt.NDArray[np.float64],
+    y: npt.NDArray[np.float64],
+    z: npt.NDArray[np.float64],
+    theta: npt.NDArray[np.float64],
+    method: str,
+    eval_gradient: bool = False,
+) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """(value, d/dtheta, d/dz) of the sparse training objective (gradients empty unless asked)."""
+
+def select_inducing(
+    x: npt.NDArray[np.float64], theta: npt.NDArray[np.float64], m: int
+) -> npt.NDArray[np.int64]:
+    """Indices of at most m rows of x by greedy conditional-variance selection."""
+
 # ===== RGP =====
 # Recursive GP and RGP-dKF kernels (rust/src/rgp/); the public classes are gpmhe.RecursiveGP and
 # gpmhe.RGPEKF in gpmhe/rgp.py. Arrays are float64, C-contiguous.
@@ -215,7 +281,12 @@ class StageModel:
     """The model of a `MovingHorizon`: the learned GPs or a known model's Python functions."""
 
     @staticmethod
-    def gp(f_gp: MultiGP, h_gp: MultiGP | None, dim_u: int, f_residual: bool) -> StageModel:
+    def gp(
+        f_gp: MultiGP | SparseMultiGP,
+        h_gp: MultiGP | SparseMultiGP | None,
+        dim_u: int,
+        f_residual: bool,
+    ) -> StageModel:
         """f's GPs (dim_x outputs) and h's (dim_y outputs; None when dim_y = 0) on [x; u];
         `f_residual`: f's GPs model x(t+1) − x(t)."""
         ...

@@ -1,12 +1,13 @@
-"""Fit diagnostics of the exact GPs: per output the fitted hyperparameters, which of them sit at a
+"""Fit diagnostics of the GPs: per output the fitted hyperparameters, which of them sit at a
 bound, the objective of every optimiser run, and leave-one-out (LOO) errors in closed form
-against the noise level and against a straight line. `GaussianProcess.diagnostics`,
-`MultiOutputGP.diagnostics` and `LearnedModel.diagnostics` return them; ``summary()`` prints them.
+against the noise level and against a straight line (dense O(N³) for the exact GPs, O(N m²) for
+the sparse ones). The GP classes' and `LearnedModel`'s ``diagnostics()`` return them;
+``summary()`` prints them.
 """
 
 from __future__ import annotations
 
-from typing import List, Optional, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 import scipy.linalg
@@ -154,6 +155,41 @@ def _loo(D: np.ndarray, r: np.ndarray, theta: np.ndarray, jitter: float) -> Tupl
     return (Kinv @ r) / diag, 1.0 / diag
 
 
+def sparse_loo(D: np.ndarray, r: np.ndarray, Z: np.ndarray, theta: np.ndarray, jitter: float,
+               fitc: bool, block: int = 4096) -> Tuple[np.ndarray, np.ndarray]:
+    """LOO errors and predictive variances of one sparse output on targets r: the closed form
+    for the Gaussian model y ~ N(0, Σ), Σ = Qff + Λ, that the sparse GP is (Λ = σ_ε² I for VFE,
+    diag(Kff − Qff) + σ_ε² I for FITC): e_i = [Σ⁻¹ r]_i / [Σ⁻¹]_ii, with the Woodbury form
+    Σ⁻¹ = Λ⁻¹ − Λ⁻¹ V^T B⁻¹ V Λ⁻¹, V = L⁻¹ Kuf, L L^T = Kuu + jitter I, B = I + V Λ⁻¹ V^T.
+    O(N m²) time and O(m · block) memory: Kuf is formed block by block, three times."""
+    sf, ls, se2 = np.exp(theta[0]), np.exp(theta[1:-1]), np.exp(2.0 * theta[-1])
+    L = scipy.linalg.cholesky(_core.se_ard_kernel(Z, Z, sf, ls) + jitter * np.eye(len(Z)), lower=True)
+    blocks = [slice(i, min(i + block, len(D))) for i in range(0, len(D), block)]
+
+    def V(s: slice) -> np.ndarray:
+        return scipy.linalg.solve_triangular(L, _core.se_ard_kernel(Z, D[s], sf, ls), lower=True)
+
+    lam, B = np.empty(len(D)), np.eye(len(Z))
+    for s in blocks:
+        v = V(s)
+        lam[s] = se2 + (np.maximum(sf * sf - np.sum(v * v, axis=0), 0.0) if fitc else 0.0)
+        B += (v / lam[s]) @ v.T
+    LB = scipy.linalg.cholesky(B, lower=True)
+
+    def W(s: slice) -> np.ndarray:  # L_B⁻¹ V Λ⁻¹ on the block's columns
+        return scipy.linalg.solve_triangular(LB, V(s) / lam[s], lower=True)
+
+    wr, diag = np.zeros(len(Z)), 1.0 / lam
+    for s in blocks:
+        w = W(s)
+        wr += w @ r[s]
+        diag[s] -= np.sum(w * w, axis=0)
+    inv_r = r / lam
+    for s in blocks:
+        inv_r[s] -= W(s).T @ wr
+    return inv_r / diag, 1.0 / diag
+
+
 def _line_loo_rmse(D: np.ndarray, r: np.ndarray) -> float:
     """LOO RMSE of least squares on [1, d] (the hat matrix's closed form)."""
     A = np.hstack([np.ones((D.shape[0], 1)), D])
@@ -163,16 +199,22 @@ def _line_loo_rmse(D: np.ndarray, r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e * e)))
 
 
-def diagnose(D: np.ndarray, R: np.ndarray, thetas: np.ndarray, jitters: np.ndarray, lmls: np.ndarray,
-             record: Optional[Tuple[np.ndarray, list]]) -> List[FitDiagnostics]:
-    """FitDiagnostics of every output of a fitted exact GP: inputs D (N, n_d), regressed targets
-    R (N, q), natural theta (q, n_d + 2), and the fit's record (natural log-bounds
-    (q, n_d + 2, 2) and the runs' objectives) or None."""
+def exact_loo(D: np.ndarray, thetas: np.ndarray, jitters: np.ndarray) -> Callable:
+    """``loo(o, r)`` of `diagnose` for an exact GP: output o's dense closed form."""
+    return lambda o, r: _loo(D, r, thetas[o], float(jitters[o]))
+
+
+def diagnose(D: np.ndarray, R: np.ndarray, thetas: np.ndarray, lmls: np.ndarray,
+             record: Optional[Tuple[np.ndarray, list]], loo: Callable) -> List[FitDiagnostics]:
+    """FitDiagnostics of every output of a fitted GP: inputs D (N, n_d), regressed targets
+    R (N, q), natural theta (q, n_d + 2), the fit's record (natural log-bounds (q, n_d + 2, 2)
+    and the runs' objectives) or None, and ``loo(o, r)`` giving output o's LOO errors and
+    predictive variances on targets r (`exact_loo`, or the sparse model's)."""
     nd = D.shape[1]
     out = []
     for o in range(R.shape[1]):
         r = R[:, o]
-        e, var = _loo(D, r, thetas[o], float(jitters[o]))
+        e, var = loo(o, r)
         lower = upper = ()
         runs = np.zeros(0)
         if record is not None:

@@ -35,7 +35,7 @@ import scipy.optimize
 from gpmhe import _core, _priors
 from gpmhe._core import NumericalError
 from gpmhe._npz import NpzReader
-from gpmhe.diagnostics import diagnose, summary_table
+from gpmhe.diagnostics import diagnose, exact_loo, summary_table
 from gpmhe._validation import (
     boolean,
     float_array,
@@ -499,9 +499,14 @@ class _ExactGP:
         """
         m = self._model()
         if self._diagnostics is None:
-            self._diagnostics = diagnose(self._D, self._residuals(), m.thetas, m.jitters,
-                                         m.log_marginal_likelihoods(), self._fit_record)
+            self._diagnostics = diagnose(self._D, self._residuals(), m.thetas, m.log_marginal_likelihoods(),
+                                         self._fit_record, self._loo())
         return list(self._diagnostics)
+
+    def _loo(self) -> Callable:
+        """``loo(o, r)`` of `gpmhe.diagnostics.diagnose` for this model."""
+        m = self._model()
+        return exact_loo(self._D, m.thetas, m.jitters)
 
     def summary(self) -> str:
         """A printable table of `diagnostics`, one row per output, with the problems found.

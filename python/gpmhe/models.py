@@ -405,6 +405,21 @@ def _dimensions(states, outputs, inputs):
     return X0.shape[1], p, 1 if U0.ndim == 1 else U0.shape[1]
 
 
+def _saved_kind(data):
+    """The ``kind`` entry of a saved GP's bytes ('' if unreadable: the loader reports it)."""
+    import io
+
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as f:
+            return str(f["kind"])
+    except Exception:  # noqa: BLE001 (any damage: MultiOutputGP.load names it)
+        return ""
+
+
+#: Options only sparse GPs take: given to `LearnedModel.from_trajectories`, they select them.
+_SPARSE_OPTIONS = {"n_inducing", "method", "inducing", "optimize_inducing"}
+
+
 class LearnedModel(_SharedOnCopy):
     """The GP model of GP-MHE: n independent GPs for f and p for h on inputs d = [x; u].
 
@@ -425,7 +440,7 @@ class LearnedModel(_SharedOnCopy):
     Parameters
     ----------
     f_gp : MultiOutputGP
-        Fitted GPs of f: n outputs on n + m inputs.
+        Fitted GPs of f: n outputs on n + m inputs (exact, or sparse: a `SparseMultiOutputGP`).
     h_gp : MultiOutputGP or None
         Fitted GPs of h: p outputs on n + m inputs; None for no outputs (p = 0).
     dim_u : int, default 0
@@ -558,6 +573,9 @@ class LearnedModel(_SharedOnCopy):
         **gp_options
             Passed to both `MultiOutputGP` constructors (e.g. ``n_restarts``, ``random_state``,
             ``optimizer``, ``sigma_eps``, ``mean``, ``normalize``, ``hyperprior``, ``bounds``).
+            With any of the sparse GPs' own options (``n_inducing``, ``method``, ``inducing``,
+            ``optimize_inducing``) the GPs are `SparseMultiOutputGP` instead, for long
+            trajectories (thousands of samples).
 
         Returns
         -------
@@ -594,9 +612,20 @@ class LearnedModel(_SharedOnCopy):
         (1, 1, 1)
         >>> print(np.round(model.predict([0.5], [0.2]), 2))
         [0.65]
+
+        Sparse GPs with (at most) 6 inducing points each:
+
+        >>> from gpmhe.systems import batch_reactor as br
+        >>> states, outputs = br.training_data(5, rng=0)
+        >>> sparse = LearnedModel.from_trajectories(states, outputs, n_inducing=6)
+        >>> type(sparse.f_gp).__name__, [len(z) for z in sparse.f_gp.inducing_points]
+        ('SparseMultiOutputGP', [6, 6])
         """
         from gpmhe.gp import MultiOutputGP
+        from gpmhe.sparse import SparseMultiOutputGP
 
+        if _SPARSE_OPTIONS & set(gp_options):
+            MultiOutputGP = SparseMultiOutputGP  # noqa: N806 (the class both GPs are built with)
         f_residual, warn = boolean("f_residual", f_residual), boolean("warn", warn)
         max_points = _training.check_max_points(max_points)
         defaults = dict(_training.LEARNED_DEFAULTS)
@@ -887,6 +916,7 @@ class LearnedModel(_SharedOnCopy):
         import io
 
         from gpmhe.gp import MultiOutputGP
+        from gpmhe.sparse import SparseMultiOutputGP
 
         # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
         # Files of gpmhe <= 0.1 have no format version.
@@ -900,7 +930,9 @@ class LearnedModel(_SharedOnCopy):
                 if blob.dtype != np.uint8 or blob.ndim != 1:
                     raise f.error(name, "must be the bytes of a saved MultiOutputGP")
                 try:
-                    gps[name] = MultiOutputGP.load(io.BytesIO(blob.tobytes()))
+                    data = blob.tobytes()
+                    sparse = _saved_kind(data) == SparseMultiOutputGP._kind
+                    gps[name] = (SparseMultiOutputGP if sparse else MultiOutputGP).load(io.BytesIO(data))
                 except ValueError as e:
                     raise f.error(name, f"is not a valid MultiOutputGP ({e})") from None
             dim_u, f_residual = f.integer("dim_u"), f.boolean("f_residual")

@@ -108,7 +108,7 @@ pub struct Gp {
 }
 
 /// Splits θ = log([σ_f, φ_1..φ_nd, σ_ε]) into a kernel and σ_ε, naming `theta` on bad values.
-fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
+pub(crate) fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
     if theta.len() < 3 {
         return Err(Error::invalid(
             "theta",
@@ -141,7 +141,7 @@ fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
 }
 
 /// Checks the training set against the input dimension `nd` and returns N.
-fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
+pub(crate) fn check_training(x: &[f64], y: &[f64], nd: usize) -> Result<usize> {
     let n = y.len();
     if n < 2 {
         return Err(Error::invalid(
@@ -566,7 +566,7 @@ fn substitution(s: &[f64], n: usize, v: &mut [f64], tri: Triangle) {
 /// for n_d ≤ 4 so the inner loop unrolls), then exponentiated by a vectorised exp
 /// ([`scaled_exp`]): the exponentials are the largest part of a kernel column.
 #[inline(always)]
-fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
+pub(crate) fn kernel_column(x: &[f64], d: &[f64], w: &[f64], s2: f64, out: &mut [f64]) {
     #[inline(always)]
     fn fixed<const ND: usize>(x: &[f64], d: &[f64], w: &[f64], out: &mut [f64]) {
         let (Ok(d), Ok(w)) = (<&[f64; ND]>::try_from(d), <&[f64; ND]>::try_from(w)) else {
@@ -756,24 +756,8 @@ impl MultiGp {
     /// The same GPs with the prior mean `mean` (q outputs on n_d inputs): the GPs must have
     /// been trained on the residuals y − m(d).
     pub fn with_mean(mut self, mean: AffineMean) -> Result<Self> {
-        let (q, nd) = (self.n_outputs(), self.dim());
-        if mean.n_outputs() != q || mean.dim() != nd {
-            return Err(Error::invalid(
-                "mean",
-                format!(
-                    "expected coefficients for {q} outputs on {nd} inputs, got {} on {}",
-                    mean.n_outputs(),
-                    mean.dim()
-                ),
-            ));
-        }
-        let mut scale = vec![0.0f64; nd];
-        for row in self.gps[0].x_train().chunks_exact(nd) {
-            for (s, v) in scale.iter_mut().zip(row) {
-                *s = s.max(v.abs());
-            }
-        }
-        self.mean_rounding = (0..q).map(|o| mean.rounding(o, &scale)).collect();
+        mean.check_shape(self.n_outputs(), self.dim())?;
+        self.mean_rounding = mean.roundings(self.gps[0].x_train());
         self.mean = Some(mean);
         Ok(self)
     }

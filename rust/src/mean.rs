@@ -3,7 +3,7 @@
 //! posterior mean and W to its input gradient. The variances are unchanged (the mean is fixed,
 //! fitted before the hyperparameters).
 
-use crate::error::{check_finite, check_len, Result};
+use crate::error::{check_finite, check_len, Error, Result};
 
 /// m(d) = b + W d for q outputs on n_d inputs; the coefficients are a row per output,
 /// [b_o, w_o1, …, w_o,n_d] (q × (n_d + 1), row-major).
@@ -55,6 +55,33 @@ impl AffineMean {
                 }
             }
         }
+    }
+
+    /// Fails with an error naming `mean` unless these are coefficients for q outputs on n_d
+    /// inputs (the model the mean is given to).
+    pub fn check_shape(&self, q: usize, nd: usize) -> Result<()> {
+        if self.q == q && self.nd == nd {
+            return Ok(());
+        }
+        Err(Error::invalid(
+            "mean",
+            format!(
+                "expected coefficients for {q} outputs on {nd} inputs, got {} on {}",
+                self.q, self.nd
+            ),
+        ))
+    }
+
+    /// [`AffineMean::rounding`] of every output on the range of the training inputs `x`
+    /// (N × n_d row-major): the model's share of its mean rounding.
+    pub fn roundings(&self, x: &[f64]) -> Vec<f64> {
+        let mut scale = vec![0.0f64; self.nd];
+        for row in x.chunks_exact(self.nd) {
+            for (s, v) in scale.iter_mut().zip(row) {
+                *s = s.max(v.abs());
+            }
+        }
+        (0..self.q).map(|o| self.rounding(o, &scale)).collect()
     }
 
     /// A typical absolute rounding error of m(d) for output `o` on inputs of magnitude up to

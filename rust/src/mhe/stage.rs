@@ -8,7 +8,7 @@
 use crate::error::{check_len, Error, Result};
 use std::sync::Arc;
 
-use crate::gp::{GpWorkspace, MultiGp};
+use crate::gp_model::{GpModel, ModelWorkspace};
 
 /// Means, variances and their input gradients of a stage model at k points d = [x; u].
 /// All row-major: `mean_x` k×n, `var_x` k×n, `dmean_x` and `dvar_x` k×n×nd, `mean_y` k×p,
@@ -135,16 +135,17 @@ pub trait StageModel {
 /// the same coordinates is copied instead of recomputed. A moving-horizon window starts from the
 /// previous solution shifted by one step, so its first evaluation recomputes only the new point.
 ///
-/// The GPs are immutable and shared (`Arc`): a clone copies only the workspace and the cache, so
-/// copying an estimator (`copy.deepcopy`, filterpy's `Saver`) does not copy the training data.
+/// The GPs (exact or sparse, [`GpModel`]) are immutable and shared (`Arc`): a clone copies only
+/// the workspace and the cache, so copying an estimator (`copy.deepcopy`, filterpy's `Saver`)
+/// does not copy the training data.
 #[derive(Debug, Clone)]
 pub struct GpStageModel {
-    f: Arc<MultiGp>,
-    h: Option<Arc<MultiGp>>,
+    f: Arc<GpModel>,
+    h: Option<Arc<GpModel>>,
     f_residual: bool,
     n: usize,
     m: usize,
-    ws: GpWorkspace,
+    ws: ModelWorkspace,
     /// Points (k × nd) and values of the last evaluation.
     last_d: Vec<f64>,
     last: StageEval,
@@ -158,7 +159,13 @@ pub struct GpStageModel {
 impl GpStageModel {
     /// `f` has n outputs on inputs of dimension n + `dim_u`; `h` (None when p = 0) has p outputs
     /// on the same inputs.
-    pub fn new(f: MultiGp, h: Option<MultiGp>, dim_u: usize, f_residual: bool) -> Result<Self> {
+    pub fn new<G: Into<GpModel>>(
+        f: G,
+        h: Option<G>,
+        dim_u: usize,
+        f_residual: bool,
+    ) -> Result<Self> {
+        let (f, h): (GpModel, Option<GpModel>) = (f.into(), h.map(Into::into));
         let n = f.n_outputs();
         if f.dim() != n + dim_u {
             return Err(Error::invalid(
@@ -188,7 +195,7 @@ impl GpStageModel {
             f_residual,
             n,
             m: dim_u,
-            ws: GpWorkspace::default(),
+            ws: ModelWorkspace::default(),
             last_d: Vec::new(),
             last: StageEval::default(),
             miss_d: Vec::new(),
@@ -265,7 +272,7 @@ impl GpStageModel {
     }
 
     /// The GPs of f and h (shared, see the struct's doc).
-    pub fn gps(&self) -> (&Arc<MultiGp>, Option<&Arc<MultiGp>>) {
+    pub fn gps(&self) -> (&Arc<GpModel>, Option<&Arc<GpModel>>) {
         (&self.f, self.h.as_ref())
     }
 }

@@ -11,12 +11,13 @@ use super::error::detach_interruptible;
 use crate::error::Error;
 use crate::kernel::SeArd;
 
-use crate::gp::{log_marginal_likelihood, GpWorkspace, MultiGp};
+use crate::gp::{log_marginal_likelihood, MultiGp};
+use crate::gp_model::GpPredict;
 use crate::mean::AffineMean;
 use numpy::{IntoPyArray, PyArray1, PyArrayDyn};
 
 /// Fails with `ValueError` naming `arg` unless the point set has `nd` columns.
-fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
+pub(super) fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
     if cols == nd {
         Ok(())
     } else {
@@ -27,7 +28,7 @@ fn check_cols(arg: &str, cols: usize, nd: usize) -> PyResult<()> {
 }
 
 /// A numpy array of the given shape that takes over a row-major vector (no copy, no reshape).
-fn array_nd<'py, const D: usize>(
+pub(super) fn array_nd<'py, const D: usize>(
     py: Python<'py>,
     data: Vec<f64>,
     shape: [usize; D],
@@ -37,14 +38,14 @@ fn array_nd<'py, const D: usize>(
     Ok(arr.into_pyarray(py))
 }
 
-type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
+pub(super) type Arr<'py> = Bound<'py, PyArrayDyn<f64>>;
 /// mean, var and, when asked for, (dmean_dd, dvar_dd).
-type Predicted<'py> = (Arr<'py>, Arr<'py>, Option<(Arr<'py>, Arr<'py>)>);
+pub(super) type Predicted<'py> = (Arr<'py>, Arr<'py>, Option<(Arr<'py>, Arr<'py>)>);
 
 /// Posterior means at the points `d`, shape (k, q).
-fn mean_array<'py>(
+pub(super) fn mean_array<'py, P: GpPredict>(
     py: Python<'py>,
-    model: &MultiGp,
+    model: &P,
     d: &PyReadonlyArray2<'py, f64>,
 ) -> PyResult<Arr<'py>> {
     let (d, k, cols) = slice2("D", d)?;
@@ -52,15 +53,15 @@ fn mean_array<'py>(
     check_cols("D", cols, model.dim())?;
     crate::error::check_finite("D", d)?;
     let mut mean = vec![0.0; k * q];
-    model.predict_mean_into(d, &mut mean, &mut GpWorkspace::default())?;
+    model.predict_mean_into(d, &mut mean, &mut P::Workspace::default())?;
     array_nd(py, mean, [k, q])
 }
 
 /// Runs a batch prediction of the `q` outputs at the points `d` with the GIL released and
 /// returns (mean, var[, dmean, dvar]) shaped (k, q) / (k, q, n_d).
-fn predict_arrays<'py>(
+pub(super) fn predict_arrays<'py, P: GpPredict>(
     py: Python<'py>,
-    model: &MultiGp,
+    model: &P,
     d: &PyReadonlyArray2<'py, f64>,
     gradients: bool,
 ) -> PyResult<Predicted<'py>> {
@@ -70,7 +71,7 @@ fn predict_arrays<'py>(
     check_cols("D", cols, nd)?;
     crate::error::check_finite("D", d)?;
     let (mean, var, dmean, dvar) = py.detach(|| {
-        let mut ws = GpWorkspace::default();
+        let mut ws = P::Workspace::default();
         let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
         if gradients {
             let (mut dm, mut dv) = (vec![0.0; k * q * nd], vec![0.0; k * q * nd]);
@@ -96,7 +97,9 @@ fn predict_arrays<'py>(
 }
 
 /// (mean, var, gradients) of the four-array prediction, as a Python tuple.
-fn with_gradients<'py>(p: Predicted<'py>) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
+pub(super) fn with_gradients<'py>(
+    p: Predicted<'py>,
+) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>)> {
     match p {
         (m, v, Some((dm, dv))) => Ok((m, v, dm, dv)),
         _ => Err(PyRuntimeError::new_err(
@@ -109,6 +112,35 @@ fn with_gradients<'py>(p: Predicted<'py>) -> PyResult<(Arr<'py>, Arr<'py>, Arr<'
 #[pyclass(name = "MultiGP", module = "gpmhe._core", frozen)]
 pub(super) struct PyMultiGp {
     pub(crate) inner: MultiGp,
+}
+
+/// The prior mean of a `MultiGP` or `SparseMultiGP` constructor: coefficients (q, n_d + 1), rows
+/// [b, w...], or None (zero mean). A ValueError names `mean` if the shape does not fit.
+pub(super) fn affine_mean(
+    mean: Option<&PyReadonlyArray2<'_, f64>>,
+    q: usize,
+    nd: usize,
+) -> PyResult<Option<AffineMean>> {
+    let Some(mean) = mean else {
+        return Ok(None);
+    };
+    let (coef, qm, cm) = slice2("mean", mean)?;
+    if qm != q || cm != nd + 1 {
+        return Err(PyValueError::new_err(format!(
+            "mean: expected shape ({q}, {}), got ({qm}, {cm})",
+            nd + 1
+        )));
+    }
+    Ok(Some(AffineMean::new(q, nd, coef.to_vec())?))
+}
+
+/// The coefficients (q, n_d + 1) of a prior mean as a numpy array (None for the zero mean).
+pub(super) fn mean_coefficients<'py>(
+    py: Python<'py>,
+    mean: Option<&AffineMean>,
+) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
+    mean.map(|m| array2(py, m.coefficients().to_vec(), m.n_outputs(), m.dim() + 1))
+        .transpose()
 }
 
 #[pymethods]
@@ -138,19 +170,7 @@ impl PyMultiGp {
                 nd + 2
             )));
         }
-        let mean = match &mean {
-            None => None,
-            Some(mean) => {
-                let (coef, qm, cm) = slice2("mean", mean)?;
-                if qm != q || cm != nd + 1 {
-                    return Err(PyValueError::new_err(format!(
-                        "mean: expected shape ({q}, {}), got ({qm}, {cm})",
-                        nd + 1
-                    )));
-                }
-                Some(AffineMean::new(q, nd, coef.to_vec())?)
-            }
-        };
+        let mean = affine_mean(mean.as_ref(), q, nd)?;
         let inner = detach_interruptible(py, || MultiGp::new(x, y, thetas))?;
         Ok(Self {
             inner: match mean {
@@ -214,10 +234,7 @@ impl PyMultiGp {
     /// The prior mean's coefficients (q, n_d + 1), rows [b, w...], or None (zero mean).
     #[getter]
     fn mean<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<f64>>>> {
-        self.inner
-            .mean()
-            .map(|m| array2(py, m.coefficients().to_vec(), m.n_outputs(), m.dim() + 1))
-            .transpose()
+        mean_coefficients(py, self.inner.mean())
     }
     /// The diagonal jitter each output's factorisation needed (0 if none).
     #[getter]

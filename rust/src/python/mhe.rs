@@ -14,7 +14,7 @@ use pyo3::types::{PyDict, PyTuple};
 
 use super::convert::{array2, slice1, slice2};
 use super::error::{detach_interruptible, interruptible};
-use super::gp::PyMultiGp;
+use super::sparse::{extract_model, model_object};
 use crate::error::{check_finite, check_len, Error};
 use crate::mhe::{
     Form, GpStageModel, HistoryState, MovingHorizon, StageEval, StageModel, UpdateReport,
@@ -201,22 +201,8 @@ impl Model {
             }
             Model::Gp(gp) => {
                 let (f, h) = gp.gps();
-                let f = Py::new(
-                    py,
-                    PyMultiGp {
-                        inner: (**f).clone(),
-                    },
-                )?;
-                let h = h
-                    .map(|h| {
-                        Py::new(
-                            py,
-                            PyMultiGp {
-                                inner: (**h).clone(),
-                            },
-                        )
-                    })
-                    .transpose()?;
+                let f = model_object(py, f)?;
+                let h = h.map(|h| model_object(py, h)).transpose()?;
                 let args = (f, h, gp.dim_u(), gp.f_residual());
                 (cls.getattr("gp")?, args).into_pyobject(py)
             }
@@ -274,16 +260,18 @@ pub(super) struct PyStageModel {
 #[pymethods]
 impl PyStageModel {
     /// The learned model: `f_gp` (dim_x outputs) and `h_gp` (dim_y outputs, None when
-    /// dim_y = 0) on inputs [x; u]; `f_residual`: f's GPs model x(t+1) − x(t).
+    /// dim_y = 0) on inputs [x; u], each a `MultiGP` or a `SparseMultiGP`; `f_residual`: f's
+    /// GPs model x(t+1) − x(t).
     #[staticmethod]
     fn gp(
-        f_gp: PyRef<'_, PyMultiGp>,
-        h_gp: Option<PyRef<'_, PyMultiGp>>,
+        f_gp: &Bound<'_, PyAny>,
+        h_gp: Option<&Bound<'_, PyAny>>,
         dim_u: usize,
         f_residual: bool,
     ) -> PyResult<Self> {
-        let f = f_gp.inner.clone();
-        let gp = GpStageModel::new(f, h_gp.map(|h| h.inner.clone()), dim_u, f_residual)?;
+        let f = extract_model("f_gp", f_gp)?;
+        let h = h_gp.map(|h| extract_model("h_gp", h)).transpose()?;
+        let gp = GpStageModel::new(f, h, dim_u, f_residual)?;
         Ok(Self {
             model: Model::Gp(Box::new(gp)),
         })
