@@ -655,15 +655,24 @@ fn exp_nonpositive(x: f64) -> f64 {
     }
 }
 
-fn check_out(arg: &str, out: &[f64], expected: usize) -> Result<()> {
-    if out.len() == expected {
-        Ok(())
-    } else {
-        Err(Error::invalid(
-            arg,
-            format!("output buffer needs {expected} values, has {}", out.len()),
-        ))
+/// The number k of test points in `d` (k × n_d for `kernel`), after checking that every output
+/// buffer (name, buffer, values per point) holds k times its values per point; errors name the
+/// argument. Shared by the exact and the sparse GPs' predictions.
+pub(crate) fn check_io(kernel: &SeArd, d: &[f64], outs: &[(&str, &[f64], usize)]) -> Result<usize> {
+    let k = kernel.count_points("d", d)?;
+    for &(arg, buf, per_point) in outs {
+        if buf.len() != k * per_point {
+            return Err(Error::invalid(
+                arg,
+                format!(
+                    "output buffer needs {} values, has {}",
+                    k * per_point,
+                    buf.len()
+                ),
+            ));
+        }
     }
+    Ok(k)
 }
 
 /// log p(y | D, θ) and, if `eval_gradient`, its gradient w.r.t. θ = log([σ_f, φ_1..φ_nd, σ_ε])
@@ -805,11 +814,7 @@ impl MultiGp {
     }
 
     fn check_io(&self, d: &[f64], outs: &[(&str, &[f64], usize)]) -> Result<usize> {
-        let k = self.gps[0].kernel.count_points("d", d)?;
-        for (arg, buf, per_point) in outs {
-            check_out(arg, buf, k * per_point)?;
-        }
-        Ok(k)
+        check_io(&self.gps[0].kernel, d, outs)
     }
 
     /// For k test points `d` (k × n_d row-major) writes means and latent variances (k × q), and

@@ -11,7 +11,7 @@ use faer::linalg::triangular_solve::{
 use faer::{MatMut, Par};
 
 use super::{SparseGp, SparseMultiGp};
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::gp::kernel_column;
 
 /// Scratch memory for batch predictions (m × k buffers and one of n_d); it only grows, so once
@@ -120,24 +120,9 @@ impl SparseGp {
     }
 }
 
-fn check_out(arg: &str, out: &[f64], expected: usize) -> Result<()> {
-    if out.len() == expected {
-        Ok(())
-    } else {
-        Err(Error::invalid(
-            arg,
-            format!("output buffer needs {expected} values, has {}", out.len()),
-        ))
-    }
-}
-
 impl SparseMultiGp {
     fn check_io(&self, d: &[f64], outs: &[(&str, &[f64], usize)]) -> Result<usize> {
-        let k = self.gps[0].kernel.count_points("d", d)?;
-        for (arg, buf, per_point) in outs {
-            check_out(arg, buf, k * per_point)?;
-        }
-        Ok(k)
+        crate::gp::check_io(&self.gps[0].kernel, d, outs)
     }
 
     /// As [`crate::gp::MultiGp::predict_with_gradients_into`]: means and latent variances
