@@ -120,6 +120,17 @@ class CasadiModel:
 
     # ---- pickling: the user's functions (CasADi pickles them serialised) ---------------------
     def __getstate__(self):
+        ca = import_casadi("Pickling a KnownModel.from_casadi model")
+        for name, fn in (("f", self.f), ("h", self.h)):
+            if fn is None:
+                continue
+            try:  # e.g. a Python casadi.Callback serialises, but cannot be read back
+                ca.Function.deserialize(fn.serialize())
+            except Exception as e:
+                import pickle
+
+                raise pickle.PicklingError(f"the CasADi function {name} cannot be serialised by "
+                                           f"CasADi ({str(e).strip().splitlines()[-1]})") from None
         return {"f": self.f, "h": self.h, "jit": self.jit, "dims": self.dims}
 
     def __setstate__(self, state):

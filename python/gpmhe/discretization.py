@@ -85,7 +85,7 @@ def discretize(rhs, dt, substeps=1, method="rk4", rhs_jacobian=None, fd_step=1e-
     DiscreteDynamics or casadi.Function
         For a numpy ``rhs``, the map as a `DiscreteDynamics` (vectorised, with ``jacobian``);
         for a CasADi ``rhs``, a ``casadi.Function`` f(x, u) -> x_next with the inputs of ``rhs``,
-        ready for `KnownModel.from_casadi` (expanded to SX where possible).
+        ready for `KnownModel.from_casadi` (expanded to SX where CasADi can).
 
     Raises
     ------
@@ -169,7 +169,7 @@ def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter):
     f = ca.Function(f"{rhs.name()}_discrete", inputs, [z], names, ["x_next"])
     try:
         return f.expand()
-    except RuntimeError:  # a rootfinder: MX
+    except RuntimeError:  # an MX-only operation in rhs
         return f
 
 
