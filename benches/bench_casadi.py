@@ -131,62 +131,55 @@ def comparison(x, u, y, block, jit):
 
 
 def time_split(u, y, jit):
-    """Where the CasADi MHE's update time goes."""
+    """Where the CasADi MHE's update time goes, measured inside the updates: the model callbacks
+    and, inside them, the CasADi evaluations are timed (each timer adds well under 1 µs)."""
     M = cp.MHE_SETTINGS["horizon"]
     print("\n## Time split of one CasADi MHE update (medians over t ≥ M)\n")
-    print("| model                          | update µs | Python around Rust µs | Rust call µs | "
-          "callbacks µs (n) | CasADi eval µs | Python in callbacks µs | Rust solver µs |")
-    print("|--------------------------------|-----------|-----------------------|--------------|"
-          "------------------|----------------|------------------------|----------------|")
+    print("| model                | update µs | Python around Rust µs | Rust call µs | "
+          "callbacks µs (calls) | CasADi evaluations µs | Python in callbacks µs | Rust solver µs |")
+    print("|----------------------|-----------|-----------------------|--------------|"
+          "----------------------|-----------------------|------------------------|----------------|")
     for name, jit_flag in (("SX virtual machine", False), ("compiled (jit=True)", True)):
         if jit_flag and not jit:
             continue
         model = cp.known_model("casadi", jit=jit_flag)
         cas = model._casadi
-        stage, predict = Timed(cas.stage), Timed(cas.predict)
-        cas.stage, cas.predict = stage, predict  # instance attributes: the core's callbacks
+        stage, predict = Timed(cas.stage_callback), Timed(cas.predict_callback)
+        cas.stage_callback, cas.predict_callback = stage, predict  # instance attributes: the core's callbacks
         mhe = GPMHE(model, cp.X0, **cp.MHE_SETTINGS)
         core = mhe._core = TimedCore(mhe._core)
-        totals, cb, ncb, rust = [], [], [], []
+        triggers = []
+        rows = {key: [] for key in ("total", "rust", "callbacks", "calls", "casadi")}
         for t in range(len(y)):
-            s0, p0, r0 = len(stage.times), len(predict.times), len(core.times)
+            if t == M:  # every window size has its callback buffer now: time their evaluations
+                for k, (buf, trigger, out, arrays) in list(cas._callback.items()):
+                    timed = Timed(trigger)
+                    timed.times = triggers
+                    cas._callback[k] = (buf, timed, out, arrays)
+                buf, trigger, point, result = cas._predictor
+                timed = Timed(trigger)
+                timed.times = triggers
+                cas._predictor = (buf, timed, point, result)
+            s0, p0, r0, c0 = len(stage.times), len(predict.times), len(core.times), len(triggers)
             t0 = time.perf_counter()
             mhe.update(u[t], y[t])
             total = time.perf_counter() - t0
             if t >= M:
-                totals.append(total)
-                rust.append(sum(core.times[r0:]))
-                cb.append(sum(stage.times[s0:]) + sum(predict.times[p0:]))
-                ncb.append(len(stage.times) - s0 + len(predict.times) - p0)
-        totals, rust, cb = np.array(totals), np.array(rust), np.array(cb)
-        # The CasADi evaluation alone: the mapped stage function's trigger at k = M + 1 points.
-        d = np.ascontiguousarray(np.hstack([mhe.x_window, np.repeat(u[-1:], M + 1, axis=0)]))
-        cas.stage.fn(d)
-        _, buf, trigger = cas._maps[("stage", M + 1)]
-        out = np.empty((M + 1) * cas._per_point["stage"])
-        buf.set_arg(0, memoryview(d))
-        start = 0
-        for i, size in enumerate(cas._sizes["stage"]):
-            buf.set_res(i, memoryview(out[start:start + (M + 1) * size]))
-            start += (M + 1) * size
-        reps = 2000
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            trigger()
-        eval_us = (time.perf_counter() - t0) / reps * 1e6
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            cas.stage.fn(d)
-        stage_us = (time.perf_counter() - t0) / reps * 1e6
-        evals = np.median(ncb)
-        print(f"| {name:30s} | {np.median(totals) * 1e6:9.0f} | "
-              f"{np.median(totals - rust) * 1e6:21.0f} | {np.median(rust) * 1e6:12.0f} | "
-              f"{np.median(cb) * 1e6:10.0f} ({evals:.0f}) | {eval_us:14.1f} | "
-              f"{stage_us - eval_us:22.1f} | {np.median(rust - cb) * 1e6:14.0f} |")
-    print("\n(CasADi eval: the mapped function's evaluation at the M+1 window points alone; "
-          "Python in callbacks: the rest of one stage callback (buffers, checks, reshapes); "
-          "Rust solver: the Rust call minus its callbacks, i.e. the solver, the window assembly "
-          "and the arrays passed to and from Python)")
+                rows["total"].append(total)
+                rows["rust"].append(sum(core.times[r0:]))
+                rows["callbacks"].append(sum(stage.times[s0:]) + sum(predict.times[p0:]))
+                rows["calls"].append(len(stage.times) - s0 + len(predict.times) - p0)
+                rows["casadi"].append(sum(triggers[c0:]))
+        r = {key: np.array(v) for key, v in rows.items()}
+        med = {key: np.median(v) * (1 if key == "calls" else 1e6) for key, v in r.items()}
+        print(f"| {name:20s} | {med['total']:9.0f} | {np.median(r['total'] - r['rust']) * 1e6:21.0f} | "
+              f"{med['rust']:12.0f} | {med['callbacks']:11.0f} ({med['calls']:.0f})     | "
+              f"{med['casadi']:21.0f} | {np.median(r['callbacks'] - r['casadi']) * 1e6:22.0f} | "
+              f"{np.median(r['rust'] - r['callbacks']) * 1e6:14.0f} |")
+    print("\n(callbacks: the stage evaluations and one-step predictions the Rust solver calls back; "
+          "CasADi evaluations: the mapped functions' evaluations inside them; Python in callbacks: "
+          "the rest (buffers, checks, reshapes); Rust solver: the Rust call minus its callbacks, "
+          "i.e. the solver, the window assembly and the arrays passed to and from Python)")
 
 
 def main(argv=None):

@@ -138,6 +138,22 @@ def test_within_gpmhe_stage_eval_results_are_fresh_and_writable():
     assert np.all(b[1] == 0.0)
 
 
+def test_core_callbacks_reuse_read_only_arrays_with_the_same_values():
+    model = cp.known_model("casadi")
+    cas = model._casadi
+    d1, d2 = cart_pole_points(11, seed=1), cart_pole_points(11, seed=2)
+    first = cas.stage_callback(d1)
+    expected = [a.copy() for a in first]
+    for a, b in zip(expected, model.stage_eval(d1)):
+        np.testing.assert_array_equal(a, b)
+    assert all(not a.flags.writeable and a.flags.c_contiguous for a in first)
+    second = cas.stage_callback(d2)
+    assert all(a is b for a, b in zip(first, second))  # shared: the core copies them at once
+    np.testing.assert_array_equal(second[0], model.stage_eval(d2)[0])
+    x, u = d1[0, :4], d1[0, 4:]
+    np.testing.assert_array_equal(cas.predict_callback(x, u), model.predict(x, u))
+
+
 # ---- the estimator ------------------------------------------------------------------------
 @pytest.mark.parametrize("form", ["prediction", "filtering"])
 def test_reactor_estimates_equal_the_numpy_models(form):

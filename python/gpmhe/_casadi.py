@@ -143,8 +143,9 @@ class CasadiModel:
         nd = n + m
         self._lock = threading.Lock()
         self._functions = {}  # part -> Function of d (built on first use)
-        self._maps = {}       # (part, k) -> (buffer, trigger)
-        self._zeros = {}      # k -> read-only zero arrays (variances and their gradients)
+        self._maps = {}       # (part, k) -> (mapped function, buffer, trigger)
+        self._callback = {}   # k -> (buffer, trigger, results, the 8 arrays): the core's callback
+        self._predictor = None  # (buffer, trigger, point, result): the core's prediction
         # the values each part writes per point, in the order of its outputs
         self._sizes = {"stage": (n, n * nd, p, p * nd), "f": (n,), "h": (p,),
                        "f_jacobian": (n * n,), "h_jacobian": (p * n,)}
@@ -230,24 +231,49 @@ class CasadiModel:
         k = d.shape[0]
         return out.reshape((k, rows) if name in ("f", "h") else (k, rows, n))
 
-    def stage(self, d):
-        """The 8 arrays of `KnownModel.stage_eval` at the points d (C-contiguous float64
-        (k, n + m)), the variances as shared read-only zeros: the estimator's callback."""
+    def _callback_entry(self, k):
+        """For the core's stage callback at k points: a buffer of its own whose results are
+        bound once to one array, and the 8 arrays (views of it, the variances zeros) returned
+        by every call."""
         n, m, p = self.dims
         nd = n + m
-        k = d.shape[0]
-        out = self._evaluate("stage", d)
-        if not within_limits(out):
-            self._raise_bad(out, k)
+        mapped = self._map("stage", k)[0]
+        buf, trigger = mapped.buffer()
+        out = np.empty(k * self._per_point["stage"])
         a, b, c = k * n, k * n * (1 + nd), k * (n + n * nd + p)
-        zeros = self._zeros.get(k)
-        if zeros is None:
-            zeros = tuple(np.zeros(s) for s in ((k, n), (k, n, nd), (k, p), (k, p, nd)))
-            for z in zeros:
-                z.flags.writeable = False
-            zeros = self._zeros[k] = zeros
-        return (out[:a].reshape(k, n), zeros[0], out[a:b].reshape(k, n, nd), zeros[1],
-                out[b:c].reshape(k, p), zeros[2], out[c:].reshape(k, p, nd), zeros[3])
+        for i, (start, end) in enumerate(((0, a), (a, b), (b, c), (c, out.size))):
+            if end > start:
+                buf.set_res(i, memoryview(out[start:end]))
+        zeros = [np.zeros(shape) for shape in ((k, n), (k, n, nd), (k, p), (k, p, nd))]
+        arrays = (out[:a].reshape(k, n), zeros[0], out[a:b].reshape(k, n, nd), zeros[1],
+                  out[b:c].reshape(k, p), zeros[2], out[c:].reshape(k, p, nd), zeros[3])
+        for arr in arrays:
+            arr.flags.writeable = False
+        entry = self._callback[k] = (buf, trigger, out, arrays)
+        return entry
+
+    def _stage(self, d):
+        entry = self._callback.get(d.shape[0])
+        if entry is None:
+            entry = self._callback_entry(d.shape[0])
+        buf, trigger, out, arrays = entry
+        buf.set_arg(0, memoryview(d))
+        trigger()
+        if not within_limits(out):
+            self._raise_bad(out, d.shape[0])
+        return arrays
+
+    def stage_callback(self, d):
+        """The 8 arrays of `KnownModel.stage_eval` at the points d (C-contiguous float64
+        (k, n + m)): the estimator core's callback. The arrays are read-only and shared: the
+        next call overwrites them (the core copies them before any other Python code runs)."""
+        with self._lock:
+            return self._stage(d)
+
+    def stage(self, d):
+        """`stage_callback` with fresh, writable arrays: `KnownModel.stage_eval`."""
+        with self._lock:
+            return tuple(np.array(a) for a in self._stage(d))
 
     def _raise_bad(self, out, k):
         n, m, p = self.dims
@@ -258,12 +284,24 @@ class CasadiModel:
                 raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > "
                                  f"{MAX_ABS:g} (CasADi model)")
 
-    def predict(self, x, u):
-        """f(x, u) at one point (contiguous float64 vectors): the core's prediction callback."""
-        d = np.concatenate((x, u))[None, :]
-        out = self._evaluate("f", d)
-        self._check("f", out)
-        return out
+    def predict_callback(self, x, u):
+        """f(x, u) at one point (contiguous float64 vectors): the estimator core's prediction
+        callback. The result is shared: the next call overwrites it."""
+        with self._lock:
+            if self._predictor is None:
+                mapped = self._map("f", 1)[0]
+                buf, trigger = mapped.buffer()
+                point, result = np.empty(sum(self.dims[:2])), np.empty(self.dims[0])
+                buf.set_arg(0, memoryview(point))
+                buf.set_res(0, memoryview(result))
+                self._predictor = (buf, trigger, point, result)
+            _, trigger, point, result = self._predictor
+            n = self.dims[0]
+            point[:n] = x
+            point[n:] = u
+            trigger()
+            self._check("f", result)
+            return result
 
 
 class CasadiPart:

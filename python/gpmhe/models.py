@@ -533,8 +533,8 @@ class KnownModel(_SharedOnCopy):
         nd = n + m
         d = points("d", d, nd, one_point=True)
         k = d.shape[0]
-        if self._casadi is not None:  # fresh arrays (the estimator's callback shares the zeros)
-            return tuple(a if a.flags.writeable else np.zeros(a.shape) for a in self._casadi.stage(d))
+        if self._casadi is not None:
+            return self._casadi.stage(d)
         mx, jx, my, jy = self._points_batch(d) if self.vectorized else self._points_loop(d, k)
         fd = " (finite differences)"
         for a, name in ((mx, "f"), (my, "h"),
@@ -566,7 +566,7 @@ class KnownModel(_SharedOnCopy):
         """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`); a CasADi
         model's callbacks skip the checks of the points, which the core passes valid."""
         if self._casadi is not None:
-            stage, predict = self._casadi.stage, self._casadi.predict
+            stage, predict = self._casadi.stage_callback, self._casadi.predict_callback
         else:
             stage, predict = self.stage_eval, self._predict_f64
         model = _core.StageModel.callback(stage, self.dim_x, self.dim_u, self.dim_y, predict=predict)
