@@ -2,6 +2,10 @@
 agree, the analytic Jacobians match finite differences, the simulators match scipy's solve_ivp
 and are reproducible, and the exact-model MHE tracks them in their settings."""
 
+import pathlib
+import re
+import textwrap
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -133,3 +137,18 @@ def test_exact_model_mhe_tracks_the_rotating_masses():
     # The arrival weight P_x = I is as strong as the outputs: the poor initial guess fades slowly.
     assert rmse[-10:].mean() < 1.5 * rm.SIGMA_V
     assert rmse[:10].mean() > 3 * rmse[-10:].mean()
+
+
+def test_physics_models_guide_runs_as_written(capsys):
+    pytest.importorskip("casadi")
+    guide = pathlib.Path(__file__).resolve().parents[1] / "docs" / "user_guide" / "physics_models.rst"
+    blocks = re.findall(r"^\.\. code-block:: python\n\n(.*?)(?=^\S|\Z)", guide.read_text(encoding="utf-8"),
+                        re.S | re.M)
+    assert len(blocks) == 4
+    ns = {"__name__": "__guide__"}
+    for block in blocks:
+        exec(compile(textwrap.dedent(block), str(guide), "exec"), ns)
+    np.testing.assert_allclose(ns["estimates_casadi"], ns["estimates"], atol=1e-9)
+    assert np.linalg.norm(ns["mhe"].x - ns["xs"][-1]) < 0.15  # angle noise 0.05
+    np.testing.assert_allclose(ns["pendulum_casadi"].predict([1.0, 0.0], [0.5]),
+                               ns["pendulum_model"].predict([1.0, 0.0], [0.5]), rtol=1e-12)
