@@ -108,6 +108,8 @@ class KnownModel(_SharedOnCopy):
     --------
     LearnedModel : The model learned by Gaussian processes.
     GPMHE : The estimator that uses the model.
+    KnownModel.from_casadi : A known model from CasADi functions.
+    KnownModel.from_ode : A known model from a continuous-time right-hand side.
 
     Notes
     -----
