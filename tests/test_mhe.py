@@ -247,6 +247,30 @@ def test_f_residual_option_and_gp_ekf_run():
     assert np.all(np.isfinite(ekf.x))
 
 
+def test_ekfs_with_several_outputs_keep_x_a_column():
+    # filterpy compares z with h(x) of shape (p, 1): a flat z of p > 1 values used to broadcast
+    # the innovation to (p, p) and x to (n, p).
+    from conftest import f3_jac, f3_v, h3, h3_jac, h3_jac_v, h3_v
+
+    model = KnownModel(f3_v, h3_v, 2, 2, dim_u=1, f_jacobian=None, h_jacobian=h3_jac_v, vectorized=True)
+    P0, Q, R = np.eye(2), 1e-2 * np.eye(2), np.diag([0.1, 0.2])
+    x0, u, z = np.array([0.5, -0.2]), np.array([0.3]), np.array([0.7, 0.1])
+    ekf = GPEKF(model, x0, P0, Q, R)
+    ekf.update(z, u=u)
+    H = h3_jac(x0, u)
+    K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + R)
+    expected = x0 + K @ (z - h3(x0, u))
+    assert ekf.x.shape == (2, 1)
+    np.testing.assert_allclose(ekf.x.ravel(), expected, rtol=1e-12)
+    ekf.predict(u=u)
+    assert ekf.x.shape == (2, 1)
+    exact = ExactEKF(lambda x: f3_v(x[None], u[None])[0], lambda x: f3_jac(x, u),
+                     lambda x: h3(x, u), lambda x: h3_jac(x, u), x0, P0, Q, R)
+    exact.update(z)
+    assert exact.x.shape == (2, 1)
+    np.testing.assert_allclose(exact.x.ravel(), expected, rtol=1e-12)
+
+
 def test_demo_runs_and_prints_the_table(capsys, tmp_path):
     import importlib.util
 

@@ -9,7 +9,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
   `NotFittedError`), their fit diagnostics `FitDiagnostics`, `FitWarning`, and their sparse
   (inducing-point) forms `SparseGaussianProcess`, `SparseMultiOutputGP` for thousands of
   training points;
-* moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel`, and
+* moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel` (from
+  Python callables, CasADi functions or a continuous-time model sampled by `discretize`), and
   `EstimatorBank`, many of them updated together (in parallel);
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
 * `NumericalError`: a numerical failure on valid input;
@@ -27,6 +28,7 @@ from gpmhe.sparse import SparseGaussianProcess, SparseMultiOutputGP
 from gpmhe.mhe import GPMHE
 from gpmhe.bank import EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
+from gpmhe.discretization import DiscreteDynamics, discretize
 from gpmhe.rgp import RGPEKF, RecursiveGP
 from gpmhe.study import monte_carlo
 
@@ -46,6 +48,8 @@ __all__ = [
     "EstimatorBank",
     "KnownModel",
     "LearnedModel",
+    "discretize",
+    "DiscreteDynamics",
     # RGP-dKF
     "RecursiveGP",
     "RGPEKF",

@@ -118,7 +118,7 @@ def ExactEKF(f, f_jacobian, h, h_jacobian, x0, P0, Q, R):
                 Residual function, passed on to filterpy.
             """
             return super().update(
-                np.atleast_1d(z), lambda x: np.asarray(h_jacobian(x.ravel()), dtype=float),
+                _column(z), lambda x: np.asarray(h_jacobian(x.ravel()), dtype=float),
                 lambda x: np.asarray(h(x.ravel()), dtype=float).reshape(-1, 1), R=R,
                 args=args, hx_args=hx_args, residual=residual)
 
@@ -227,13 +227,18 @@ def GPEKF(model, x0, P0, Q, R):
             _, _, _, _, my, vy, dmy, _ = model.stage_eval(point(self.x, u))
             H = dmy[0][:, :n]
             R_eff = self.R + np.diag(vy[0])
-            return super().update(np.atleast_1d(z), lambda x: H, lambda x: my[0].reshape(-1, 1),
-                                  R=R_eff)
+            return super().update(_column(z), lambda x: H, lambda x: my[0].reshape(-1, 1), R=R_eff)
 
     x0, P0, Q, R = _initial_values(x0, P0, Q, R, n=n, p=model.dim_y)
     ekf = _GPEKF(dim_x=n, dim_z=R.shape[0])
     ekf.x, ekf.P, ekf.Q, ekf.R = x0.reshape(-1, 1), P0, Q, R
     return ekf
+
+
+def _column(z):
+    """A measurement as the column filterpy's update compares with h(x) (p, 1): a flat (p,)
+    array would broadcast against it to (p, p)."""
+    return np.asarray(z, dtype=float).reshape(-1, 1)
 
 
 def _initial_values(x0, P0, Q, R, n=None, p=None):
