@@ -33,6 +33,7 @@ import shutil
 import time
 
 import numpy as np
+from bench_update import _TimedCore
 
 from gpmhe import GPMHE
 from gpmhe.baselines import GPEKF
@@ -79,22 +80,6 @@ class Timed:
         out = self.fn(*args)
         self.times.append(time.perf_counter() - t0)
         return out
-
-
-class TimedCore:
-    """The Rust core of a GPMHE with its `update` timed (the rest passed through)."""
-
-    def __init__(self, core):
-        self.core, self.times = core, []
-
-    def update(self, *args):
-        t0 = time.perf_counter()
-        out = self.core.update(*args)
-        self.times.append(time.perf_counter() - t0)
-        return out
-
-    def __getattr__(self, name):
-        return getattr(self.core, name)
 
 
 def comparison(x, u, y, block, jit):
@@ -147,7 +132,7 @@ def time_split(u, y, jit):
         stage, predict = Timed(cas.stage_callback), Timed(cas.predict_callback)
         cas.stage_callback, cas.predict_callback = stage, predict  # instance attributes: the core's callbacks
         mhe = GPMHE(model, cp.X0, **cp.MHE_SETTINGS)
-        core = mhe._core = TimedCore(mhe._core)
+        core = mhe._core = _TimedCore(mhe._core)
         triggers = []
         rows = {key: [] for key in ("total", "rust", "callbacks", "calls", "casadi")}
         for t in range(len(y)):
