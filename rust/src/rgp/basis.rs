@@ -159,6 +159,15 @@ impl RgpBasis {
         &self.kernel
     }
 
+    /// The kernel's length-scales in ζ units (a grid's √L / scale_i).
+    pub fn lengthscales_zeta(&self) -> Vec<f64> {
+        if !self.is_grid() {
+            return self.kernel.lengthscales().to_vec();
+        }
+        let ls = self.kernel.lengthscales();
+        ls.iter().zip(&self.scale).map(|(l, s)| l / s).collect()
+    }
+
     /// σ_K².
     pub fn sigma_k2(&self) -> f64 {
         self.kernel.variance()
