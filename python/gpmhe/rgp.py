@@ -624,7 +624,9 @@ class RGPEKF:
 
     With ``pure_prediction=True`` (paper §3.2) the GPs are fixed, trained models: their weights are
     not part of the state and each enters as a noisy input with variance
-    σ_K² − J K Jᵀ + J C_z Jᵀ + σ_r².
+    σ_K² − J K Jᵀ + J C_z Jᵀ + σ_r². A sparse GP trained offline serves as such a model, or as
+    the starting point of learning, through `RecursiveGP.from_sparse` (a prior mean m(ζ) of it is
+    added to μ_z^p).
 
     Parameters
     ----------
@@ -649,7 +651,8 @@ class RGPEKF:
     P0 : array_like of shape (n, n), or float (times I)
         Initial state covariance.
     gps : RecursiveGP or sequence of RecursiveGP
-        One GP per disturbance (the paper's "repeated implementation"); their grids, kernels, σ_r,
+        One GP per disturbance (the paper's "repeated implementation"); their basis vectors (a
+        grid, or a sparse GP's inducing inputs with `RecursiveGP.from_sparse`), kernels, σ_r,
         σ_p and *current* weights define the GP part. They are copied, not modified.
     learning : bool, default True
         True: variant 4a (learn the GP); False: variant 4b (states only). Can be changed any time.
