@@ -98,13 +98,7 @@ impl RgpBasis {
         let nb = basis.len() / kernel.dim();
         let mut k = kernel.gram(&basis);
         let s2 = kernel.variance();
-        for c in 0..nb {
-            for v in k.col_as_slice_mut(c) {
-                if v.abs() < TINY_REL * s2 {
-                    *v = 0.0;
-                }
-            }
-        }
+        zero_below(&mut k, TINY_REL * s2);
         let (chol, jitter) = match jitter {
             Jitter::Search => factor_with_jitter(&k, s2)?,
             Jitter::Fixed(j) => (factor_fixed(&k, s2, j)?, j),
@@ -392,7 +386,7 @@ fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
         }
         if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
             let mut l = llt.L().to_owned();
-            zero_tiny(&mut l, s2);
+            zero_below(&mut l, TINY_REL * s2.sqrt());
             return Ok((l, jitter));
         }
         jitter = if jitter == 0.0 {
@@ -422,15 +416,14 @@ fn factor_fixed(k: &Mat<f64>, s2: f64, jitter: f64) -> Result<Mat<f64>> {
         ))
     })?;
     let mut l = llt.L().to_owned();
-    zero_tiny(&mut l, s2);
+    zero_below(&mut l, TINY_REL * s2.sqrt());
     Ok(l)
 }
 
-/// Sets the entries of K's factor below TINY_REL·σ_K to 0 (see TINY_REL).
-fn zero_tiny(l: &mut Mat<f64>, s2: f64) {
-    let tiny = TINY_REL * s2.sqrt();
-    for c in 0..l.ncols() {
-        for v in l.col_as_slice_mut(c) {
+/// Sets the entries of `m` below `tiny` in magnitude to 0 (K and its factor: see TINY_REL).
+fn zero_below(m: &mut Mat<f64>, tiny: f64) {
+    for c in 0..m.ncols() {
+        for v in m.col_as_slice_mut(c) {
             if v.abs() < tiny {
                 *v = 0.0;
             }
