@@ -34,6 +34,7 @@ from gpmhe import (
     MultiOutputGP,
     NumericalError,
     RecursiveGP,
+    SparseGaussianProcess,
 )
 from gpmhe.baselines import GPEKF, ExactEKF
 
@@ -189,6 +190,18 @@ def make_rgp():
     gp = RecursiveGP(**RGP_KW)
     gp.update([0.5, 0.0], 1.0, 0.01)
     return gp
+
+
+def make_sparse():
+    return SparseGaussianProcess(n_inducing=4, mean="linear", **GP_OPTS).fit(D2, Y1)
+
+
+def _from_sparse(obj, **kw):
+    return RecursiveGP.from_sparse(**{"gp": obj, **kw})
+
+
+def _from_sparse_next(sgp):
+    return RecursiveGP.from_sparse(sgp).predict([0.3, 1.1], return_std=True), sgp.predict([[0.3]])
 
 
 def _rf(x, u, z):
@@ -403,6 +416,12 @@ case("RecursiveGP.set_weights", make_rgp, _method("set_weights"), dict(mean=np.z
      dict(mean=[], cov=[-np.eye(12), np.ones((12, 12)) - 2 * np.eye(12), np.triu(np.ones((12, 12)))]),
      _rgp_next)
 
+case("RecursiveGP.from_sparse", make_sparse, _from_sparse, dict(sigma_r=0.01, sigma_p=0.0, output=0),
+     dict(sigma_r=[-1.0], sigma_p=[-1.0], output=BAD_COUNTS + [1]), _from_sparse_next,
+     numeric=dict(output=False))
+case("RecursiveGP.from_sparse[gp]", None, lambda obj, **kw: RecursiveGP.from_sparse(**kw), dict(gp=make_sparse()),
+     dict(gp=[RecursiveGP, SparseGaussianProcess(), make_gp(), make_mgp(), make_rgp()]),
+     numeric=dict(gp=False))
 case("RGPEKF", None, _ctor(RGPEKF), RGPEKF_KW,
      dict(dim_x=BAD_COUNTS + [0], f=[1.0], A=[[[1.0]]], e=[[[1.0, 1.0]]], h=[1.0], H=[[[1.0, 1.0, 1.0]]],
           Q_x=NOT_PD, R_x=[0.0, -1.0, -np.eye(1), np.eye(2)], x0=[[1.0]], P0=NOT_PD,
@@ -502,7 +521,8 @@ def test_cases_cover_every_entry_point():
     for name in ("GaussianProcess", "MultiOutputGP", "LearnedModel", "LearnedModel.from_trajectories",
                  "KnownModel", "GPMHE", "GPMHE[known].update", "GPMHE[learned].batch_filter",
                  "GPMHE[known].reset", "RecursiveGP", "RecursiveGP.update", "RecursiveGP.predict",
-                 "RecursiveGP.J", "RecursiveGP.set_weights", "RGPEKF", "RGPEKF.predict",
+                 "RecursiveGP.J", "RecursiveGP.set_weights", "RecursiveGP.from_sparse",
+                 "RecursiveGP.from_sparse[gp]", "RGPEKF", "RGPEKF.predict",
                  "RGPEKF.update", "RGPEKF.gp_predict", "RGPEKF.gp_weights", "RGPEKF.x", "RGPEKF.P",
                  "ExactEKF", "GPEKF"):
         assert name in ids, name

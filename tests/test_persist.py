@@ -13,7 +13,7 @@ from conftest import f3, h3, reactor_known_model, synthetic_learned_model
 from numpy.testing import assert_array_equal
 
 from gpmhe import (GPMHE, RGPEKF, GaussianProcess, KnownModel, LearnedModel, MultiOutputGP,
-                   RecursiveGP, _core)
+                   RecursiveGP, SparseGaussianProcess, _core)
 from gpmhe.systems import batch_reactor as br
 
 # ----------------------------------------------------------------------------- GPMHE
@@ -185,9 +185,27 @@ def rgp_H(x):
     return np.array([[2 * x[0], 1.0]])
 
 
-def _rgpekf(pure_prediction):
-    gps = [RecursiveGP(-1, 1, 6, sigma_K=1.2, L=1.0, sigma_r=0.1, sigma_p=0.03),
-           RecursiveGP([0, 0], [1, 2], [3, 4], sigma_K=0.7, L=2.0, sigma_r=0.2)]
+def _sparse_gps():
+    """Sparse GPs on the two GP inputs' domains: 1-D VFE with a linear prior mean, 2-D FITC."""
+    rng = np.random.default_rng(1)
+    D1 = rng.uniform(-1, 1, (80, 1))
+    D2 = rng.uniform([0, 0], [1, 2], (80, 2))
+    return (SparseGaussianProcess(n_inducing=6, mean="linear").fit(D1, np.sin(3 * D1[:, 0]) + 0.5),
+            SparseGaussianProcess(n_inducing=8, method="fitc").fit(D2, np.cos(D2).sum(axis=1)))
+
+
+SPARSE_GPS = _sparse_gps()
+
+
+def _rgpekf(pure_prediction, basis="grid"):
+    """Two GPs: on grids, or (basis="sparse") from sparse GPs, one with σ_p > 0 and one without
+    (stored whitened in the augmented filter)."""
+    if basis == "grid":
+        gps = [RecursiveGP(-1, 1, 6, sigma_K=1.2, L=1.0, sigma_r=0.1, sigma_p=0.03),
+               RecursiveGP([0, 0], [1, 2], [3, 4], sigma_K=0.7, L=2.0, sigma_r=0.2)]
+    else:
+        gps = [RecursiveGP.from_sparse(SPARSE_GPS[0], sigma_r=0.1, sigma_p=0.03),
+               RecursiveGP.from_sparse(SPARSE_GPS[1], sigma_r=0.2)]
     return RGPEKF(2, f=rgp_f, A=rgp_A, e=E0, h=rgp_h, H=rgp_H, Q_x=0.01 * np.eye(2), R_x=0.1,
                   x0=[0.3, 0.1], P0=np.eye(2), gps=gps, pure_prediction=pure_prediction)
 
@@ -217,12 +235,13 @@ RGP_COPIES = {"deepcopy": copy.deepcopy, "pickle": lambda e: pickle.loads(pickle
               "checkpoint": _rgp_checkpoint}
 
 
+@pytest.mark.parametrize("basis", ["grid", "sparse"])
 @pytest.mark.parametrize("how", sorted(RGP_COPIES))
 @pytest.mark.parametrize("pure_prediction", [False, True])
-def test_rgpekf_copies_continue_bit_identically(how, pure_prediction):
-    reference = _rgp_run(_rgpekf(pure_prediction), 0, 16)
+def test_rgpekf_copies_continue_bit_identically(how, pure_prediction, basis):
+    reference = _rgp_run(_rgpekf(pure_prediction, basis), 0, 16)
     for t in (0, 7):
-        ekf = _rgpekf(pure_prediction)
+        ekf = _rgpekf(pure_prediction, basis)
         _rgp_run(ekf, 0, t)
         other = RGP_COPIES[how](ekf)
         for name in ("x", "P", "z_pred", "mu", "C", "y", "S"):
@@ -236,7 +255,7 @@ def test_rgpekf_copies_continue_bit_identically(how, pure_prediction):
                 assert_array_equal(C, Cr)
                 assert ll == llr
     # Between predict and update, too.
-    ekf = _rgpekf(pure_prediction)
+    ekf = _rgpekf(pure_prediction, basis)
     _rgp_run(ekf, 0, 7)
     ekf.predict(None, RGP_STEPS[7][0])
     other = RGP_COPIES[how](ekf)
@@ -254,6 +273,42 @@ def test_recursive_gp_copies_and_pickles():
         assert_array_equal(other.cov, gp_next.cov)
         assert_array_equal(other.mean, gp_next.mean)
     assert gp.mean[0] != other.mean[0] or not np.array_equal(gp.cov, other.cov)
+
+
+def test_rgpekf_checkpoints_of_the_first_format_still_load():
+    """A version-1 file (grids only, no 'gp<i>_basis' entries) loads and continues exactly."""
+    ekf = _rgpekf(False)
+    _rgp_run(ekf, 0, 5)
+    buf = io.BytesIO()
+    ekf.save(buf)
+    entries = {k: v for k, v in _entries(buf.getvalue()).items() if not k.endswith("_basis")}
+    assert {k for k in _entries(buf.getvalue())} - set(entries) == {"gp0_basis", "gp1_basis"}
+    old = io.BytesIO()
+    np.savez(old, **{**entries, "format_version": 1})
+    old.seek(0)
+    loaded = RGPEKF.load(old, f=rgp_f, h=rgp_h, A=rgp_A, H=rgp_H)
+    for got, want in zip(_rgp_run(loaded, 5, 16), _rgp_run(ekf, 5, 16)):
+        assert_array_equal(got[1], want[1])
+    # A version-2 file with an unknown basis is refused, naming the entry.
+    bad = io.BytesIO()
+    np.savez(bad, **{**_entries(buf.getvalue()), "gp1_basis": "hexagonal"})
+    bad.seek(0)
+    with pytest.raises(ValueError, match="'gp1_basis' must be 'grid' or 'points'"):
+        RGPEKF.load(bad, f=rgp_f, h=rgp_h, A=rgp_A, H=rgp_H)
+
+
+def test_recursive_gp_from_sparse_copies_and_pickles():
+    gp = RecursiveGP.from_sparse(SPARSE_GPS[0], sigma_r=0.05)
+    gp.update([0.3, -0.5], [1.0, 0.2], 0.01)
+    for other in (copy.deepcopy(gp), pickle.loads(pickle.dumps(gp)), gp.copy()):
+        assert (other.n_points, other.lower) == (None, None)
+        assert_array_equal(other.prior_mean, gp.prior_mean)
+        other.update(0.5, 2.0, 0.01)
+        gp_next = gp.copy()
+        gp_next.update(0.5, 2.0, 0.01)
+        assert_array_equal(other.cov, gp_next.cov)
+        assert_array_equal(other.mean, gp_next.mean)
+    assert not np.array_equal(gp.mean, other.mean)
 
 
 def test_rgpekf_filterpy_saver():
@@ -301,7 +356,7 @@ def _saved(kind):
         def load(path):
             return GPMHE.load(path, LEARNED)
     else:
-        ekf = _rgpekf(False)
+        ekf = _rgpekf(False, "sparse" if kind == "RGPEKF[sparse]" else "grid")
         _rgp_run(ekf, 0, 3)
         ekf.save(buf)
 
@@ -310,7 +365,7 @@ def _saved(kind):
     return buf.getvalue(), load
 
 
-KINDS = ["GaussianProcess", "MultiOutputGP", "LearnedModel", "GPMHE", "RGPEKF"]
+KINDS = ["GaussianProcess", "MultiOutputGP", "LearnedModel", "GPMHE", "RGPEKF", "RGPEKF[sparse]"]
 
 
 def _entries(data):
@@ -370,7 +425,7 @@ def test_truncated_foreign_and_non_npz_files_raise(kind, tmp_path):
     np.save(npy, np.zeros(3))
     with pytest.raises(ValueError, match="array.npy"):
         load(npy)
-    other_kind = "RGPEKF" if kind != "RGPEKF" else "GPMHE"
+    other_kind = "GPMHE" if kind.startswith("RGPEKF") else "RGPEKF"
     other = tmp_path / "other.npz"
     other.write_bytes(_saved(other_kind)[0])
     with pytest.raises(ValueError, match="other.npz"):

@@ -147,6 +147,26 @@ class RecursiveGPCore:
         sigma_r: float,
         sigma_p: float,
     ) -> None: ...
+    @classmethod
+    def from_points(
+        cls,
+        points: npt.NDArray[np.float64],
+        sigma_k: float,
+        lengthscales: npt.NDArray[np.float64],
+        jitter: float,
+        prior_mean: npt.NDArray[np.float64] | None,
+        sigma_r: float,
+        sigma_p: float,
+    ) -> RecursiveGPCore:
+        """A fresh GP (weights N(0, K)) with basis vectors at `points` (m, n_X), SE-ARD kernel
+        (sigma_k, lengthscales in zeta units), exactly `jitter` on K's diagonal, the prior mean's
+        coefficients [b, w_1, ...] or None."""
+    @classmethod
+    def from_sparse(
+        cls, model: SparseMultiGP, output: int, sigma_r: float, sigma_p: float
+    ) -> RecursiveGPCore:
+        """The GP that predicts as output `output` of a fitted sparse GP: basis vectors at its
+        inducing inputs, its kernel, jitter and prior mean, weights N(mu_u, Sigma_u)."""
     def copy(self) -> RecursiveGPCore: ...
     def update(self, zeta: npt.NDArray[np.float64], y: float, var_y: float) -> float: ...
     def update_many(
@@ -172,8 +192,17 @@ class RecursiveGPCore:
     def kernel_matrix(self) -> npt.NDArray[np.float64]: ...
     @property
     def jitter(self) -> float: ...
-    # copies and pickles: a copy is independent; pickles as (constructor arguments, (mean,
-    # cov as stored)) and continues bit-identically
+    @property
+    def sigma_k(self) -> float: ...
+    @property
+    def lengthscales(self) -> npt.NDArray[np.float64]:
+        """The kernel's length-scales in zeta units."""
+    @property
+    def prior_mean(self) -> npt.NDArray[np.float64] | None: ...
+    @property
+    def is_grid(self) -> bool: ...
+    # copies and pickles: a copy is independent; pickles as (constructor or from_points,
+    # its arguments, (mean, cov as stored)) and continues bit-identically
     def __copy__(self) -> RecursiveGPCore: ...
     def __deepcopy__(self, memo: Any) -> RecursiveGPCore: ...
     def __reduce__(self) -> tuple[Any, ...]: ...

@@ -4,7 +4,9 @@ After Husmann, Weishaupt & Aschemann, "Direct Integration of Recursive Gaussian 
 Into Extended Kalman Filters" (§2, §3), building on Huber's recursive GP; see the user guide,
 *The RGP-dKF*. Two classes:
 
-* :class:`RecursiveGP` learns z(ζ) from direct noisy measurements of z on a grid of basis vectors.
+* :class:`RecursiveGP` learns z(ζ) from direct noisy measurements of z on a grid of basis vectors,
+  or continues from a sparse GP trained offline (``RecursiveGP.from_sparse``: its inducing inputs
+  become the basis vectors).
 * :class:`RGPEKF` estimates the state of x_{k+1} = f(x_k, u_k, z(ζ_k)), y_k = h(x_k) + v_k when z is
   *not* measured: the RGP's basis-vector weights are appended to the EKF state and learned from y.
 
@@ -21,7 +23,9 @@ from typing import Any, Callable, Sequence, Union
 
 import numpy as np
 
-from gpmhe._core import RecursiveGPCore, RGPEKFCore
+from gpmhe._core import NumericalError, RecursiveGPCore, RGPEKFCore
+from gpmhe.gp import GaussianProcess, MultiOutputGP
+from gpmhe.sparse import _SparseGP
 from gpmhe._validation import (
     MAX_ABS,
     boolean,
@@ -33,6 +37,9 @@ from gpmhe._validation import (
 )
 
 __all__ = ["RecursiveGP", "RGPEKF"]
+
+# Exact GPs, named in the message that refuses them in `RecursiveGP.from_sparse`.
+_ExactGPs = (GaussianProcess, MultiOutputGP)
 
 ArrayLike = Union[float, Sequence[float], np.ndarray]
 
@@ -53,6 +60,11 @@ class RecursiveGP:
 
         G = C Jᵀ / (σ_K² − J K Jᵀ + J C Jᵀ + σ_r² + var_y),  w̄ += G (y − J w̄),
         C −= G J C,  C += σ_p² I.
+
+    `from_sparse` builds instead a GP whose basis vectors are a fitted sparse GP's inducing inputs
+    (no grid; its SE-ARD kernel in ζ units) and whose weights are that GP's posterior: it predicts
+    exactly as the sparse GP, and learns on from there. A sparse GP's prior mean m(ζ) is then
+    added to the mean (J w̄ + m(ζ)) and subtracted from y in the update.
 
     Parameters
     ----------
@@ -81,21 +93,31 @@ class RecursiveGP:
     cov : ndarray of shape (n_basis, n_basis)
         Weights' covariance C (the paper's C_z).
     basis_vectors : ndarray of shape (n_basis, dim_zeta)
-        The basis vectors in ζ units (the first axis varies fastest).
+        The basis vectors in ζ units (the first axis varies fastest); a sparse GP's inducing
+        inputs for a GP from `from_sparse`.
     K : ndarray of shape (n_basis, n_basis)
-        The kernel matrix k(X, X) on the normalised grid.
+        The kernel matrix k(X, X) of the basis vectors (without jitter).
     jitter : float
-        Diagonal jitter that was needed to factor K (0 if none).
+        Diagonal jitter added to K to factor it (0 if none was needed; a sparse GP's own jitter
+        for a GP from `from_sparse`).
+    lengthscales : ndarray of shape (dim_zeta,)
+        The kernel's length-scales in ζ units, √L (upper − lower) / (N_i − 1) for a grid.
+    prior_mean : ndarray of shape (dim_zeta + 1,) or None
+        Coefficients [b, w_1, …] of the prior mean m(ζ) = b + wᵀζ added to every prediction:
+        None for a grid, a sparse GP's fitted mean for a GP from `from_sparse`.
     n_basis : int
-        Number of basis vectors Π N_i.
+        Number of basis vectors Π N_i (m for a GP from `from_sparse`).
     dim_zeta : int
         Input dimension.
-    lower, upper : ndarray of shape (dim_zeta,)
-        The grid's bounds.
-    n_points : tuple of int
-        Basis vectors per axis.
-    sigma_K, L, sigma_r, sigma_p : float
-        The hyperparameters, as given.
+    lower, upper : ndarray of shape (dim_zeta,) or None
+        The grid's bounds (None for a GP from `from_sparse`, which has no grid).
+    n_points : tuple of int or None
+        Basis vectors per axis (None for a GP from `from_sparse`).
+    sigma_K, sigma_r, sigma_p : float
+        The hyperparameters, as given (σ_K is the sparse GP's σ_f for a GP from `from_sparse`).
+    L : float or None
+        The squared length-scale in grid units, as given (None for a GP from `from_sparse`; see
+        ``lengthscales``).
 
     Raises
     ------
@@ -105,6 +127,7 @@ class RecursiveGP:
     See Also
     --------
     RGPEKF : Learns the weights from indirect measurements inside an EKF.
+    from_sparse : The recursive GP that predicts as a fitted sparse GP.
 
     Notes
     -----
@@ -173,6 +196,101 @@ class RecursiveGP:
         )
         self.n_basis = int(np.prod(self.n_points))
 
+    @classmethod
+    def from_sparse(cls, gp: Any, sigma_r: float = 0.0, sigma_p: float = 0.0,
+                    output: int = 0) -> "RecursiveGP":
+        """The recursive GP that predicts exactly as a fitted sparse GP.
+
+        The basis vectors are the sparse GP's inducing inputs Z, the kernel its SE-ARD kernel
+        (σ_K = σ_f, its length-scales, in ζ units, with its jitter on K = k(Z, Z)), and the
+        weights the posterior of the inducing outputs u = f(Z), N(μ_u, Σ_u) with
+        μ_u = K P⁻¹ K_uf Λ⁻¹ y and Σ_u = K P⁻¹ K (P = K + K_uf Λ⁻¹ K_fu, as in
+        `SparseGaussianProcess`). Then J = k(ζ, Z) K⁻¹ gives the sparse GP's mean J μ_u and
+        latent variance σ_f² − J K Jᵀ + J Σ_u Jᵀ, for VFE and FITC alike. A prior mean of the
+        sparse GP (``mean="constant"`` or ``"linear"``) is kept: it is added to every
+        prediction, and `update` learns the residual. The sparse GP is not modified.
+
+        Parameters
+        ----------
+        gp : SparseGaussianProcess or SparseMultiOutputGP
+            A fitted sparse GP whose inputs are ζ (n_d = dim_zeta).
+        sigma_r : float, default 0.0
+            Floor σ_r added to the prediction standard deviation (0 reproduces the sparse GP's
+            latent standard deviation).
+        sigma_p : float, default 0.0
+            Process noise σ_p of the weights, for learning on with `update` or in `RGPEKF`.
+        output : int, default 0
+            Which output of a `SparseMultiOutputGP` (0 for a `SparseGaussianProcess`).
+
+        Returns
+        -------
+        RecursiveGP
+            The recursive GP, with ``basis_vectors`` = Z, ``mean`` = μ_u and ``cov`` = Σ_u; it
+            has no grid (``lower``, ``upper``, ``n_points`` and ``L`` are None).
+
+        Raises
+        ------
+        ValueError
+            If ``gp`` is not a fitted sparse GP (an exact GP has no inducing points), ``output``
+            is out of range, or ``sigma_r`` or ``sigma_p`` is invalid.
+
+        See Also
+        --------
+        RGPEKF : Uses the GP as a fixed model (``pure_prediction=True``) or learns on.
+
+        Notes
+        -----
+        The sparse GP's noise σ_ε is not part of the recursive GP: pass ``var_y=gp.sigma_eps**2``
+        to `update` to learn on from measurements like the training data. For a FITC model
+        this continues FITC exactly: updating with new data gives the FITC posterior of all the
+        data (same θ and Z).
+
+        Examples
+        --------
+        Train a sparse GP offline, then predict with the recursive GP:
+
+        >>> import numpy as np
+        >>> from gpmhe import RecursiveGP, SparseGaussianProcess
+        >>> rng = np.random.default_rng(0)
+        >>> D = rng.uniform(-2.0, 2.0, (500, 1))
+        >>> sgp = SparseGaussianProcess(n_inducing=15).fit(D, np.sin(D[:, 0]) + 0.05 * rng.standard_normal(500))
+        >>> gp = RecursiveGP.from_sparse(sgp)
+        >>> bool(np.array_equal(gp.basis_vectors, sgp.inducing_points))
+        True
+        >>> mean, std = gp.predict([0.5, 1.0], return_std=True)
+        >>> mean_s, std_s = sgp.predict([[0.5], [1.0]], return_std=True)
+        >>> bool(np.allclose(mean, mean_s) and np.allclose(std, std_s))
+        True
+        """
+        if not isinstance(gp, _SparseGP):
+            got = type(gp).__name__
+            hint = (" (an exact GP has no inducing points: fit a SparseGaussianProcess, whose "
+                    "inducing points become the basis vectors)" if isinstance(gp, _ExactGPs) else "")
+            raise ValueError(f"gp: expected a fitted SparseGaussianProcess or SparseMultiOutputGP, "
+                             f"got {got}{hint}")
+        model = gp._core_model
+        if model is None:
+            raise ValueError(f"gp: the {type(gp).__name__} is not fitted; call fit first")
+        q = model.n_outputs
+        out = integer("output", output)
+        if out >= q:
+            raise ValueError(f"output: the sparse GP has {q} output(s), got {output!r}")
+        sigma_r = positive_scalar("sigma_r", sigma_r, allow_zero=True)
+        sigma_p = positive_scalar("sigma_p", sigma_p, allow_zero=True)
+        return cls._on_points(RecursiveGPCore.from_sparse(model, out, sigma_r, sigma_p), sigma_r,
+                              sigma_p)
+
+    @classmethod
+    def _on_points(cls, core: RecursiveGPCore, sigma_r: float, sigma_p: float) -> "RecursiveGP":
+        """The RecursiveGP around a core with basis vectors at given points."""
+        new = object.__new__(cls)
+        new.sigma_K, new.L = float(core.sigma_k), None
+        new.sigma_r, new.sigma_p = sigma_r, sigma_p
+        new.lower = new.upper = new.n_points = None
+        new._core = core
+        new.n_basis, new.dim_zeta = core.basis_vectors.shape
+        return new
+
     # -- state -------------------------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
@@ -195,7 +313,7 @@ class RecursiveGP:
         """The basis vectors in ζ units, shape (n_basis, dim_zeta).
 
         A grid spanning [lower, upper] with ``n_points`` per axis, the first axis varying
-        fastest.
+        fastest; a sparse GP's inducing inputs for a GP from `from_sparse`.
         """
         return self._core.basis_vectors
 
@@ -203,17 +321,36 @@ class RecursiveGP:
     def K(self) -> np.ndarray:
         """Kernel matrix k(X, X) of the basis vectors, shape (n_basis, n_basis).
 
-        Computed on the normalised (unit-spaced) grid; the prior covariance of the weights.
+        Without jitter; the prior covariance of the weights.
         """
         return self._core.kernel_matrix
 
     @property
     def jitter(self) -> float:
-        """Diagonal jitter that was needed to factor K.
+        """Diagonal jitter added to K to factor it.
 
-        0 unless K was numerically singular (e.g. a dense grid with a long length-scale).
+        0 unless K was numerically singular (e.g. a dense grid with a long length-scale); for a
+        GP from `from_sparse`, the sparse GP's own jitter.
         """
         return self._core.jitter
+
+    @property
+    def lengthscales(self) -> np.ndarray:
+        """The kernel's length-scales in ζ units, shape (dim_zeta,).
+
+        √L (upper − lower) / (N_i − 1) per axis for a grid; the sparse GP's for a GP from
+        `from_sparse`.
+        """
+        return self._core.lengthscales
+
+    @property
+    def prior_mean(self) -> np.ndarray | None:
+        """Coefficients [b, w_1, …, w_dim_zeta] of the prior mean m(ζ) = b + wᵀζ, or None.
+
+        Added to every prediction (the weights model z − m). None for a grid; a sparse GP's
+        fitted mean for a GP from `from_sparse` (None if it was fitted with ``mean="zero"``).
+        """
+        return self._core.prior_mean
 
     def set_weights(self, mean: ArrayLike, cov: ArrayLike) -> None:
         """Replace the weights' mean and covariance (e.g. from a previous run).
@@ -248,7 +385,7 @@ class RecursiveGP:
         self._core.set_weights(np.ascontiguousarray(m), c)
 
     def copy(self) -> "RecursiveGP":
-        """An independent copy (same grid, hyperparameters and current weights).
+        """An independent copy (same basis, hyperparameters and current weights).
 
         Returns
         -------
@@ -302,7 +439,8 @@ class RecursiveGP:
         Returns
         -------
         float or ndarray of shape (m,)
-            The prediction J w̄ at each input, made just before its own update.
+            The prediction J w̄ (+ m(ζ) with a ``prior_mean``) at each input, made just before
+            its own update.
 
         Raises
         ------
@@ -335,7 +473,7 @@ class RecursiveGP:
     def predict(
         self, zeta: ArrayLike, return_std: bool = False
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-        """Predict z at inputs ζ: mean J w̄ and optionally the standard deviation.
+        """Predict z at inputs ζ: mean J w̄ (+ m(ζ)) and optionally the standard deviation.
 
         Parameters
         ----------
@@ -369,6 +507,8 @@ class RecursiveGP:
     def J(self, zeta: ArrayLike) -> np.ndarray:
         """The inference row J = k(f_norm(ζ), X) K⁻¹ at one input.
 
+        (f_norm(ζ) = ζ for a GP from `from_sparse`.)
+
         Parameters
         ----------
         zeta : float or array_like of shape (dim_zeta,)
@@ -377,7 +517,7 @@ class RecursiveGP:
         Returns
         -------
         ndarray of shape (n_basis,)
-            J; the prediction's mean is J w̄.
+            J; the prediction's mean is J w̄ (+ m(ζ) with a ``prior_mean``).
 
         Examples
         --------
@@ -392,11 +532,65 @@ class RecursiveGP:
         return self._core.j_row(self._zeta_one(zeta))
 
     def __repr__(self) -> str:
+        if self.n_points is None:
+            mean = "" if self.prior_mean is None else ", prior_mean=" + str(self.prior_mean.tolist())
+            return (
+                f"RecursiveGP(points: n_basis={self.n_basis}, dim_zeta={self.dim_zeta}, "
+                f"sigma_K={self.sigma_K}, lengthscales={self.lengthscales.tolist()}, "
+                f"sigma_r={self.sigma_r}, sigma_p={self.sigma_p}{mean})"
+            )
         return (
             f"RecursiveGP(lower={self.lower.tolist()}, upper={self.upper.tolist()}, "
             f"n_points={list(self.n_points)}, sigma_K={self.sigma_K}, L={self.L}, "
             f"sigma_r={self.sigma_r}, sigma_p={self.sigma_p})"
         )
+
+
+def _gp_entries(prefix: str, g: RecursiveGP) -> dict:
+    """The checkpoint entries of one GP: its basis ("grid": the constructor's arguments;
+    "points": the arguments of ``RecursiveGPCore.from_points``) and its weights as stored."""
+    _, args, (mean, cov) = g._core.__reduce__()
+    entries = {prefix + "mean": mean, prefix + "cov": cov}
+    if g.n_points is not None:
+        entries.update({
+            prefix + "basis": "grid", prefix + "lower": g.lower, prefix + "upper": g.upper,
+            prefix + "n_points": np.asarray(g.n_points, dtype=np.int64),
+            prefix + "params": np.array([g.sigma_K, g.L, g.sigma_r, g.sigma_p])})
+        return entries
+    points, sigma_k, lengthscales, jitter, prior_mean, sigma_r, sigma_p = args
+    entries.update({
+        prefix + "basis": "points", prefix + "points": points,
+        prefix + "lengthscales": lengthscales,
+        prefix + "params": np.array([sigma_k, jitter, sigma_r, sigma_p]),
+        prefix + "has_prior_mean": prior_mean is not None,
+        prefix + "prior_mean": np.zeros(len(lengthscales) + 1) if prior_mean is None else prior_mean})
+    return entries
+
+
+def _gp_from_entries(fl: Any, prefix: str) -> RecursiveGP:
+    """The GP that `_gp_entries` saved under `prefix` in the open checkpoint `fl` (a
+    `gpmhe._npz.NpzReader`), with its weights exactly as they were."""
+    basis = fl.string(prefix + "basis") if fl.version >= 2 else "grid"
+    if basis not in ("grid", "points"):
+        raise fl.error(prefix + "basis", f"must be 'grid' or 'points', got {basis!r}")
+    params = fl.floats(prefix + "params", (4,))
+    try:
+        if basis == "grid":
+            g = RecursiveGP(fl.floats(prefix + "lower", (None,)), fl.floats(prefix + "upper", (None,)),
+                            [int(v) for v in fl.array(prefix + "n_points", "i", (None,))], *params)
+        else:
+            points = fl.floats(prefix + "points", (None, None))
+            prior_mean = fl.floats(prefix + "prior_mean", (points.shape[1] + 1,))
+            if not fl.boolean(prefix + "has_prior_mean"):
+                prior_mean = None
+            sigma_k, jitter, sigma_r, sigma_p = (float(v) for v in params)
+            core = RecursiveGPCore.from_points(points, sigma_k, fl.floats(prefix + "lengthscales", (None,)),
+                                               jitter, prior_mean, sigma_r, sigma_p)
+            g = RecursiveGP._on_points(core, sigma_r, sigma_p)
+        g._core.__setstate__((fl.floats(prefix + "mean", (None,)), fl.floats(prefix + "cov", (None, None))))
+    except (ValueError, NumericalError) as err:
+        raise ValueError(f"path: {fl.name}: entries '{prefix}*' do not make a RecursiveGP ({err})") from None
+    return g
 
 
 def _as_fn(name: str, value: Any, shape: tuple[int, ...]) -> Callable[..., np.ndarray] | np.ndarray:
@@ -430,7 +624,9 @@ class RGPEKF:
 
     With ``pure_prediction=True`` (paper §3.2) the GPs are fixed, trained models: their weights are
     not part of the state and each enters as a noisy input with variance
-    σ_K² − J K Jᵀ + J C_z Jᵀ + σ_r².
+    σ_K² − J K Jᵀ + J C_z Jᵀ + σ_r². A sparse GP trained offline serves as such a model, or as
+    the starting point of learning, through `RecursiveGP.from_sparse` (a prior mean m(ζ) of it is
+    added to μ_z^p).
 
     Parameters
     ----------
@@ -455,7 +651,8 @@ class RGPEKF:
     P0 : array_like of shape (n, n), or float (times I)
         Initial state covariance.
     gps : RecursiveGP or sequence of RecursiveGP
-        One GP per disturbance (the paper's "repeated implementation"); their grids, kernels, σ_r,
+        One GP per disturbance (the paper's "repeated implementation"); their basis vectors (a
+        grid, or a sparse GP's inducing inputs with `RecursiveGP.from_sparse`), kernels, σ_r,
         σ_p and *current* weights define the GP part. They are copied, not modified.
     learning : bool, default True
         True: variant 4a (learn the GP); False: variant 4b (states only). Can be changed any time.
@@ -900,7 +1097,9 @@ class RGPEKF:
     # (Copies and pickles need no code here: the Rust cores copy and pickle themselves with
     # their whole state; the user functions must be picklable to pickle the filter.)
 
-    _CHECKPOINT_VERSION = 1
+    # 2: GPs on given points (RecursiveGP.from_sparse): entry 'gp<i>_basis' says "grid" or
+    # "points" (files of version 1 hold grids only).
+    _CHECKPOINT_VERSION = 2
 
     def save(self, path: Any) -> None:
         """Write the filter's whole state (settings, GPs, μ, C, last innovation) to an ``.npz``
@@ -949,12 +1148,7 @@ class RGPEKF:
             if not callable(value):
                 entries[name] = value
         for i, g in enumerate(self.gps):
-            _, _, (mean, cov) = g._core.__reduce__()
-            entries.update({
-                f"gp{i}_lower": g.lower, f"gp{i}_upper": g.upper,
-                f"gp{i}_n_points": np.asarray(g.n_points, dtype=np.int64),
-                f"gp{i}_params": np.array([g.sigma_K, g.L, g.sigma_r, g.sigma_p]),
-                f"gp{i}_mean": mean, f"gp{i}_cov": cov})
+            entries.update(_gp_entries(f"gp{i}_", g))
         # (The core's copies of the constant Jacobians are the entries A, e, H.)
         entries.update({"core_" + k: v for k, v in self._core.__getstate__().items()
                         if not k.endswith("_const")})
@@ -1020,20 +1214,7 @@ class RGPEKF:
                         raise ValueError(f"{name}: the filter in {fl.name} took {name} as a "
                                          f"function; give it again")
                     given[name] = saved
-            gps = []
-            for i in range(fl.integer("n_gps", low=1)):
-                params = fl.floats(f"gp{i}_params", (4,))
-                try:
-                    g = RecursiveGP(fl.floats(f"gp{i}_lower", (None,)),
-                                    fl.floats(f"gp{i}_upper", (None,)),
-                                    [int(v) for v in fl.array(f"gp{i}_n_points", "i", (None,))],
-                                    *params)
-                    g._core.__setstate__((fl.floats(f"gp{i}_mean", (None,)),
-                                          fl.floats(f"gp{i}_cov", (None, None))))
-                except ValueError as err:
-                    raise ValueError(f"path: {fl.name}: entries 'gp{i}_*' do not make a "
-                                     f"RecursiveGP ({err})") from None
-                gps.append(g)
+            gps = [_gp_from_entries(fl, f"gp{i}_") for i in range(fl.integer("n_gps", low=1))]
             fl.allow_nonfinite = ("core_log_likelihood",)
             state = {"inferred": fl.boolean("core_inferred"),
                      "log_likelihood": fl.float("core_log_likelihood")}

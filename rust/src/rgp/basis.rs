@@ -1,6 +1,7 @@
-//! [`RgpBasis`]: the fixed part of one recursive GP (basis vectors on a unit grid, the kernel, the
-//! Cholesky factor of K = k(X, X)), the inference row J_k = k(X_k, X) K⁻¹ (two triangular solves,
-//! or one for whitened weights) and the changes to and from whitened coordinates.
+//! [`RgpBasis`]: the fixed part of one recursive GP (basis vectors on a unit grid, or at given
+//! points with `points.rs`; the kernel, the Cholesky factor of K = k(X, X), the optional prior
+//! mean), the inference row J_k = k(X_k, X) K⁻¹ (two triangular solves, or one for whitened
+//! weights) and the changes to and from whitened coordinates.
 
 use faer::linalg::solvers::Llt;
 use faer::{Mat, MatRef, Par, Side};
@@ -11,12 +12,25 @@ use crate::error::{check_finite, check_len, Error, Result};
 use crate::kernel::SeArd;
 use crate::linalg::{self, axpy, dot_lanes8, ReciprocalWithFloor};
 
-/// The fixed part of one recursive GP: grid, kernel, Cholesky factor of K, σ_r, σ_p.
+/// How the Cholesky factor of K gets its diagonal jitter.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Jitter {
+    /// None if K factors, else from 1e-12·σ_K² growing tenfold up to 1e-6·σ_K² (the grid's).
+    Search,
+    /// Exactly this jitter (a sparse GP's own, say); a `Numerical` error if K + jitter·I does
+    /// not factor.
+    Fixed(f64),
+}
+
+/// The fixed part of one recursive GP: basis vectors, kernel, Cholesky factor of K, σ_r, σ_p and
+/// the optional prior mean.
 #[derive(Debug, Clone)]
 pub struct RgpBasis {
+    /// The normalisation x = (ζ − lower) · scale (lower 0 and scale 1 for a points basis).
     pub(super) lower: Vec<f64>,
     /// (N_i − 1) / (upper_i − lower_i), eq. (6).
     pub(super) scale: Vec<f64>,
+    /// Basis vectors per axis of a grid; empty for a basis at given points.
     pub(super) n_points: Vec<usize>,
     /// Normalised basis vectors, row-major (n_b × n_X).
     pub(super) basis: Vec<f64>,
@@ -29,6 +43,8 @@ pub struct RgpBasis {
     pub(super) jitter: f64,
     pub(super) sigma_r2: f64,
     pub(super) sigma_p2: f64,
+    /// The prior mean m(ζ) = b + wᵀζ as [b, w_1, …, w_nX] (ζ units), if any (`points.rs`).
+    pub(super) prior_mean: Option<Vec<f64>>,
     /// Scratch: the normalised test input.
     pub(super) xk: Vec<f64>,
 }
@@ -47,36 +63,51 @@ impl RgpBasis {
     ) -> Result<Self> {
         let nx = lower.len();
         let nb = check_grid(lower, upper, n_points)?;
-        check_positive("sigma_K", sigma_k)?;
-        // σ_K² scales K and the jitter: it must be a normal float (1e200² overflows to inf,
-        // 1e-200² underflows to 0, and neither K nor its jitter would make sense).
-        if !(sigma_k * sigma_k).is_normal() {
-            return Err(Error::invalid(
-                "sigma_K",
-                format!("sigma_K² must be a finite, normal float, got sigma_K = {sigma_k:e}"),
-            ));
-        }
+        check_sigma_k(sigma_k)?;
         check_positive("L", l)?;
+        let kernel = SeArd::new(sigma_k, &vec![l.sqrt(); nx])?;
+        let scale = (0..nx)
+            .map(|i| (n_points[i] - 1) as f64 / (upper[i] - lower[i]))
+            .collect();
+        let layout = (lower.to_vec(), scale, n_points.to_vec());
+        Self::assemble(
+            layout,
+            unit_grid(n_points, nb),
+            kernel,
+            Jitter::Search,
+            sigma_r,
+            sigma_p,
+        )
+    }
+
+    /// The basis with normalisation (lower, scale, n_points) and normalised basis vectors
+    /// `basis`: checks σ_r, σ_p and the jitter, and factors K under the jitter policy.
+    pub(super) fn assemble(
+        (lower, scale, n_points): (Vec<f64>, Vec<f64>, Vec<usize>),
+        basis: Vec<f64>,
+        kernel: SeArd,
+        jitter: Jitter,
+        sigma_r: f64,
+        sigma_p: f64,
+    ) -> Result<Self> {
         check_nonneg("sigma_r", sigma_r)?;
         check_nonneg("sigma_p", sigma_p)?;
-        let kernel = SeArd::new(sigma_k, &vec![l.sqrt(); nx])?;
-        let basis = unit_grid(n_points, nb);
+        if let Jitter::Fixed(j) = jitter {
+            check_nonneg("jitter", j)?;
+        }
+        let nb = basis.len() / kernel.dim();
         let mut k = kernel.gram(&basis);
         let s2 = kernel.variance();
-        for c in 0..nb {
-            for v in k.col_as_slice_mut(c) {
-                if v.abs() < TINY_REL * s2 {
-                    *v = 0.0;
-                }
-            }
-        }
-        let (chol, jitter) = factor_with_jitter(&k, s2)?;
+        zero_below(&mut k, TINY_REL * s2);
+        let (chol, jitter) = match jitter {
+            Jitter::Search => factor_with_jitter(&k, s2)?,
+            Jitter::Fixed(j) => (factor_fixed(&k, s2, j)?, j),
+        };
         Ok(Self {
-            lower: lower.to_vec(),
-            scale: (0..nx)
-                .map(|i| (n_points[i] - 1) as f64 / (upper[i] - lower[i]))
-                .collect(),
-            n_points: n_points.to_vec(),
+            xk: vec![0.0; lower.len()],
+            lower,
+            scale,
+            n_points,
             basis,
             kernel,
             k,
@@ -85,7 +116,7 @@ impl RgpBasis {
             jitter,
             sigma_r2: sigma_r * sigma_r,
             sigma_p2: sigma_p * sigma_p,
-            xk: vec![0.0; nx],
+            prior_mean: None,
         })
     }
 
@@ -94,10 +125,12 @@ impl RgpBasis {
         self.lower.len()
     }
 
-    /// Checks that `zetas` holds finite row-major inputs of dimension n_X (an error naming
-    /// `zeta` otherwise) and returns how many.
+    /// Checks that `zetas` holds finite row-major inputs of dimension n_X at which the prior
+    /// mean (if any) is finite (an error naming `zeta` otherwise) and returns how many.
     pub fn count_inputs(&self, zetas: &[f64]) -> Result<usize> {
-        self.kernel.count_points("zeta", zetas)
+        let m = self.kernel.count_points("zeta", zetas)?;
+        self.check_prior_mean("zeta", zetas)?;
+        Ok(m)
     }
 
     /// Number of basis vectors n_b.
@@ -105,8 +138,28 @@ impl RgpBasis {
         self.basis.len() / self.dim()
     }
 
+    /// Basis vectors per axis of a grid (empty for a basis at given points).
     pub fn n_points(&self) -> &[usize] {
         &self.n_points
+    }
+
+    /// Whether the basis vectors form a grid ([`RgpBasis::new`]).
+    pub fn is_grid(&self) -> bool {
+        !self.n_points.is_empty()
+    }
+
+    /// The kernel on the normalised inputs (ζ units for a basis at given points).
+    pub fn kernel(&self) -> &SeArd {
+        &self.kernel
+    }
+
+    /// The kernel's length-scales in ζ units (a grid's √L / scale_i).
+    pub fn lengthscales_zeta(&self) -> Vec<f64> {
+        if !self.is_grid() {
+            return self.kernel.lengthscales().to_vec();
+        }
+        let ls = self.kernel.lengthscales();
+        ls.iter().zip(&self.scale).map(|(l, s)| l / s).collect()
     }
 
     /// σ_K².
@@ -208,14 +261,15 @@ impl RgpBasis {
         Mat::from_fn(n, n, |i, jj| 0.5 * (m[(i, jj)] + m[(jj, i)]))
     }
 
-    /// Checks one input ζ.
+    /// Checks one input ζ (finite, of dimension n_X, the prior mean finite there).
     pub fn check_zeta(&self, arg: &str, zeta: &[f64]) -> Result<()> {
         check_len(arg, zeta, self.dim())?;
-        check_finite(arg, zeta)
+        check_finite(arg, zeta)?;
+        self.check_prior_mean(arg, zeta)
     }
 
-    /// Mean and variance (σ_r² floor included) of the GP with weights (`mean`, `cov`) at the
-    /// row-major inputs `zetas`; `j` is scratch of length n_b. With `whitened`, `mean` and `cov`
+    /// Mean (prior mean included) and variance (σ_r² floor included) of the GP with weights
+    /// (`mean`, `cov`) at the row-major inputs `zetas` (checked with [`Self::check_inputs`]); `j` is scratch of length n_b. With `whitened`, `mean` and `cov`
     /// are in whitened coordinates (L⁻¹ w, L⁻¹ C L⁻ᵀ).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn predict_with(
@@ -236,11 +290,24 @@ impl RgpBasis {
             } else {
                 self.infer(z, j)
             };
-            mean_out[q] = dot_lanes8(j, mean);
+            mean_out[q] = dot_lanes8(j, mean) + self.prior_mean_at(z);
             let jcj = quad_form(cov, j);
             var_out[q] = (s2 - jkj).max(0.0) + jcj.max(0.0) + self.sigma_r2;
         }
     }
+}
+
+/// σ_K > 0 whose square is a normal float: σ_K² scales K and the jitter (1e200² overflows to inf,
+/// 1e-200² underflows to 0, and neither K nor its jitter would make sense).
+pub(super) fn check_sigma_k(sigma_k: f64) -> Result<()> {
+    check_positive("sigma_K", sigma_k)?;
+    if !(sigma_k * sigma_k).is_normal() {
+        return Err(Error::invalid(
+            "sigma_K",
+            format!("sigma_K² must be a finite, normal float, got sigma_K = {sigma_k:e}"),
+        ));
+    }
+    Ok(())
 }
 
 /// Checks the grid's arguments, naming the bad one, and returns the number of basis vectors.
@@ -305,7 +372,7 @@ fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
     let too_large = || {
         Error::numerical(format!(
             "the kernel matrix K of {nb} basis vectors is not positive definite even with \
-             jitter {:.1e}·σ_K²; use a smaller L or fewer basis vectors",
+             jitter {:.1e}·σ_K²; use a shorter length-scale (smaller L) or fewer basis vectors",
             MAX_REL_JITTER
         ))
     };
@@ -319,15 +386,7 @@ fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
         }
         if let Ok(llt) = Llt::new(kj.as_ref(), Side::Lower) {
             let mut l = llt.L().to_owned();
-            // see TINY_REL
-            let tiny = TINY_REL * s2.sqrt();
-            for c in 0..nb {
-                for v in l.col_as_slice_mut(c) {
-                    if v.abs() < tiny {
-                        *v = 0.0;
-                    }
-                }
-            }
+            zero_below(&mut l, TINY_REL * s2.sqrt());
             return Ok((l, jitter));
         }
         jitter = if jitter == 0.0 {
@@ -340,6 +399,36 @@ fn factor_with_jitter(k: &Mat<f64>, s2: f64) -> Result<(Mat<f64>, f64)> {
         }
     }
     Err(too_large())
+}
+
+/// The lower Cholesky factor of K + jitter·I (entries below TINY_REL·σ_K set to 0), a `Numerical`
+/// error if that is not positive definite.
+fn factor_fixed(k: &Mat<f64>, s2: f64, jitter: f64) -> Result<Mat<f64>> {
+    let mut kj = k.clone();
+    for i in 0..kj.nrows() {
+        kj[(i, i)] += jitter;
+    }
+    let llt = Llt::new(kj.as_ref(), Side::Lower).map_err(|_| {
+        Error::numerical(format!(
+            "the kernel matrix K of {} basis vectors plus the jitter {jitter:.3e} is not \
+             positive definite (duplicated basis vectors?)",
+            kj.nrows()
+        ))
+    })?;
+    let mut l = llt.L().to_owned();
+    zero_below(&mut l, TINY_REL * s2.sqrt());
+    Ok(l)
+}
+
+/// Sets the entries of `m` below `tiny` in magnitude to 0 (K and its factor: see TINY_REL).
+fn zero_below(m: &mut Mat<f64>, tiny: f64) {
+    for c in 0..m.ncols() {
+        for v in m.col_as_slice_mut(c) {
+            if v.abs() < tiny {
+                *v = 0.0;
+            }
+        }
+    }
 }
 
 /// The most factorisations [`factor_with_jitter`] tries (it needs 8 with MAX_REL_JITTER = 1e-6).

@@ -432,7 +432,8 @@ impl RgpEkf {
         }
     }
 
-    /// Mean and variance (σ_r² included) of GP `g` at the row-major inputs `zetas`.
+    /// Mean (prior mean included) and variance (σ_r² included) of GP `g` at the row-major
+    /// inputs `zetas`.
     pub fn gp_predict(&mut self, g: usize, zetas: &[f64]) -> Result<(Vec<f64>, Vec<f64>)> {
         if g >= self.gps.len() {
             return Err(Error::invalid(
@@ -467,8 +468,8 @@ impl RgpEkf {
         Ok((mu, var))
     }
 
-    /// Step 1 (16): J_k and μ_z^p = J_k μ_z for every GP at its input ζ_j (the inputs of all GPs
-    /// concatenated). Returns μ_z^p (one per disturbance). Must precede [`Self::predict`].
+    /// Step 1 (16): J_k and μ_z^p = J_k μ_z (+ m(ζ_j) for a GP with a prior mean) for every GP
+    /// at its input ζ_j (the inputs of all GPs concatenated). Returns μ_z^p (one per disturbance). Must precede [`Self::predict`].
     pub fn infer(&mut self, zetas: &[f64]) -> Result<&[f64]> {
         self.infer_dispatch(zetas)?;
         Ok(&self.mu_zp)
@@ -484,6 +485,12 @@ impl RgpEkf {
         check_len("zeta", zetas, total)?;
         check_finite("zeta", zetas)?;
         let mut zo = 0;
+        for g in &self.gps {
+            let nx = g.basis.dim();
+            g.basis.check_prior_mean("zeta", &zetas[zo..zo + nx])?;
+            zo += nx;
+        }
+        zo = 0;
         for g in 0..self.gps.len() {
             let (jo, nb, nx) = (
                 self.j_offsets[g],
@@ -499,14 +506,15 @@ impl RgpEkf {
             } else {
                 gp.basis.infer(&zetas[zo..zo + nx], j)
             };
+            let m = gp.basis.prior_mean_at(&zetas[zo..zo + nx]);
             zo += nx;
             let base = (gp.basis.sigma_k2() - jkj).max(0.0) + gp.basis.sigma_r2;
             if self.augmented {
                 let o = self.offsets[g];
-                self.mu_zp[g] = dot_lanes8(j, &self.mu[o..o + nb]);
+                self.mu_zp[g] = dot_lanes8(j, &self.mu[o..o + nb]) + m;
                 self.dvar[g] = base;
             } else {
-                self.mu_zp[g] = dot_lanes8(j, &gp.mean);
+                self.mu_zp[g] = dot_lanes8(j, &gp.mean) + m;
                 self.dvar[g] = base + quad_form(gp.cov.as_ref(), j).max(0.0);
             }
         }

@@ -4,7 +4,9 @@
 //!
 //! * [`RgpBasis`]: the fixed part of one RGP: basis vectors on a unit grid (eq. 5, 6), the kernel
 //!   σ_K² exp(−‖x − x'‖²/(2L)) as [`SeArd`] with all length-scales √L, and the Cholesky factor of
-//!   K = k(X, X), computed once. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step (one
+//!   K = k(X, X), computed once; or ([`RgpBasis::from_points`]) basis vectors at given points
+//!   with an SE-ARD kernel in ζ units, such as a sparse GP's inducing inputs
+//!   ([`Rgp::from_sparse`]), optionally with an affine prior mean. `J_k = k(X_k, X) K⁻¹` is two triangular solves per step (one
 //!   for the whitened weights of [`RgpEkf`]); K⁻¹ is never formed.
 //! * [`Rgp`]: Huber's recursive GP (inference eq. 3, update eq. 4 with process noise σ_p and the
 //!   prediction-variance floor σ_r²).
@@ -13,7 +15,8 @@
 //!   weights) or 4b (states only, as a Schmidt "consider" update). In pure-prediction mode (§3.2)
 //!   the weights are not part of the state: the trained GPs enter as noisy inputs.
 //!
-//! Files: `basis.rs` ([`RgpBasis`] and its triangular solves), `recursive.rs` ([`Rgp`]),
+//! Files: `basis.rs` ([`RgpBasis`] and its triangular solves), `points.rs` (bases at given
+//! points, the prior mean, [`Rgp::from_sparse`]), `recursive.rs` ([`Rgp`]),
 //! `ekf.rs` ([`RgpEkf`]), `dense.rs` (the small dense helpers of the filter: p × p Cholesky,
 //! rank-p downdate, quadratic form). The reductions and triangular solves of the kernels are in
 //! `crate::linalg` (AVX2 chosen at run time).
@@ -56,9 +59,10 @@ macro_rules! with_avx2 {
 mod basis;
 mod dense;
 mod ekf;
+mod points;
 mod recursive;
 
-pub use basis::RgpBasis;
+pub use basis::{Jitter, RgpBasis};
 pub use ekf::{RgpEkf, RgpEkfState};
 pub use recursive::Rgp;
 

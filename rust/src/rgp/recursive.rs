@@ -1,4 +1,4 @@
-//! [`Rgp`]: Huber's recursive GP on a grid of basis vectors, the weights' mean μ_z and covariance
+//! [`Rgp`]: Huber's recursive GP on fixed basis vectors, the weights' mean μ_z and covariance
 //! C_z, with inference (eq. 3), the update (eq. 4) with process noise σ_p and the
 //! prediction-variance floor σ_r², and batches of updates.
 
@@ -9,7 +9,8 @@ use super::{check_nonneg, RgpBasis};
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::linalg::dot_lanes8;
 
-/// Huber's recursive GP on a grid of basis vectors: weights' mean μ_z and covariance C_z.
+/// Huber's recursive GP on fixed basis vectors (a grid, or given points): weights' mean μ_z and
+/// covariance C_z.
 #[derive(Debug, Clone)]
 pub struct Rgp {
     pub(super) basis: RgpBasis,
@@ -86,7 +87,7 @@ impl Rgp {
         Ok(j)
     }
 
-    /// Mean and variance (σ_r² included) at the row-major inputs `zetas`.
+    /// Mean (prior mean included) and variance (σ_r² included) at the row-major inputs `zetas`.
     pub fn predict(&mut self, zetas: &[f64]) -> Result<(Vec<f64>, Vec<f64>)> {
         let m = self.basis.count_inputs(zetas)?;
         let (mut mu, mut var) = (vec![0.0; m], vec![0.0; m]);
@@ -102,8 +103,9 @@ impl Rgp {
     }
 
     /// One measurement y of the GP output at input ζ with noise variance `var_y` (eq. 3, 4):
-    /// G = C_z Jᵀ / (C^p + σ_r² + σ_y²), μ_z += G (y − J μ_z), C_z −= G J C_z, C_z += σ_p² I.
-    /// Returns the predicted mean J μ_z before the update. On error the state is unchanged.
+    /// G = C_z Jᵀ / (C^p + σ_r² + σ_y²), μ_z += G (y − m(ζ) − J μ_z), C_z −= G J C_z,
+    /// C_z += σ_p² I (m the prior mean, 0 without one). Returns the predicted mean
+    /// m(ζ) + J μ_z before the update. On error the state is unchanged.
     pub fn update(&mut self, zeta: &[f64], y: f64, var_y: f64) -> Result<f64> {
         with_avx2!(Rgp, self.update_impl(zeta: &[f64], y: f64, var_y: f64) -> Result<f64>)
     }
@@ -131,7 +133,7 @@ impl Rgp {
                 "innovation variance {s} is not positive (set var_y > 0 or sigma_r > 0)"
             )));
         }
-        let mu_p = dot_lanes8(&self.j, &self.mean);
+        let mu_p = dot_lanes8(&self.j, &self.mean) + self.basis.prior_mean_at(zeta);
         let innov = (y - mu_p) / s;
         for (m, g) in self.mean.iter_mut().zip(&self.g) {
             *m += g * innov;
@@ -160,6 +162,7 @@ impl Rgp {
         let (nx, m) = (self.basis.dim(), ys.len());
         check_len("zeta", zetas, m * nx)?;
         check_finite("zeta", zetas)?;
+        self.basis.check_prior_mean("zeta", zetas)?;
         check_finite("y", ys)?;
         if var_y.len() != 1 && var_y.len() != m {
             return Err(Error::invalid(

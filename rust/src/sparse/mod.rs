@@ -16,7 +16,9 @@
 //! point (`predict.rs`); the variance returns to σ_f² far from Z (DTC/SoR's would fall to 0).
 //! [`SparseMultiGp`] is q such GPs on shared training inputs, each with its own θ and Z: the
 //! sparse counterpart of [`crate::gp::MultiGp`], with the same prediction methods.
-//! `inducing.rs` chooses Z from the data by greedy conditional-variance selection.
+//! `inducing.rs` chooses Z from the data by greedy conditional-variance selection;
+//! `posterior.rs` gives the posterior of the inducing outputs u = f(Z), the weights of the
+//! equivalent recursive GP (`crate::rgp::Rgp::from_sparse`).
 //!
 //! **Jitter policy.** Kuu is factored as is if its Cholesky factorisation succeeds with every
 //! pivot L_ii² ≥ 10⁻¹¹ σ_f² (smaller pivots mean inducing points the others nearly determine, and
@@ -27,6 +29,7 @@
 
 mod inducing;
 mod objective;
+mod posterior;
 mod predict;
 
 use std::sync::Arc;
