@@ -129,16 +129,11 @@ mod tests {
     use super::*;
     use crate::sparse::{SparseMethod, SparseWorkspace};
 
-    /// Deterministic pseudo-random numbers in [lo, hi) (LCG).
+    /// Deterministic pseudo-random numbers in [lo, hi) (the crate's test LCG).
     fn uniform(n: usize, lo: f64, hi: f64, seed: u64) -> Vec<f64> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                lo + (hi - lo) * ((s >> 11) as f64 / (1u64 << 53) as f64)
-            })
+        crate::linalg::test_data(n, seed)
+            .into_iter()
+            .map(|v| lo + (hi - lo) * (v + 0.5))
             .collect()
     }
 
