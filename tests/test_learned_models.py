@@ -1,7 +1,8 @@
 """Learned models: prior means (against scikit-learn and a numpy formula), hyperpriors (against a
-direct computation of the MAP objective), fit diagnostics (the collapse warning fires on a
-collapsed fit and not on a good one), nominal model plus GP residual (against f0 + m(d) and its
-Jacobian; with the true f0 the residual is ~0 and the estimates match the exact-model MHE), and
+direct computation of the MAP objective; the named "residual" prior), fit diagnostics (the
+collapse warning fires on a collapsed fit and not on a good one), nominal model plus GP residual
+(against f0 + m(d) and its Jacobian; with the true f0 the residual is ~0 and the estimates match
+the exact-model MHE; the residual defaults carry a correction beyond the training data), and
 training from logs with missing samples and subsampling."""
 
 import io
@@ -119,6 +120,21 @@ def test_hyperprior_keeps_the_reactor_fits_off_the_bounds():
         assert dg.warnings == [] and dg.sigma_f < 1.0
 
 
+def test_named_residual_hyperprior_is_its_dict_and_survives_save_load():
+    spec = {"sigma_f": (0.1, 1.5), "lengthscales": (10.0, 1.5), "sigma_eps": (1.0, 1.5)}
+    named = GaussianProcess(normalize=True, hyperprior="residual", n_restarts=2, random_state=0).fit(D1, Y1)
+    given = GaussianProcess(normalize=True, hyperprior=spec, n_restarts=2, random_state=0).fit(D1, Y1)
+    default = GaussianProcess(normalize=True, hyperprior="default", n_restarts=2, random_state=0).fit(D1, Y1)
+    np.testing.assert_array_equal(named.theta, given.theta)
+    assert not np.allclose(named.theta, default.theta, atol=1e-3)  # a different prior, a different fit
+    buf = io.BytesIO()
+    named.save(buf)
+    buf.seek(0)
+    loaded = GaussianProcess.load(buf)
+    assert loaded.hyperprior == "residual"
+    np.testing.assert_array_equal(loaded.predict(D1[:5]), named.predict(D1[:5]))
+
+
 def test_bad_prior_options_are_refused_naming_the_argument():
     for kwargs, name in (({"mean": "quadratic"}, "mean"), ({"normalize": 1}, "normalize"),
                          ({"hyperprior": "flat"}, "hyperprior"),
@@ -198,6 +214,10 @@ def test_with_the_true_f0_the_residual_is_near_zero_and_estimates_match_the_exac
     resid_f = model.f_gp.predict(grid)
     assert np.max(np.abs(resid_f)) < 1e-2  # below the 1e-2 noise on the training states
     x_true, y = br.simulate(br.X_TRUE0, 40, np.random.default_rng(5))
+    # Along the run (x2 below the training data's range) the residuals fitted to pure noise stay
+    # small too: below a tenth of the 0.1 output noise for h.
+    assert np.max(np.abs(model.f_gp.predict(x_true))) < 1e-2
+    assert np.max(np.abs(model.h_gp.predict(x_true))) < 1e-2
     est = {name: GPMHE(m, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
            for name, m in (("residual", model), ("exact", reactor_known_model(True)))}
     xs = {name: [] for name in est}
@@ -209,6 +229,46 @@ def test_with_the_true_f0_the_residual_is_near_zero_and_estimates_match_the_exac
     diff = np.sqrt(np.mean(np.sum((np.array(xs["residual"]) - np.array(xs["exact"]))[late] ** 2, axis=1)))
     err = np.sqrt(np.mean(np.sum((np.array(xs["exact"]) - x_true[:40])[late] ** 2, axis=1)))
     assert diff < 0.3 * err, (diff, err)  # the two estimators differ far less than they err
+
+
+def test_a_nominal_model_switches_the_defaults_to_the_residual_settings():
+    states, outputs = br.training_data(3, rng=np.random.default_rng(2))
+    fit = dict(optimizer=None, warn=False)
+    residual = LearnedModel.from_trajectories(states, outputs, f_nominal=_f0_batch,
+                                              nominal_options={"vectorized": True}, **fit)
+    alone = LearnedModel.from_trajectories(states, outputs, **fit)
+    told = LearnedModel.from_trajectories(states, outputs, f_nominal=_f0_batch, hyperprior="default",
+                                          mean="linear", nominal_options={"vectorized": True}, **fit)
+    for gp in (residual.f_gp, residual.h_gp):
+        assert (gp.mean, gp.normalize, gp.hyperprior) == ("zero", True, "residual")
+    for gp in (alone.f_gp, alone.h_gp):
+        assert (gp.mean, gp.normalize, gp.hyperprior) == ("linear", True, "default")
+    assert (told.f_gp.mean, told.f_gp.hyperprior) == ("linear", "default")  # options win
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_residual_defaults_carry_the_correction_to_where_the_estimator_runs(seed):
+    """The reactor's training data have x2 >= 3, a run from [3, 1] has x2 < 2.5 for its first 30
+    steps. The residual of the k1-off model depends on x1 only: with the residual defaults the
+    GP carries it there (long length-scale in x2), with the full model's hyperprior it fades
+    back to the nominal model's error within a spread of the data."""
+    states, outputs = br.training_data(3, rng=np.random.default_rng(seed))
+    kw = dict(f_nominal=_f0_batch, h_nominal=br.h_batch, nominal_options={"vectorized": True},
+              random_state=0, warn=False)
+    residual = LearnedModel.from_trajectories(states, outputs, **kw)
+    default = LearnedModel.from_trajectories(states, outputs, hyperprior="default", **kw)
+    x, _ = br.simulate(br.X_TRUE0, 30, np.random.default_rng(100 + seed))
+    P = x[:30]
+    assert np.max(P[:, 1]) < np.min(np.vstack(states)[:, 1])  # outside the data
+
+    def one_step_rmse(mean):
+        return np.sqrt(np.mean((mean - br.f_batch(P)) ** 2))
+
+    e_res, e_def = (one_step_rmse(m.stage_eval(P)[0]) for m in (residual, default))
+    e_nom = one_step_rmse(_f0_batch(P, None))
+    assert e_res < 0.9 * e_def and e_res < 0.8 * e_nom, (e_res, e_def, e_nom)
+    ls = residual.f_gp.lengthscales[0]  # the x1-residual's length-scales: short in x1, long in x2
+    assert ls[1] > 2 * ls[0], ls
 
 
 def test_nominal_options_are_checked_and_save_needs_the_nominal():

@@ -20,6 +20,21 @@ MEANS = ("zero", "constant", "linear")
 #: factor e^1.5 ≈ 4.5 per standard deviation.
 DEFAULT_HYPERPRIOR = {"sigma_f": (1.0, 1.5), "lengthscales": (1.0, 1.5), "sigma_eps": (0.1, 1.5)}
 
+#: The ``hyperprior="residual"`` priors, for the residual of a nominal model (the default of
+#: `gpmhe.LearnedModel.from_trajectories` with ``f_nominal`` or ``h_nominal``): what a nominal
+#: model misses (a wrong parameter, a missing term) is assumed to be of unknown and often small
+#: size next to the noise, and smooth over the whole operating range. So sigma_f about a tenth of
+#: the targets' spread and sigma_eps about all of it (the reverse of "default", which assumes the
+#: targets are mostly signal), and length-scales about 10 spreads of the inputs, so that the GP
+#: carries its correction beyond the training data rather than falling back to the nominal model
+#: within a spread of them, and can leave out an input the residual does not depend on. Data
+#: that need a larger signal or shorter length-scales still get them. The user guide, *Learned
+#: models*, has the measurements.
+RESIDUAL_HYPERPRIOR = {"sigma_f": (0.1, 1.5), "lengthscales": (10.0, 1.5), "sigma_eps": (1.0, 1.5)}
+
+#: The named hyperpriors.
+NAMED_HYPERPRIORS = {"default": DEFAULT_HYPERPRIOR, "residual": RESIDUAL_HYPERPRIOR}
+
 
 # ----------------------------------------------------------------------------- prior mean
 
@@ -74,12 +89,12 @@ def log_scales(normalize: bool, D: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 
 def check_hyperprior(value: Any) -> Any:
-    """None, "default" or a dict of (median > 0, log-sd > 0) pairs for some of sigma_f,
-    lengthscales (a pair, or a median per input with one log-sd) and sigma_eps."""
-    if value is None or (isinstance(value, str) and value == "default"):
+    """None, "default", "residual" or a dict of (median > 0, log-sd > 0) pairs for some of
+    sigma_f, lengthscales (a pair, or a median per input with one log-sd) and sigma_eps."""
+    if value is None or (isinstance(value, str) and value in NAMED_HYPERPRIORS):
         return value
     if not isinstance(value, dict):
-        raise ValueError(f'hyperprior: must be None, "default" or a dict, got {value!r}')
+        raise ValueError(f'hyperprior: must be None, "default", "residual" or a dict, got {value!r}')
     for key, pair in value.items():
         if key not in DEFAULT_HYPERPRIOR:
             raise ValueError(f"hyperprior: unknown key {key!r} (expected sigma_f, lengthscales, sigma_eps)")
@@ -108,7 +123,7 @@ def prior_rows(hyperprior: Any, nd: int) -> Optional[Tuple[np.ndarray, np.ndarra
     None without a prior; a key the dict omits has no prior (sd = inf)."""
     if hyperprior is None:
         return None
-    spec = DEFAULT_HYPERPRIOR if isinstance(hyperprior, str) else hyperprior
+    spec = NAMED_HYPERPRIORS[hyperprior] if isinstance(hyperprior, str) else hyperprior
     mu, sd = np.zeros(nd + 2), np.full(nd + 2, np.inf)
     for key, cols in (("sigma_f", slice(0, 1)), ("lengthscales", slice(1, nd + 1)), ("sigma_eps", slice(nd + 1, nd + 2))):
         if key in spec:

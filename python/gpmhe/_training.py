@@ -13,6 +13,11 @@ from gpmhe._validation import float_array, integer
 #: *Learned models*, gives the measurements behind them).
 LEARNED_DEFAULTS = dict(mean="linear", normalize=True, hyperprior="default")
 
+#: Its settings with a nominal model (f_nominal or h_nominal): the nominal model is the prior
+#: mean, and the residual is assumed small next to the noise and smooth over the operating range
+#: (`gpmhe._priors`, ``RESIDUAL_HYPERPRIOR``).
+RESIDUAL_DEFAULTS = dict(mean="zero", normalize=True, hyperprior="residual")
+
 
 def first_trajectory(name, value):
     """The first trajectory of a list of them (or the one (T+1, k) array given) as a float64

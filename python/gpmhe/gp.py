@@ -929,12 +929,14 @@ class GaussianProcess(_ExactGP):
         Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
         relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
         y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
-    hyperprior : None, "default" or dict, default None
+    hyperprior : None, "default", "residual" or dict, default None
         Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
         likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
         ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
-        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5), meant
-        for ``normalize=True``. None: maximum likelihood.
+        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5);
+        "residual" (for the residual of a nominal model: small, smooth) is sigma_f ~ (0.1, 1.5),
+        lengthscales ~ (10, 1.5), sigma_eps ~ (1, 1.5); both are meant for ``normalize=True``.
+        None: maximum likelihood.
 
     Attributes
     ----------
@@ -1143,12 +1145,14 @@ class MultiOutputGP(_ExactGP):
         Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
         relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
         y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
-    hyperprior : None, "default" or dict, default None
+    hyperprior : None, "default", "residual" or dict, default None
         Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
         likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
         ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
-        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5), meant
-        for ``normalize=True``. None: maximum likelihood.
+        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5);
+        "residual" (for the residual of a nominal model: small, smooth) is sigma_f ~ (0.1, 1.5),
+        lengthscales ~ (10, 1.5), sigma_eps ~ (1, 1.5); both are meant for ``normalize=True``.
+        None: maximum likelihood.
 
     Attributes
     ----------

@@ -738,10 +738,15 @@ class LearnedModel(_SharedOnCopy):
         The f-GPs regress x(t+1) (minus the nominal f0(x(t), u(t)), or minus x(t) with
         ``f_residual``) on d(t) = [x(t); u(t)], the h-GPs y(t) (minus h0) on d(t), over all
         trajectories. Unless ``gp_options`` say otherwise the GPs have a linear prior mean fitted
-        by least squares (a zero one with a nominal model, which is then the prior mean),
-        standardised bounds and the default log-normal hyperprior (``mean="linear",
-        normalize=True, hyperprior="default"``); ``mean="zero", normalize=False,
-        hyperprior=None`` is the paper's model. The user guide, *Learned models*, compares them.
+        by least squares, standardised bounds and the default log-normal hyperprior
+        (``mean="linear", normalize=True, hyperprior="default"``); ``mean="zero",
+        normalize=False, hyperprior=None`` is the paper's model. With a nominal model the
+        defaults are ``mean="zero", normalize=True, hyperprior="residual"``: the nominal model is
+        the prior mean, and the residual is assumed small next to the noise and smooth over the
+        operating range (length-scales of about 10 standard deviations of the data unless the
+        data say otherwise), so that its correction carries beyond the training data and an
+        exact nominal model is left nearly unchanged. The user guide, *Learned models*,
+        compares them.
 
         Parameters
         ----------
@@ -828,9 +833,8 @@ class LearnedModel(_SharedOnCopy):
             MultiOutputGP = SparseMultiOutputGP  # noqa: N806 (the class both GPs are built with)
         f_residual, warn = boolean("f_residual", f_residual), boolean("warn", warn)
         max_points = _training.check_max_points(max_points)
-        defaults = dict(_training.LEARNED_DEFAULTS)
-        if f_nominal is not None or h_nominal is not None:
-            defaults["mean"] = "zero"  # the nominal model is the prior mean
+        has_nominal = f_nominal is not None or h_nominal is not None
+        defaults = _training.RESIDUAL_DEFAULTS if has_nominal else _training.LEARNED_DEFAULTS
         gp_options = {**defaults, **gp_options}
         try:
             MultiOutputGP(**gp_options)  # the options' own checks, before any fit
