@@ -887,7 +887,7 @@ impl MultiGp {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A single GP as the one-output case of `MultiGp` (the only prediction interface).
@@ -896,8 +896,8 @@ mod tests {
     }
     use nalgebra::{DMatrix, DVector};
 
-    /// A deterministic pseudo-random data set (LCG), N points in n_d dimensions.
-    fn data(n: usize, nd: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
+    /// A deterministic pseudo-random data set (LCG), N points in n_d dimensions in [-2, 2).
+    pub(crate) fn data(n: usize, nd: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
         let mut s = seed;
         let mut r = || {
             s = s
@@ -913,7 +913,7 @@ mod tests {
         (x, y)
     }
 
-    fn theta(nd: usize) -> Vec<f64> {
+    pub(crate) fn theta(nd: usize) -> Vec<f64> {
         let mut t = vec![1.3f64.ln()];
         t.extend((0..nd).map(|l| (0.7 + 0.4 * l as f64).ln()));
         t.push(0.1f64.ln());

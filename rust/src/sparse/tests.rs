@@ -4,31 +4,8 @@
 use nalgebra::{DMatrix, DVector};
 
 use super::*;
+use crate::gp::tests::{data, theta};
 use crate::gp::{GpWorkspace, MultiGp};
-
-/// A deterministic pseudo-random data set (LCG), N points in n_d dimensions in [-2, 2).
-fn data(n: usize, nd: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
-    let mut s = seed;
-    let mut r = || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((s >> 11) as f64 / (1u64 << 53) as f64) * 4.0 - 2.0
-    };
-    let x: Vec<f64> = (0..n * nd).map(|_| r()).collect();
-    let y = x
-        .chunks_exact(nd)
-        .map(|p| p.iter().map(|v| v.sin()).sum::<f64>() + 0.05 * r())
-        .collect();
-    (x, y)
-}
-
-fn theta(nd: usize) -> Vec<f64> {
-    let mut t = vec![1.3f64.ln()];
-    t.extend((0..nd).map(|l| (0.7 + 0.4 * l as f64).ln()));
-    t.push(0.1f64.ln());
-    t
-}
 
 const METHODS: [SparseMethod; 2] = [SparseMethod::Vfe, SparseMethod::Fitc];
 
