@@ -849,6 +849,26 @@ dvar_dd : ndarray of shape (k, q, n_d)
 }
 
 
+#: The prior-mean, scaling and hyperprior parameters both GP classes take (and the sparse ones
+#: by reference), written once: `_documented` puts them in place of ``%PRIOR_PARAMETERS%``.
+_PRIOR_PARAMETERS = """mean : {"zero", "constant", "linear"}, default "zero"
+    Prior mean m(d): zero (the paper's model and scikit-learn's), the targets' mean, or
+    b + w·d fitted by least squares; fitted first, then the GP regresses y − m(d) and
+    every prediction adds m(d) (and w to the gradients).
+normalize : bool, default False
+    Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
+    relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
+    y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
+hyperprior : None, "default", "residual" or dict, default None
+    Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
+    likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
+    ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
+    "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5);
+    "residual" (for the residual of a nominal model: small, smooth) is sigma_f ~ (0.1, 1.5),
+    lengthscales ~ (10, 1.5), sigma_eps ~ (1, 1.5); both are meant for ``normalize=True``.
+    None: maximum likelihood."""
+
+
 def _documented(which: int) -> Any:
     """Class decorator: gives the class its own copy of each `_ExactGP` method and property in
     ``_DOCS`` (or keeps the one it defines), its docstring filled in with text ``which`` of each
@@ -865,6 +885,7 @@ def _documented(which: int) -> Any:
 
     def decorate(cls: type) -> type:
         cls.__init__ = own_copy(cls, _ExactGP.__init__, None)
+        cls.__doc__ = cls.__doc__.replace("%PRIOR_PARAMETERS%", _PRIOR_PARAMETERS.replace("\n", "\n    "))
         fields = {key: texts[which] for key, texts in _DOC_FIELDS.items()}
         for name, template in _DOCS.items():
             doc = template.format(**fields)
@@ -921,22 +942,7 @@ class GaussianProcess(_ExactGP):
         Seed of the random restart points (only used when ``n_restarts`` > 0).
     maxiter : int, default 15000
         Iteration limit of each L-BFGS-B run.
-    mean : {"zero", "constant", "linear"}, default "zero"
-        Prior mean m(d): zero (the paper's model and scikit-learn's), the targets' mean, or
-        b + w·d fitted by least squares; fitted first, then the GP regresses y − m(d) and
-        every prediction adds m(d) (and w to the gradients).
-    normalize : bool, default False
-        Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
-        relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
-        y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
-    hyperprior : None, "default", "residual" or dict, default None
-        Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
-        likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
-        ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
-        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5);
-        "residual" (for the residual of a nominal model: small, smooth) is sigma_f ~ (0.1, 1.5),
-        lengthscales ~ (10, 1.5), sigma_eps ~ (1, 1.5); both are meant for ``normalize=True``.
-        None: maximum likelihood.
+    %PRIOR_PARAMETERS%
 
     Attributes
     ----------
@@ -1137,22 +1143,7 @@ class MultiOutputGP(_ExactGP):
         Seed of the restart points (one generator shared by all outputs).
     maxiter : int, default 15000
         Iteration limit of each L-BFGS-B run.
-    mean : {"zero", "constant", "linear"}, default "zero"
-        Prior mean m(d): zero (the paper's model and scikit-learn's), the targets' mean, or
-        b + w·d fitted by least squares; fitted first, then the GP regresses y − m(d) and
-        every prediction adds m(d) (and w to the gradients).
-    normalize : bool, default False
-        Whether ``bounds`` and ``hyperprior`` are in units of the data's spread: length-scales
-        relative to each input's standard deviation, sigma_f and sigma_eps relative to that of
-        y − m(d). The hyperparameters themselves (initial and fitted) stay in natural units.
-    hyperprior : None, "default", "residual" or dict, default None
-        Log-normal priors on sigma_f, the length-scales and sigma_eps, added to the log marginal
-        likelihood the optimiser maximises (a MAP fit). A dict maps any of ``"sigma_f"``,
-        ``"lengthscales"``, ``"sigma_eps"`` to (median, standard deviation of the log);
-        "default" is sigma_f ~ (1, 1.5), lengthscales ~ (1, 1.5), sigma_eps ~ (0.1, 1.5);
-        "residual" (for the residual of a nominal model: small, smooth) is sigma_f ~ (0.1, 1.5),
-        lengthscales ~ (10, 1.5), sigma_eps ~ (1, 1.5); both are meant for ``normalize=True``.
-        None: maximum likelihood.
+    %PRIOR_PARAMETERS%
 
     Attributes
     ----------
