@@ -95,7 +95,10 @@ def test_window_rejects_bad_data_and_keeps_the_previous_window():
     with pytest.raises(ValueError, match="Q0"):
         model._make_window(0.9, np.array([1.0, -1.0]), np.ones(2), np.eye(2), False)
     with pytest.raises(ValueError, match="eta"):
-        model._make_window(1.0, np.ones(2), np.ones(2), np.eye(2), False)
+        model._make_window(1.5, np.ones(2), np.ones(2), np.eye(2), False)
+    with pytest.raises(ValueError, match="y"):
+        win.set_data(np.zeros((3, 1)), np.full((3, 2), np.inf), [True] * 3, np.zeros(2))
+    assert win.n_nodes == 3
 
 
 def test_callback_errors_propagate():

@@ -112,7 +112,7 @@ pub struct EstimatorBank<M> {
 
 impl<M: Clone + ModelState> EstimatorBank<M> {
     /// One estimator per entry of `settings`, each with `template`'s horizon, weights η, P2,
-    /// form and solver settings (its history is not used) and a clone of `model`.
+    /// form, arrival cost and solver settings (its history is not used) and a clone of `model`.
     pub fn new(template: &MovingHorizon, model: &M, settings: &[MemberSettings]) -> Result<Self> {
         if settings.is_empty() {
             return Err(Error::invalid("n", "must be at least 1"));
@@ -132,7 +132,7 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
                     p.p2_sqrt(),
                     p.form(),
                 )?;
-                let estimator = MovingHorizon::new(
+                let mut estimator = MovingHorizon::new(
                     problem,
                     horizon,
                     &s.x0,
@@ -140,6 +140,7 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
                     &s.upper,
                     template.options().clone(),
                 )?;
+                estimator.set_arrival(template.arrival());
                 Ok(Member {
                     estimator,
                     model: model.clone(),

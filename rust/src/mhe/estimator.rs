@@ -9,6 +9,7 @@
 //! [`MovingHorizon::evaluate`] evaluates the staged window at any z, and
 //! [`MovingHorizon::commit`] records a solution.
 
+use super::arrival::{ekf_step, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
 use super::lsq::WindowLsq;
 use super::problem::{Form, WindowEval, WindowProblem};
@@ -55,6 +56,8 @@ pub struct MovingHorizon {
     staged: Option<WindowData>,
     /// Whether the problem holds a window (staged, or set by `set_window`).
     has_window: bool,
+    /// The arrival cost's mean and weight (`arrival.rs`).
+    arrival: Arrival,
 }
 
 impl MovingHorizon {
@@ -92,6 +95,8 @@ impl MovingHorizon {
             (0..n).map(|a| lower[a] + INNER_MARGIN * width(a)).collect(),
             (0..n).map(|a| upper[a] - INNER_MARGIN * width(a)).collect(),
         );
+        let mut history = history;
+        history.set_arrival_sqrt(problem.p2_sqrt().to_vec());
         Ok(Self {
             problem,
             eval: WindowEval::default(),
@@ -105,12 +110,66 @@ impl MovingHorizon {
             opts,
             staged: None,
             has_window: false,
+            arrival: Arrival::default(),
         })
     }
 
-    /// Forgets every step: t = 0, x̂(0) = x0.
+    /// The arrival cost settings.
+    pub fn arrival(&self) -> Arrival {
+        self.arrival
+    }
+
+    /// Sets the arrival cost; takes effect from the next window (the EKF weight recursion
+    /// starts from the current arrival weight).
+    pub fn set_arrival(&mut self, arrival: Arrival) {
+        self.arrival = arrival;
+    }
+
+    /// Replaces η, Q0, R0 and P2 (see [`WindowProblem::set_weights`]) from the next window on;
+    /// P2 also becomes the arrival weight of the next window (restarting the EKF recursion).
+    /// Drops any staged window. On error nothing changes.
+    pub fn set_weights(&mut self, eta: f64, q0: &[f64], r0: &[f64], p2_sqrt: &[f64]) -> Result<()> {
+        self.problem.set_weights(eta, q0, r0, p2_sqrt)?;
+        self.history.set_arrival_sqrt(p2_sqrt.to_vec());
+        self.staged = None;
+        self.has_window = false;
+        self.evaluated_at.clear();
+        Ok(())
+    }
+
+    /// Replaces u(t − 1), the input of the last update (given as a placeholder when u(t) was not
+    /// known yet in the filtering form). With the paper's arrival mean in the filtering form the
+    /// newest arrival prior m_x(x̂(t−1), u(t−1)) is recomputed with it. On error nothing
+    /// changes.
+    pub fn set_last_input(&mut self, model: &mut dyn StageModel, u: &[f64]) -> Result<()> {
+        let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
+        check_len("u", u, m)?;
+        check_finite("u", u)?;
+        if self.history.t() == 0 {
+            return Err(Error::invalid("u", "no update recorded yet"));
+        }
+        let mut prior = None;
+        if self.problem.form() == Form::Filtering && self.arrival.mean == ArrivalMean::Estimate {
+            let (window, _) = self.history.x_window();
+            let mut out = vec![0.0; n];
+            model.predict_state(&window[window.len() - n..], u, &mut out)?;
+            check_finite("u", &out)
+                .map_err(|_| Error::numerical("the model's prediction with u is not finite"))?;
+            prior = Some(out);
+        }
+        self.history.set_last_input(u);
+        if let Some(prior) = prior {
+            self.history.set_newest_prior(&prior);
+        }
+        self.staged = None;
+        Ok(())
+    }
+
+    /// Forgets every step: t = 0, x̂(0) = x0, arrival weight P2.
     pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
         self.history.reset(x0)?;
+        self.history
+            .set_arrival_sqrt(self.problem.p2_sqrt().to_vec());
         self.staged = None;
         self.has_window = false;
         self.evaluated_at.clear();
@@ -231,6 +290,11 @@ impl MovingHorizon {
         let data = self.history.next_window(u, y)?;
         self.problem
             .set_data(&data.u, &data.y, &data.present, &data.x_prior)?;
+        let weight = match self.arrival.weight {
+            ArrivalWeight::Constant => self.problem.p2_sqrt().to_vec(),
+            ArrivalWeight::Ekf => self.history.arrival_sqrt().to_vec(),
+        };
+        self.problem.set_prior_weight(&weight)?;
         self.evaluated_at.clear();
         let z0 = self.warm_start(model, &data)?;
         let n = self.problem.dim_x();
@@ -292,14 +356,15 @@ impl MovingHorizon {
     }
 
     /// Records the staged window's solution z (nodes × n): the next arrival prior is the new
-    /// estimate (prediction form) or its one-step prediction m_x(x̄_t, u(t)) (filtering form).
-    /// Returns (x_window, x_prior of the window).
+    /// estimate (prediction form) or its one-step prediction m_x(x̄_t, u(t)) (filtering form);
+    /// when the next window starts one node later, the arrival cost moves with it (the smoothed
+    /// mean and the EKF weight, `arrival.rs`). Returns (x_window, x_prior of the window).
     pub fn commit(
         &mut self,
         model: &mut dyn StageModel,
         z: Vec<f64>,
     ) -> Result<(Vec<f64>, Vec<f64>)> {
-        let n = self.problem.dim_x();
+        let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         let data = self
             .staged
             .as_ref()
@@ -310,19 +375,38 @@ impl MovingHorizon {
         let next_prior = match self.problem.form() {
             Form::Prediction => last.to_vec(),
             Form::Filtering => {
-                let m = self.problem.dim_u();
                 let mut out = vec![0.0; n];
                 let u_t = &data.u[(data.nodes - 1) * m..data.nodes * m];
                 model.predict_state(last, u_t, &mut out)?;
                 out
             }
         };
+        let slides = self.history.window_start(self.history.t() + 1) == data.s0 + 1;
+        let weight = match (slides, self.arrival.weight) {
+            (true, ArrivalWeight::Ekf) => {
+                let p = self.problem.dim_y();
+                let y0 = data.present[0].then(|| &data.y[..p]);
+                let s = self.history.arrival_sqrt();
+                match ekf_step(model, &self.problem, &z[..n], &data.u[..m], y0, s) {
+                    Ok(next) => Some(next),
+                    Err(Error::Numerical(_)) => None, // keep the weight
+                    Err(e) => return Err(e),
+                }
+            }
+            _ => None,
+        };
         let data = self
             .staged
             .take()
             .ok_or_else(|| Error::numerical("lost the window"))?;
-        let x_prior = data.x_prior.clone();
+        let (x_prior, s0) = (data.x_prior.clone(), data.s0);
         self.history.push(data, z.clone(), next_prior);
+        if slides && self.arrival.mean == ArrivalMean::Smoothed && z.len() >= 2 * n {
+            self.history.set_prior(s0 + 1, &z[n..2 * n]);
+        }
+        if let Some(next) = weight {
+            self.history.set_arrival_sqrt(next);
+        }
         Ok((z, x_prior))
     }
 

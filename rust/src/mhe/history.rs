@@ -45,6 +45,9 @@ pub struct History {
     /// The last optimal window (rows × n), oldest first, and the time of its first row.
     x_window: Vec<f64>,
     window_t0: usize,
+    /// S (n × n, row-major) of the arrival weight SᵀS of the next window's first node (set by
+    /// the estimator: P2's, or its EKF update, see `arrival.rs`).
+    arrival_sqrt: Vec<f64>,
 }
 
 impl History {
@@ -69,6 +72,9 @@ impl History {
             priors: VecDeque::with_capacity(horizon + 2),
             x_window: Vec::new(),
             window_t0: 0,
+            arrival_sqrt: (0..dims.0 * dims.0)
+                .map(|k| if k % (dims.0 + 1) == 0 { 1.0 } else { 0.0 })
+                .collect(),
         };
         h.reset(x0)?;
         Ok(h)
@@ -103,6 +109,50 @@ impl History {
         (&self.x_window, self.window_t0)
     }
 
+    /// S of the next window's arrival weight SᵀS (the identity until the estimator sets it).
+    pub fn arrival_sqrt(&self) -> &[f64] {
+        &self.arrival_sqrt
+    }
+
+    pub fn set_arrival_sqrt(&mut self, s: Vec<f64>) {
+        self.arrival_sqrt = s;
+    }
+
+    /// The time of the first node of the window of update `t` (s0 = max(0, end − M)).
+    pub fn window_start(&self, t: usize) -> usize {
+        let end = match self.form {
+            Form::Prediction => t + 1,
+            Form::Filtering => t,
+        };
+        end.saturating_sub(self.horizon)
+    }
+
+    /// Replaces the arrival prior of time `time` if it is held (the newest is for time t).
+    pub fn set_prior(&mut self, time: usize, prior: &[f64]) {
+        let len = self.priors.len();
+        if time <= self.t && self.t - time < len {
+            self.priors[len - 1 - (self.t - time)].copy_from_slice(prior);
+        }
+    }
+
+    /// Replaces the input row of the last recorded step (t − 1); false if there is none.
+    pub fn set_last_input(&mut self, u: &[f64]) -> bool {
+        let m = self.dims.1;
+        if self.t == 0 || u.len() != m {
+            return false;
+        }
+        let at = self.u.len() - m;
+        self.u[at..].copy_from_slice(u);
+        true
+    }
+
+    /// Replaces the newest arrival prior (for time t).
+    pub fn set_newest_prior(&mut self, prior: &[f64]) {
+        if let Some(last) = self.priors.back_mut() {
+            last.copy_from_slice(prior);
+        }
+    }
+
     /// The window of the t-th update with the new step (u(t), y(t)) (`y` None: not measured).
     /// Only the lengths are checked here; the window problem checks the values it is given.
     pub fn next_window(&self, u: &[f64], y: Option<&[f64]>) -> Result<WindowData> {
@@ -112,13 +162,13 @@ impl History {
             check_len("y", y, p)?;
         }
         let y_t = y.map_or_else(|| vec![0.0; p], <[f64]>::to_vec);
-        let (t, big_m) = (self.t, self.horizon);
-        let end = match self.form {
+        let t = self.t;
+        let s0 = self.window_start(t);
+        let nodes = match self.form {
             Form::Prediction => t + 1,
             Form::Filtering => t,
-        };
-        let s0 = end.saturating_sub(big_m);
-        let nodes = end - s0 + 1;
+        } - s0
+            + 1;
         // Steps with data: times s0 ..= t, the last of them the new one.
         let k = t + 1 - s0;
         let old = k - 1;
@@ -181,6 +231,8 @@ pub struct HistoryState {
     pub priors: Vec<f64>,
     pub x_window: Vec<f64>,
     pub window_t0: usize,
+    /// S of the next arrival weight (n × n).
+    pub arrival_sqrt: Vec<f64>,
 }
 
 impl History {
@@ -194,6 +246,7 @@ impl History {
             priors: self.priors.iter().flatten().copied().collect(),
             x_window: self.x_window.clone(),
             window_t0: self.window_t0,
+            arrival_sqrt: self.arrival_sqrt.clone(),
         }
     }
 
@@ -235,8 +288,13 @@ impl History {
         check_finite("u", &s.u)?;
         check_finite("priors", &s.priors)?;
         check_finite("x_window", &s.x_window)?;
-        // Outputs that were not measured are stored as zeros; measured ones are finite.
-        check_finite("y", &s.y)?;
+        check_len("arrival_sqrt", &s.arrival_sqrt, n * n)?;
+        check_finite("arrival_sqrt", &s.arrival_sqrt)?;
+        // Outputs that were not measured are stored as zeros; measured channels are finite and
+        // channels not measured NaN.
+        if s.y.iter().any(|v| v.is_infinite()) {
+            return Err(Error::invalid("y", "contains an infinite value"));
+        }
         self.t = t;
         self.u = s.u;
         self.y = s.y;
@@ -244,6 +302,7 @@ impl History {
         self.priors = s.priors.chunks_exact(n).map(<[f64]>::to_vec).collect();
         self.x_window = s.x_window;
         self.window_t0 = s.window_t0;
+        self.arrival_sqrt = s.arrival_sqrt;
         Ok(())
     }
 }

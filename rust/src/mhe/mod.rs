@@ -9,16 +9,20 @@
 //! * [`estimator`]: [`MovingHorizon`], one update = window, warm start, solve, record;
 //! * [`bank`]: [`EstimatorBank`], n independent estimators updated together (in parallel).
 
+pub mod arrival;
 pub mod bank;
 pub mod estimator;
 pub mod history;
 pub mod lsq;
 pub mod problem;
 pub mod stage;
+pub mod weights;
 
+pub use arrival::{Arrival, ArrivalMean, ArrivalWeight};
 pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings, ModelState};
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
 pub use lsq::WindowLsq;
 pub use problem::{Form, WindowEval, WindowProblem};
 pub use stage::{GpStageModel, StageEval, StageModel, GP_CACHE_PARTS};
+pub use weights::Covariance;

@@ -7,18 +7,22 @@
 //! Residual rows, in this order (node i is window time t − M_t + i, a_j = √(2η^j)):
 //! * prior (n rows, node 0): a_{M_t} · S (x̄_0 − x̂(t − M_t)), with P2 = SᵀS;
 //! * for every node i = 0 … M_t:
-//!   - output (p rows, node i, only if y_i is present and i < M_t, or i = M_t in the filtering
-//!     form): weight a_{M_t−1−i} (a_0 = √2 for the filtering form's newest output),
-//!     (y_i − m_y(d̄_i)) ⊘ √(σ²_y(d̄_i) + r0);
-//!   - process (n rows, nodes i and i+1, for i < M_t): a_{M_t−1−i} (x̄_{i+1} − m_x(d̄_i)) ⊘
-//!     √(σ²_x(d̄_i) + q0).
+//!   - output (one row per measured channel of y_i, only if y_i is present and i < M_t, or
+//!     i = M_t in the filtering form; NaN entries of y_i are channels not measured): weight
+//!     a_{M_t−1−i} (a_0 = √2 for the filtering form's newest output), a L⁻¹ (y_i − m_y(d̄_i))
+//!     with L Lᵀ = diag σ²_y(d̄_i) + R0 on the measured channels;
+//!   - process (n rows, nodes i and i+1, for i < M_t): a_{M_t−1−i} L⁻¹ (x̄_{i+1} − m_x(d̄_i)),
+//!     L Lᵀ = diag σ²_x(d̄_i) + Q0.
 //!
-//! Q0 = diag(q0) and R0 = diag(r0) are covariances (docs/user_guide/weights.rst).
+//! Q0 and R0 are covariances (docs/user_guide/weights.rst), diagonal (each row is divided by
+//! its standard deviation) or full (the block is whitened with its Cholesky factor,
+//! `weights.rs`). η = 1 is allowed (no discount).
 
 // Index loops mirror the block formulas of docs/user_guide/window.rst and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
 use super::stage::{StageEval, StageModel};
+use super::weights::{whiten, Block, Covariance};
 use crate::error::{check_finite, check_len, Error, Result};
 
 /// Which outputs the window uses (docs/user_guide/window.rst): the paper's prediction form (y up to t−1, the
@@ -38,10 +42,12 @@ pub struct WindowProblem {
     p: usize,
     eta: f64,
     form: Form,
-    q0: Vec<f64>,
-    r0: Vec<f64>,
-    /// S with P2 = SᵀS, n×n row-major.
+    q0: Covariance,
+    r0: Covariance,
+    /// S with P2 = SᵀS, n×n row-major: the configured arrival weight.
     p2_sqrt: Vec<f64>,
+    /// The arrival weight's S of the current window (P2's unless set by `set_prior_weight`).
+    prior_sqrt: Vec<f64>,
     m_t: usize,
     /// (M_t+1)×m inputs, (M_t+1)×p outputs, (M_t+1) presence flags.
     u: Vec<f64>,
@@ -55,11 +61,17 @@ impl WindowProblem {
     pub fn eta(&self) -> f64 {
         self.eta
     }
-    /// The diagonals of Q0 (n) and R0 (p).
+    /// Q0 (n × n) and R0 (p × p), row-major.
     pub fn q0(&self) -> &[f64] {
-        &self.q0
+        self.q0.as_slice()
     }
     pub fn r0(&self) -> &[f64] {
+        self.r0.as_slice()
+    }
+    pub fn q0_cov(&self) -> &Covariance {
+        &self.q0
+    }
+    pub fn r0_cov(&self) -> &Covariance {
         &self.r0
     }
     /// S with P2 = SᵀS (n × n row-major).
@@ -69,8 +81,9 @@ impl WindowProblem {
 }
 
 impl WindowProblem {
-    /// `q0` (n) and `r0` (p) are the diagonals of Q0, R0 (positive); `p2_sqrt` is S (n×n,
-    /// row-major) with P2 = SᵀS; `eta` ∈ [0, 1).
+    /// `q0` and `r0` are Q0 and R0: their diagonals (n and p values) or the whole symmetric
+    /// positive definite matrices (n² and p² values, row-major); `p2_sqrt` is S (n×n,
+    /// row-major) with P2 = SᵀS; `eta` ∈ [0, 1].
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         n: usize,
@@ -85,33 +98,17 @@ impl WindowProblem {
         if n == 0 {
             return Err(Error::invalid("dim_x", "must be at least 1"));
         }
-        if !(eta.is_finite() && (0.0..1.0).contains(&eta)) {
-            return Err(Error::invalid(
-                "eta",
-                format!("must be in [0, 1), got {eta}"),
-            ));
-        }
-        check_len("Q0", q0, n)?;
-        check_len("R0", r0, p)?;
-        check_len("P2", p2_sqrt, n * n)?;
-        check_finite("Q0", q0)?;
-        check_finite("R0", r0)?;
-        check_finite("P2", p2_sqrt)?;
-        if q0.iter().any(|&v| v <= 0.0) {
-            return Err(Error::invalid("Q0", "diagonal must be positive"));
-        }
-        if r0.iter().any(|&v| v <= 0.0) {
-            return Err(Error::invalid("R0", "diagonal must be positive"));
-        }
+        let (q0, r0) = Self::check_weights(n, p, eta, q0, r0, p2_sqrt)?;
         Ok(Self {
             n,
             m,
             p,
             eta,
             form,
-            q0: q0.to_vec(),
-            r0: r0.to_vec(),
+            q0,
+            r0,
             p2_sqrt: p2_sqrt.to_vec(),
+            prior_sqrt: p2_sqrt.to_vec(),
             m_t: 0,
             u: vec![0.0; m],
             y: vec![0.0; p],
@@ -120,8 +117,49 @@ impl WindowProblem {
         })
     }
 
+    fn check_weights(
+        n: usize,
+        p: usize,
+        eta: f64,
+        q0: &[f64],
+        r0: &[f64],
+        p2_sqrt: &[f64],
+    ) -> Result<(Covariance, Covariance)> {
+        if !(eta.is_finite() && (0.0..=1.0).contains(&eta)) {
+            return Err(Error::invalid(
+                "eta",
+                format!("must be in [0, 1], got {eta}"),
+            ));
+        }
+        check_len("P2", p2_sqrt, n * n)?;
+        check_finite("P2", p2_sqrt)?;
+        Ok((Covariance::new("Q0", q0, n)?, Covariance::new("R0", r0, p)?))
+    }
+
+    /// Replaces η, Q0, R0 and P2 (as in [`WindowProblem::new`]) and makes P2 the arrival
+    /// weight of the current window; the window's data are kept. On error nothing changes.
+    pub fn set_weights(&mut self, eta: f64, q0: &[f64], r0: &[f64], p2_sqrt: &[f64]) -> Result<()> {
+        let (q0, r0) = Self::check_weights(self.n, self.p, eta, q0, r0, p2_sqrt)?;
+        self.eta = eta;
+        self.q0 = q0;
+        self.r0 = r0;
+        self.p2_sqrt = p2_sqrt.to_vec();
+        self.prior_sqrt = p2_sqrt.to_vec();
+        Ok(())
+    }
+
+    /// Sets the arrival weight of the current window to SᵀS (`s`: n × n row-major).
+    pub fn set_prior_weight(&mut self, s: &[f64]) -> Result<()> {
+        check_len("arrival weight", s, self.n * self.n)?;
+        check_finite("arrival weight", s)?;
+        self.prior_sqrt.clear();
+        self.prior_sqrt.extend_from_slice(s);
+        Ok(())
+    }
+
     /// Sets the window: M_t = rows − 1 with `u` (M_t+1)×m, `y` (M_t+1)×p (rows where
-    /// `y_present` is false are ignored and may hold anything, including NaN), and the arrival
+    /// `y_present` is false are ignored and may hold anything, including NaN; in the others a
+    /// NaN entry is a channel not measured), and the arrival
     /// prior x̂(t − M_t). In the prediction form the last row of `y` is never used.
     /// On error the previous window is kept.
     pub fn set_data(
@@ -144,8 +182,9 @@ impl WindowProblem {
         check_finite("u", u)?;
         check_finite("x_prior", x_prior)?;
         for (i, &present) in y_present.iter().enumerate() {
-            if present {
-                check_finite("y", &y[i * self.p..(i + 1) * self.p])?;
+            let row = &y[i * self.p..(i + 1) * self.p];
+            if present && row.iter().any(|v| v.is_infinite()) {
+                return Err(Error::invalid("y", "contains an infinite value"));
             }
         }
         self.m_t = nodes - 1;
@@ -180,11 +219,25 @@ impl WindowProblem {
         self.form
     }
 
-    /// Whether node i carries an output residual block.
+    /// Whether node i carries an output residual block (it may still have no measured
+    /// channel).
     fn has_output(&self, i: usize) -> bool {
         self.p > 0
             && self.y_present[i]
             && (i < self.m_t || (i == self.m_t && self.form == Form::Filtering))
+    }
+
+    /// The measured channels of node i's output (finite entries of y_i; none if the node has
+    /// no output).
+    fn measured(&self, i: usize) -> impl Iterator<Item = usize> + '_ {
+        let row: &[f64] = match self.has_output(i) {
+            true => &self.y[i * self.p..(i + 1) * self.p],
+            false => &[],
+        };
+        row.iter()
+            .enumerate()
+            .filter(|(_, v)| v.is_finite())
+            .map(|(k, _)| k)
     }
 
     /// Number of points the model is evaluated at: M_t (prediction) or M_t + 1 (filtering).
@@ -197,8 +250,8 @@ impl WindowProblem {
 
     /// Total number of residual rows for the current data.
     pub fn n_residuals(&self) -> usize {
-        let outputs = (0..self.n_nodes()).filter(|&i| self.has_output(i)).count();
-        self.n + self.m_t * self.n + outputs * self.p
+        let outputs: usize = (0..self.n_nodes()).map(|i| self.measured(i).count()).sum();
+        self.n + self.m_t * self.n + outputs
     }
 
     /// Weight √(2η^{M_t−1−i}) of the stage at node i (√2 for node M_t).
@@ -225,11 +278,11 @@ impl WindowProblem {
         let mut row = self.write_prior_rows(z, want_jacobian, out);
         for i in 0..nodes {
             let a = self.stage_weight(i);
-            if self.has_output(i) {
-                row = self.write_output_rows(i, a, row, want_jacobian, out);
+            if self.measured(i).next().is_some() {
+                row = self.write_output_rows(i, a, row, want_jacobian, out)?;
             }
             if i < self.m_t {
-                row = self.write_process_rows(i, a, z, row, want_jacobian, out);
+                row = self.write_process_rows(i, a, z, row, want_jacobian, out)?;
             }
         }
         debug_assert_eq!(row, out.r.len());
@@ -282,21 +335,22 @@ impl WindowProblem {
         for r in 0..n {
             let mut acc = 0.0;
             for c in 0..n {
-                acc += self.p2_sqrt[r * n + c] * (z[c] - self.x_prior[c]);
+                acc += self.prior_sqrt[r * n + c] * (z[c] - self.x_prior[c]);
             }
             out.r[r] = a * acc;
             out.node[r] = 0;
             out.process[r] = false;
             if want_jacobian {
                 for c in 0..n {
-                    out.ja[r * n + c] = a * self.p2_sqrt[r * n + c];
+                    out.ja[r * n + c] = a * self.prior_sqrt[r * n + c];
                 }
             }
         }
         n
     }
 
-    /// The output rows of node i from `row` on (weight a). Returns the next row.
+    /// The output rows of node i's measured channels from `row` on (weight a). Returns the
+    /// next row.
     fn write_output_rows(
         &self,
         i: usize,
@@ -304,33 +358,49 @@ impl WindowProblem {
         mut row: usize,
         want_jacobian: bool,
         out: &mut WindowEval,
-    ) -> usize {
+    ) -> Result<usize> {
         let (n, p, nd) = (self.n, self.p, self.n + self.m);
-        let st = &out.stage;
-        for kk in 0..p {
-            let (t, g) = (i * p + kk, (i * p + kk) * nd);
-            let w = WeightedRow {
-                a,
-                target: self.y[t],
-                mean: st.mean_y[t],
-                var: st.var_y[t],
-                floor: self.r0[kk],
-                mean_rounding: st.mean_y_rounding[kk],
-                var_rounding: st.var_y_rounding[kk],
-            };
-            let derivs = want_jacobian.then(|| {
-                (
-                    &st.dmean_y[g..g + n],
-                    &st.dvar_y[g..g + n],
-                    &mut out.ja[row * n..(row + 1) * n],
-                )
-            });
-            (out.r[row], out.dr[row], _) = w.write(derivs);
-            out.node[row] = i;
-            out.process[row] = false;
-            row += 1;
+        if self.r0.is_diagonal() {
+            for kk in self.measured(i) {
+                let (t, g) = (i * p + kk, (i * p + kk) * nd);
+                let st = &out.stage;
+                let w = WeightedRow {
+                    a,
+                    target: self.y[t],
+                    mean: st.mean_y[t],
+                    var: st.var_y[t],
+                    floor: self.r0.get(kk, kk),
+                    mean_rounding: st.mean_y_rounding[kk],
+                    var_rounding: st.var_y_rounding[kk],
+                };
+                let derivs = want_jacobian.then(|| {
+                    (
+                        &st.dmean_y[g..g + n],
+                        &st.dvar_y[g..g + n],
+                        &mut out.ja[row * n..(row + 1) * n],
+                    )
+                });
+                (out.r[row], out.dr[row], _) = w.write(derivs);
+                out.node[row] = i;
+                out.process[row] = false;
+                row += 1;
+            }
+            return Ok(row);
         }
-        row
+        let measured: Vec<usize> = self.measured(i).collect();
+        let st = &out.stage;
+        let part = StagePart {
+            rows: &measured,
+            target: measured.iter().map(|&k| self.y[i * p + k]).collect(),
+            mean: &st.mean_y[i * p..(i + 1) * p],
+            var: &st.var_y[i * p..(i + 1) * p],
+            dmean: &st.dmean_y[i * p * nd..(i + 1) * p * nd],
+            dvar: &st.dvar_y[i * p * nd..(i + 1) * p * nd],
+            mean_rounding: &st.mean_y_rounding,
+            var_rounding: &st.var_y_rounding,
+        };
+        let block = part.write(&self.r0, a, n, nd, want_jacobian)?;
+        Ok(out.take_block(block, i, row, false))
     }
 
     /// The process rows of stage i (nodes i and i+1) from `row` on (weight a). Returns the
@@ -343,40 +413,121 @@ impl WindowProblem {
         mut row: usize,
         want_jacobian: bool,
         out: &mut WindowEval,
-    ) -> usize {
+    ) -> Result<usize> {
         let (n, nd) = (self.n, self.n + self.m);
-        let st = &out.stage;
-        for kk in 0..n {
-            let (t, g) = (i * n + kk, (i * n + kk) * nd);
-            let w = WeightedRow {
-                a,
-                target: z[(i + 1) * n + kk],
-                mean: st.mean_x[t],
-                var: st.var_x[t],
-                floor: self.q0[kk],
-                mean_rounding: st.mean_x_rounding[kk],
-                var_rounding: st.var_x_rounding[kk],
-            };
-            let derivs = want_jacobian.then(|| {
-                (
-                    &st.dmean_x[g..g + n],
-                    &st.dvar_x[g..g + n],
-                    &mut out.ja[row * n..(row + 1) * n],
-                )
-            });
-            let scale;
-            (out.r[row], out.dr[row], scale) = w.write(derivs);
-            if want_jacobian {
-                // ∂r/∂x̄_{i+1}: the target is the next state itself.
-                let jb = &mut out.jb[row * n..(row + 1) * n];
-                jb.iter_mut().for_each(|v| *v = 0.0);
-                jb[kk] = scale;
+        if self.q0.is_diagonal() {
+            for kk in 0..n {
+                let (t, g) = (i * n + kk, (i * n + kk) * nd);
+                let st = &out.stage;
+                let w = WeightedRow {
+                    a,
+                    target: z[(i + 1) * n + kk],
+                    mean: st.mean_x[t],
+                    var: st.var_x[t],
+                    floor: self.q0.get(kk, kk),
+                    mean_rounding: st.mean_x_rounding[kk],
+                    var_rounding: st.var_x_rounding[kk],
+                };
+                let derivs = want_jacobian.then(|| {
+                    (
+                        &st.dmean_x[g..g + n],
+                        &st.dvar_x[g..g + n],
+                        &mut out.ja[row * n..(row + 1) * n],
+                    )
+                });
+                let scale;
+                (out.r[row], out.dr[row], scale) = w.write(derivs);
+                if want_jacobian {
+                    // ∂r/∂x̄_{i+1}: the target is the next state itself.
+                    let jb = &mut out.jb[row * n..(row + 1) * n];
+                    jb.iter_mut().for_each(|v| *v = 0.0);
+                    jb[kk] = scale;
+                }
+                out.node[row] = i;
+                out.process[row] = true;
+                row += 1;
             }
-            out.node[row] = i;
-            out.process[row] = true;
-            row += 1;
+            return Ok(row);
         }
-        row
+        let st = &out.stage;
+        let all: Vec<usize> = (0..n).collect();
+        let part = StagePart {
+            rows: &all,
+            target: z[(i + 1) * n..(i + 2) * n].to_vec(),
+            mean: &st.mean_x[i * n..(i + 1) * n],
+            var: &st.var_x[i * n..(i + 1) * n],
+            dmean: &st.dmean_x[i * n * nd..(i + 1) * n * nd],
+            dvar: &st.dvar_x[i * n * nd..(i + 1) * n * nd],
+            mean_rounding: &st.mean_x_rounding,
+            var_rounding: &st.var_x_rounding,
+        };
+        let block = part.write(&self.q0, a, n, nd, want_jacobian)?;
+        Ok(out.take_block(block, i, row, true))
+    }
+}
+
+/// One stage's residual block with a full covariance, before whitening: the selected `rows` of
+/// a model part (the outputs or the next state), its targets, the model's means, variances, their gradients
+/// (row-major, nd per component: the node's n entries come first) and roundings.
+struct StagePart<'a> {
+    rows: &'a [usize],
+    target: Vec<f64>,
+    mean: &'a [f64],
+    var: &'a [f64],
+    dmean: &'a [f64],
+    dvar: &'a [f64],
+    mean_rounding: &'a [f64],
+    var_rounding: &'a [f64],
+}
+
+/// A whitened block: residuals, their roundings, ∂r/∂x̄ of the stage's node (k × n) and
+/// ∂r/∂target = a L⁻¹ (k × k, row-major).
+struct WrittenBlock {
+    r: Vec<f64>,
+    rounding: Vec<f64>,
+    ja: Vec<f64>,
+    dtarget: Vec<f64>,
+}
+
+impl StagePart<'_> {
+    /// Whitens the block with a·L⁻¹, L Lᵀ = diag σ² + cov on the selected rows (`weights.rs`).
+    fn write(
+        &self,
+        cov: &Covariance,
+        a: f64,
+        n: usize,
+        nd: usize,
+        jac: bool,
+    ) -> Result<WrittenBlock> {
+        let pick = |v: &[f64]| -> Vec<f64> {
+            self.rows
+                .iter()
+                .flat_map(|&j| v[j * nd..j * nd + n].iter().copied())
+                .collect()
+        };
+        let sel = |v: &[f64]| -> Vec<f64> { self.rows.iter().map(|&j| v[j]).collect() };
+        let (dm, dv) = (pick(self.dmean), pick(self.dvar));
+        let e: Vec<f64> = self
+            .rows
+            .iter()
+            .zip(&self.target)
+            .map(|(&j, t)| t - self.mean[j])
+            .collect();
+        let block = Block {
+            a,
+            e: &e,
+            var: &sel(self.var),
+            derivs: jac.then_some((&dm[..], &dv[..])),
+            mean_rounding: &sel(self.mean_rounding),
+            var_rounding: &sel(self.var_rounding),
+        };
+        let w = whiten(cov, self.rows, &block, n)?;
+        Ok(WrittenBlock {
+            r: w.r,
+            rounding: w.rounding,
+            ja: w.ja,
+            dtarget: w.a_linv,
+        })
     }
 }
 
@@ -443,6 +594,26 @@ pub struct WindowEval {
 }
 
 impl WindowEval {
+    /// Copies a weighted block of stage i into rows `row..`: ∂r/∂x̄_i into `ja` and, for a
+    /// process block (target x̄_{i+1}), ∂r/∂target into `jb`. Returns the next row.
+    fn take_block(&mut self, b: WrittenBlock, i: usize, row: usize, process: bool) -> usize {
+        let (n, k) = (self.n, b.r.len());
+        for q in 0..k {
+            let at = row + q;
+            self.r[at] = b.r[q];
+            self.dr[at] = b.rounding[q];
+            self.node[at] = i;
+            self.process[at] = process;
+            if !b.ja.is_empty() {
+                self.ja[at * n..(at + 1) * n].copy_from_slice(&b.ja[q * n..(q + 1) * n]);
+                if process {
+                    self.jb[at * n..(at + 1) * n].copy_from_slice(&b.dtarget[q * k..(q + 1) * k]);
+                }
+            }
+        }
+        row + k
+    }
+
     /// The cost's rounding noise, and an error if a residual is not finite.
     fn finish(&mut self) -> Result<()> {
         self.noise = self
@@ -860,6 +1031,64 @@ mod tests {
         }
     }
 
+    /// With a full Q0 the process term is w̄ᵀ (diag σ²_x + Q0)⁻¹ w̄ (a dense inverse here), the
+    /// derivatives match central differences, and a NaN output (p = 1: the only channel) drops
+    /// the node's output exactly as a missing row does.
+    #[test]
+    fn full_q0_and_missing_channels_match_a_dense_evaluation() {
+        let q0 = [1e-3, 4e-4, 4e-4, 2e-3];
+        for form in [Form::Prediction, Form::Filtering] {
+            let mut w = problem(form, 5, &[]);
+            w.set_weights(1.0, &q0, &[1e-2], &[1.0, 0.3, 0.0, 0.8])
+                .unwrap();
+            let z = z0(5);
+            let mut ev = WindowEval::default();
+            w.evaluate(&mut Analytic, &z, false, &mut ev).unwrap();
+            let mut direct = {
+                let dx = [z[0] - w.x_prior[0], z[1] - w.x_prior[1]];
+                let p2 = [1.0, 0.3, 0.3, 0.73];
+                2.0 * (dx[0] * (p2[0] * dx[0] + p2[1] * dx[1])
+                    + dx[1] * (p2[2] * dx[0] + p2[3] * dx[1]))
+            };
+            let mut st = StageEval::default();
+            for i in 0..=w.m_t {
+                Analytic
+                    .evaluate(&[z[2 * i], z[2 * i + 1], w.u[i]], &mut st)
+                    .unwrap();
+                if w.has_output(i) {
+                    direct += 2.0 * (w.y[i] - st.mean_y[0]).powi(2) / (st.var_y[0] + 1e-2);
+                }
+                if i < w.m_t {
+                    let s = [st.var_x[0] + q0[0], q0[1], q0[2], st.var_x[1] + q0[3]];
+                    let det = s[0] * s[3] - s[1] * s[2];
+                    let e = [z[2 * i + 2] - st.mean_x[0], z[2 * i + 3] - st.mean_x[1]];
+                    let quad =
+                        (s[3] * e[0] * e[0] - 2.0 * s[1] * e[0] * e[1] + s[0] * e[1] * e[1]) / det;
+                    direct += 2.0 * quad;
+                }
+            }
+            assert!(
+                (ev.cost() - direct).abs() <= 1e-11 * direct,
+                "{} vs {direct}",
+                ev.cost()
+            );
+            check_derivatives(&w, &mut Analytic, &z, 1e-5);
+            // A NaN output is a channel not measured.
+            let mut y = w.y.clone();
+            y[2] = f64::NAN;
+            let (u, x_prior) = (w.u.clone(), w.x_prior.clone());
+            w.set_data(&u, &y, &[true; 5], &x_prior).unwrap();
+            let mut missing = problem(form, 5, &[2]);
+            missing
+                .set_weights(1.0, &q0, &[1e-2], &[1.0, 0.3, 0.0, 0.8])
+                .unwrap();
+            let (mut a, mut b) = (WindowEval::default(), WindowEval::default());
+            w.evaluate(&mut Analytic, &z, false, &mut a).unwrap();
+            missing.evaluate(&mut Analytic, &z, false, &mut b).unwrap();
+            assert_eq!(a.residuals(), b.residuals());
+        }
+    }
+
     #[test]
     fn residual_count_follows_form_and_missing_outputs() {
         let w = problem(Form::Prediction, 5, &[1]);
@@ -875,7 +1104,7 @@ mod tests {
     fn bad_inputs_are_rejected_and_keep_the_window() {
         let mut w = problem(Form::Filtering, 3, &[]);
         assert!(matches!(
-            w.set_data(&[0.0; 3], &[f64::NAN, 1.0, 1.0], &[true; 3], &[0.0, 0.0]),
+            w.set_data(&[0.0; 3], &[f64::INFINITY, 1.0, 1.0], &[true; 3], &[0.0, 0.0]),
             Err(Error::InvalidInput { ref arg, .. }) if arg == "y"
         ));
         // NaN where the output is absent is fine.
@@ -905,7 +1134,7 @@ mod tests {
             2,
             1,
             1,
-            1.0,
+            1.5,
             &[1.0; 2],
             &[1.0],
             &[1.0, 0.0, 0.0, 1.0],

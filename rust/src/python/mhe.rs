@@ -17,8 +17,8 @@ use super::error::{detach_interruptible, interruptible};
 use super::sparse::{extract_model, model_object};
 use crate::error::{check_finite, check_len, Error};
 use crate::mhe::{
-    Form, GpStageModel, HistoryState, MovingHorizon, StageEval, StageModel, UpdateReport,
-    WindowProblem, GP_CACHE_PARTS,
+    Arrival, ArrivalMean, ArrivalWeight, Form, GpStageModel, HistoryState, MovingHorizon,
+    StageEval, StageModel, UpdateReport, WindowProblem, GP_CACHE_PARTS,
 };
 use crate::solver::{BoxLsqSolver, InteriorMode, SolverOptions};
 
@@ -395,13 +395,16 @@ impl PyMovingHorizon {
 
 #[pymethods]
 impl PyMovingHorizon {
-    /// An estimator on `model` (a `StageModel`). `q0`, `r0`: diagonals of Q0, R0; `p2_sqrt`: S
-    /// with P2 = SᵀS; `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros if None);
-    /// `lower`, `upper`: the state box (±inf if None); `solver`: the solver settings.
+    /// An estimator on `model` (a `StageModel`). `q0`, `r0`: Q0 and R0, their diagonals or the
+    /// flattened matrices; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form; `horizon`: M;
+    /// `x0`: x̂(0) (zeros if None); `lower`, `upper`: the state box (±inf if None); `solver`: the
+    /// solver settings; `arrival_mean` ("estimate" or "smoothed") and `arrival_weight`
+    /// ("constant" or "ekf"): the arrival cost.
     #[new]
     #[allow(clippy::too_many_arguments)]
     #[pyo3(signature = (model, eta, q0, r0, p2_sqrt, filtering, horizon=1, x0=None, lower=None,
-                        upper=None, solver=None))]
+                        upper=None, solver=None, arrival_mean="estimate",
+                        arrival_weight="constant"))]
     fn new(
         py: Python<'_>,
         model: PyRef<'_, PyStageModel>,
@@ -415,7 +418,10 @@ impl PyMovingHorizon {
         lower: Option<PyReadonlyArray1<'_, f64>>,
         upper: Option<PyReadonlyArray1<'_, f64>>,
         solver: Option<PyRef<'_, PyWindowSolver>>,
+        arrival_mean: &str,
+        arrival_weight: &str,
     ) -> PyResult<Self> {
+        let arrival = parse_arrival(arrival_mean, arrival_weight)?;
         let (n, m, p) = model.model.dims();
         let form = match filtering {
             true => Form::Filtering,
@@ -429,7 +435,7 @@ impl PyMovingHorizon {
                 .map_or(Ok(vec![fill; n]), |a| slice1(name, a).map(<[f64]>::to_vec))
         };
         let opts = solver.map_or_else(SolverOptions::default, |s| s.opts.clone());
-        let core = MovingHorizon::new(
+        let mut core = MovingHorizon::new(
             problem,
             horizon,
             &or(&x0, "x0", 0.0)?,
@@ -437,8 +443,38 @@ impl PyMovingHorizon {
             &or(&upper, "x_bounds", f64::INFINITY)?,
             opts,
         )?;
+        core.set_arrival(arrival);
         let model = model.model.clone_ref(py);
         Ok(Self { core, model })
+    }
+
+    /// Replaces η, Q0, R0 (diagonals or flattened matrices) and S of P2 from the next update
+    /// on; P2 also becomes the next arrival weight. On error nothing changes.
+    fn set_weights(
+        &mut self,
+        eta: f64,
+        q0: PyReadonlyArray1<'_, f64>,
+        r0: PyReadonlyArray1<'_, f64>,
+        p2_sqrt: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<()> {
+        let (p2, _, _) = slice2("P2", &p2_sqrt)?;
+        let (q0, r0) = (slice1("Q0", &q0)?, slice1("R0", &r0)?);
+        Ok(self.core.set_weights(eta, q0, r0, p2)?)
+    }
+
+    /// Replaces the input of the last update (see `MovingHorizon::set_last_input`).
+    fn set_last_input(&mut self, py: Python<'_>, u: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
+        let u = slice1("u", &u)?;
+        self.run(py, |core, model| core.set_last_input(model, u))
+    }
+
+    /// The next window's arrival weight P = SᵀS (n, n).
+    #[getter]
+    fn arrival_weight<'py>(&self, py: Python<'py>) -> PyResult<Arr2<'py>> {
+        let n = self.core.problem().dim_x();
+        let s = nalgebra::DMatrix::from_row_slice(n, n, self.core.history().arrival_sqrt());
+        let w = s.transpose() * s;
+        array2(py, w.transpose().as_slice().to_vec(), n, n)
     }
 
     /// Forgets every step: t = 0, x̂(0) = x0.
@@ -674,7 +710,9 @@ impl PyMovingHorizon {
             PyArray1::from_slice(py, lower),
             PyArray1::from_slice(py, upper),
             solver,
-        );
+        )
+            .into_pyobject(py)?
+            .add(arrival_names(self.core.arrival()).into_pyobject(py)?)?;
         let cls = py.get_type::<Self>();
         (cls, args, self.__getstate__(py)?).into_pyobject(py)
     }
@@ -696,6 +734,7 @@ impl PyMovingHorizon {
         d.set_item("priors", array2(py, s.priors, k, n)?)?;
         let nodes = s.x_window.len() / n;
         d.set_item("x_window", array2(py, s.x_window, nodes, n)?)?;
+        d.set_item("arrival_sqrt", array2(py, s.arrival_sqrt, n, n)?)?;
         if let Model::Gp(gp) = &self.model {
             for (name, part) in GP_CACHE_PARTS.iter().zip(gp.cache()) {
                 d.set_item(format!("cache_{name}"), PyArray1::from_vec(py, part))?;
@@ -724,6 +763,11 @@ impl PyMovingHorizon {
             priors: state_rows(&state, "priors", n)?,
             x_window: state_rows(&state, "x_window", n)?,
             window_t0: state_usize(&state, "window_t0")?,
+            // States saved before the arrival weight was recorded ran with P2.
+            arrival_sqrt: match state.contains("arrival_sqrt")? {
+                true => state_rows(&state, "arrival_sqrt", n)?,
+                false => p.p2_sqrt().to_vec(),
+            },
         };
         // The learned model's cache of the last evaluation (see `GpStageModel::cache`).
         let gp = match &self.model {
@@ -745,6 +789,42 @@ impl PyMovingHorizon {
         }
         Ok(())
     }
+}
+
+/// The arrival cost from its names (see `crate::mhe::arrival`).
+fn parse_arrival(mean: &str, weight: &str) -> PyResult<Arrival> {
+    let mean = match mean {
+        "estimate" => ArrivalMean::Estimate,
+        "smoothed" => ArrivalMean::Smoothed,
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "arrival_mean: must be 'estimate' or 'smoothed', got {mean:?}"
+            )))
+        }
+    };
+    let weight = match weight {
+        "constant" => ArrivalWeight::Constant,
+        "ekf" => ArrivalWeight::Ekf,
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "arrival_weight: must be 'constant' or 'ekf', got {weight:?}"
+            )))
+        }
+    };
+    Ok(Arrival { mean, weight })
+}
+
+/// The names `parse_arrival` reads.
+fn arrival_names(a: Arrival) -> (&'static str, &'static str) {
+    let mean = match a.mean {
+        ArrivalMean::Estimate => "estimate",
+        ArrivalMean::Smoothed => "smoothed",
+    };
+    let weight = match a.weight {
+        ArrivalWeight::Constant => "constant",
+        ArrivalWeight::Ekf => "ekf",
+    };
+    (mean, weight)
 }
 
 /// What one `MovingHorizon.update` did: `x_window` (nodes, n), `x_prior` (n,), `P` (n, n) or

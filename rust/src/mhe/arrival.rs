@@ -1,0 +1,163 @@
+//! The arrival cost of the next window (docs/user_guide/window.rst, *Arrival cost*): which
+//! mean and which weight the prior term 2η^{M_t} ‖x̄_0 − x̂‖²_{P} of the next window gets once
+//! the window slides.
+//!
+//! * mean: the estimator's own estimate of x(t − M) (the paper's, [`ArrivalMean::Estimate`]),
+//!   or the smoothed estimate of the new first node from the window just solved
+//!   ([`ArrivalMean::Smoothed`]);
+//! * weight: P2 for ever (the paper's, [`ArrivalWeight::Constant`]), or an extended Kalman
+//!   filter step of the arrival covariance Π = P⁻¹ over the node that leaves the window
+//!   ([`ArrivalWeight::Ekf`], [`ekf_step`]).
+
+use nalgebra::DMatrix;
+
+use super::problem::WindowProblem;
+use super::stage::{StageEval, StageModel};
+use crate::error::{Error, Result};
+
+/// The arrival mean (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ArrivalMean {
+    #[default]
+    Estimate,
+    Smoothed,
+}
+
+/// The arrival weight (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ArrivalWeight {
+    #[default]
+    Constant,
+    Ekf,
+}
+
+/// The arrival cost settings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Arrival {
+    pub mean: ArrivalMean,
+    pub weight: ArrivalWeight,
+}
+
+/// One EKF step of the arrival covariance over the node x̄_0 that leaves the window (input u_0,
+/// output y_0 with NaN for channels not measured, None if not measured or not in the window):
+/// the measurement update W⁺ = W + Cᵀ R⁻¹ C with W = SᵀS, then the time update
+/// Π' = A (W⁺)⁻¹ Aᵀ + Q, with A = ∂m_x/∂x, C = ∂m_y/∂x, Q = diag σ²_x + Q0, R = diag σ²_y + R0
+/// at d̄_0 = [x̄_0; u_0]. Returns S' (n × n, row-major) with S'ᵀS' = Π'⁻¹; a numerical error if a
+/// matrix is not positive definite (the caller keeps the old weight).
+pub fn ekf_step(
+    model: &mut dyn StageModel,
+    problem: &WindowProblem,
+    x0: &[f64],
+    u0: &[f64],
+    y0: Option<&[f64]>,
+    s: &[f64],
+) -> Result<Vec<f64>> {
+    let (n, p) = (problem.dim_x(), problem.dim_y());
+    let nd = n + problem.dim_u();
+    let mut d = x0.to_vec();
+    d.extend_from_slice(u0);
+    let mut st = StageEval::default();
+    model.evaluate(&d, &mut st)?;
+    st.check_sizes(1, n, problem.dim_u(), p)?;
+    let not_pd =
+        || Error::numerical("arrival covariance update: a matrix is not positive definite");
+    let s = DMatrix::from_row_slice(n, n, s);
+    let mut info = s.transpose() * &s;
+    let measured: Vec<usize> =
+        y0.map_or_else(Vec::new, |y| (0..p).filter(|&k| y[k].is_finite()).collect());
+    if !measured.is_empty() {
+        let r = problem.r0_cov().with_variances(
+            &measured,
+            &measured.iter().map(|&k| st.var_y[k]).collect::<Vec<_>>(),
+        );
+        let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
+        let rc = r.cholesky().ok_or_else(not_pd)?;
+        let whitened = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
+        info += whitened.transpose() * whitened;
+    }
+    let pi_plus = info.cholesky().ok_or_else(not_pd)?.inverse();
+    let a = DMatrix::from_fn(n, n, |i, j| st.dmean_x[i * nd + j]);
+    let all: Vec<usize> = (0..n).collect();
+    let q = problem.q0_cov().with_variances(&all, &st.var_x);
+    let pi = &a * pi_plus * a.transpose() + q;
+    let pi = (&pi + pi.transpose()) * 0.5;
+    let l = pi.cholesky().ok_or_else(not_pd)?.l();
+    let mut s_next = DMatrix::identity(n, n);
+    if !l.solve_lower_triangular_mut(&mut s_next) || s_next.iter().any(|v| !v.is_finite()) {
+        return Err(not_pd());
+    }
+    Ok(s_next.transpose().as_slice().to_vec()) // row-major
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mhe::problem::Form;
+
+    /// x(t+1) = A x, y = C x with constant matrices (n = 2, p = 1, no input).
+    struct Linear;
+    impl StageModel for Linear {
+        fn dim_x(&self) -> usize {
+            2
+        }
+        fn dim_u(&self) -> usize {
+            0
+        }
+        fn dim_y(&self) -> usize {
+            1
+        }
+        fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+            out.resize(1, 2, 0, 1);
+            out.mean_x
+                .copy_from_slice(&[0.9 * d[0] + 0.2 * d[1], 0.8 * d[1]]);
+            out.dmean_x.copy_from_slice(&[0.9, 0.2, 0.0, 0.8]);
+            out.mean_y[0] = d[0];
+            out.dmean_y.copy_from_slice(&[1.0, 0.0]);
+            Ok(())
+        }
+    }
+
+    /// On a linear-Gaussian model the step is the Kalman filter's covariance recursion.
+    #[test]
+    fn ekf_step_is_the_kalman_covariance_recursion() {
+        let q0 = [0.01, 0.002, 0.002, 0.02];
+        let problem = WindowProblem::new(
+            2,
+            0,
+            1,
+            1.0,
+            &q0,
+            &[0.1],
+            &[1.0, 0.0, 0.0, 1.0],
+            Form::Prediction,
+        )
+        .unwrap();
+        let s = [2.0, 0.0, 0.5, 1.0];
+        let next = ekf_step(&mut Linear, &problem, &[0.3, -0.2], &[], Some(&[0.1]), &s).unwrap();
+        // Kalman: Π = (SᵀS)⁻¹; K = ΠCᵀ(CΠCᵀ + R)⁻¹; Π⁺ = (I − KC)Π; Π' = AΠ⁺Aᵀ + Q.
+        let sm = DMatrix::from_row_slice(2, 2, &s);
+        let pi = (sm.transpose() * &sm).try_inverse().unwrap();
+        let c = DMatrix::from_row_slice(1, 2, &[1.0, 0.0]);
+        let k = &pi * c.transpose() / ((&c * &pi * c.transpose())[0] + 0.1);
+        let pi_plus = (DMatrix::identity(2, 2) - &k * &c) * &pi;
+        let a = DMatrix::from_row_slice(2, 2, &[0.9, 0.2, 0.0, 0.8]);
+        let expected = &a * pi_plus * a.transpose() + DMatrix::from_row_slice(2, 2, &q0);
+        let sn = DMatrix::from_row_slice(2, 2, &next);
+        let got = (sn.transpose() * sn).try_inverse().unwrap();
+        assert!((got - expected).norm() < 1e-12);
+        // Without the output only the time update remains.
+        let next = ekf_step(
+            &mut Linear,
+            &problem,
+            &[0.3, -0.2],
+            &[],
+            Some(&[f64::NAN]),
+            &s,
+        )
+        .unwrap();
+        let sn = DMatrix::from_row_slice(2, 2, &next);
+        let got = (sn.transpose() * sn).try_inverse().unwrap();
+        let expected = &a * pi * a.transpose() + DMatrix::from_row_slice(2, 2, &q0);
+        assert!((got - expected).norm() < 1e-12);
+    }
+}
