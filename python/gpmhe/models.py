@@ -147,9 +147,13 @@ class KnownModel(_SharedOnCopy):
     _casadi = None
     #: f and ∂f/∂x in one vectorised call (`from_ode`'s integrator), or None.
     _f_joint = None
+    #: How the model on the augmented state [x; p̃] is built (see `_augment`), or None for a
+    #: model without parameters.
+    _parameter_source = None
+    dim_p = 0
 
     def __init__(self, f, h, dim_x, dim_y, dim_u=0, f_jacobian=None, h_jacobian=None,
-                 fd_step=1e-6, vectorized=False):
+                 fd_step=1e-6, vectorized=False, dim_p=0):
         for name, fn in (("f", f), ("h", h)):
             if not callable(fn):
                 raise ValueError(f"{name}: must be callable")
@@ -164,6 +168,9 @@ class KnownModel(_SharedOnCopy):
         self.dim_x, self.dim_y, self.dim_u = dim_x, dim_y, dim_u
         self.fd_step = fd_step
         self.vectorized = vectorized
+        self.dim_p = integer("dim_p", dim_p)
+        if self.dim_p:
+            self._parameter_source = ("callables",)
 
     @classmethod
     def from_casadi(cls, f, h, jit=False):
@@ -235,8 +242,11 @@ class KnownModel(_SharedOnCopy):
         [[0.936   0.00128]
          [0.032   0.99936]]
         """
-        from gpmhe._casadi import CasadiModel, CasadiPart
+        from gpmhe._casadi import CasadiModel, CasadiPart, import_casadi
 
+        ca = import_casadi("KnownModel.from_casadi")
+        if isinstance(f, ca.Function) and f.n_in() == 3:
+            return cls._parametrised(("casadi", f, h, boolean("jit", jit)), f, h)
         casadi_model = CasadiModel(f, h, jit=boolean("jit", jit))
         n, m, p = casadi_model.dims
         parts = {name: CasadiPart(casadi_model, name) for name in ("f", "h", "f_jacobian", "h_jacobian")}
@@ -248,7 +258,7 @@ class KnownModel(_SharedOnCopy):
     @classmethod
     def from_ode(cls, rhs, h, dt, dim_x=None, dim_y=None, dim_u=None, substeps=1, method="rk4",
                  rhs_jacobian=None, h_jacobian=None, fd_step=1e-6, newton_tol=1e-10,
-                 newton_max_iter=20, jit=False):
+                 newton_max_iter=20, jit=False, dim_p=0):
         """The model of a continuous-time system dx/dt = F(x, u), y = h(x, u), sampled every
         ``dt`` with u held constant.
 
@@ -327,6 +337,20 @@ class KnownModel(_SharedOnCopy):
         """
         from gpmhe.discretization import discretize, is_casadi_function
 
+        settings = dict(substeps=substeps, method=method, fd_step=fd_step, newton_tol=newton_tol,
+                        newton_max_iter=newton_max_iter)
+        if is_casadi_function(rhs) and rhs.n_in() == 3:
+            if h_jacobian is not None or rhs_jacobian is not None:
+                raise ValueError("rhs_jacobian, h_jacobian: not used with CasADi functions")
+            settings["jit"] = boolean("jit", jit)
+            return cls._parametrised(("ode-casadi", rhs, h, dt, settings), rhs, h)
+        if dim_p:
+            if dim_x is None or dim_y is None:
+                raise ValueError("dim_x, dim_y: required with a numpy rhs")
+            model = cls._parametrised(("ode-numpy", rhs, h, dt, rhs_jacobian, h_jacobian, settings),
+                                      rhs, h, (dim_x, dim_y, dim_u or 0, dim_p))
+            model._augment(np.ones(model.dim_p))  # validates the settings now
+            return model
         f = discretize(rhs, dt, substeps=substeps, method=method, rhs_jacobian=rhs_jacobian,
                        fd_step=fd_step, newton_tol=newton_tol, newton_max_iter=newton_max_iter)
         if is_casadi_function(rhs):
@@ -349,6 +373,54 @@ class KnownModel(_SharedOnCopy):
                     h_jacobian=h_jacobian, fd_step=fd_step, vectorized=True)
         model._f_joint = f.value_and_jacobian
         return model
+
+    # ---- unknown parameters (gpmhe/_parameters.py) -----------------------------------------
+    @classmethod
+    def _parametrised(cls, source, f, h, dims=None):
+        """A model with parameters: its dimensions, and how `_augment` builds the model on
+        [x; p̃] (``source``: its kind and the user's functions and settings)."""
+        model = cls.__new__(cls)
+        model.f, model.h, model.f_jacobian, model.h_jacobian = f, h, None, None
+        model.fd_step, model.vectorized = 1e-6, True
+        model._parameter_source = source
+        if dims is None:  # CasADi: read the sizes from the functions
+            n, m, n_p = (f.size1_in(i) * f.size2_in(i) for i in range(3))
+            if n_p == 0:
+                raise ValueError(f"f: its third input p must have at least one value in {f}")
+            dims = (n, 0 if h is None else h.size1_out(0) * h.size2_out(0), m, n_p)
+        model.dim_x, model.dim_y, model.dim_u, model.dim_p = dims
+        model._augment(np.ones(model.dim_p))  # checks the functions fit together
+        return model
+
+    def _unit_model(self):
+        """The augmented model with unit scale (p̃ = p), built once."""
+        if getattr(self, "_unit", None) is None:
+            self._unit = self._augment(np.ones(self.dim_p))
+        return self._unit
+
+    def _augment(self, scale):
+        """The model on the augmented state [x; p̃], p = scale ⊙ p̃, p̃ constant (a model without
+        parameters: ValueError)."""
+        from gpmhe import _parameters as par
+
+        if self._parameter_source is None:
+            raise ValueError("model: has no parameters (dim_p = 0)")
+        kind, *rest = self._parameter_source
+        n, p, m, n_p = self.dim_x, self.dim_y, self.dim_u, self.dim_p
+        cls = type(self)
+        if kind == "callables":
+            fa, ha, fja, hja = par.augment_numpy((self.f, self.h, self.f_jacobian, self.h_jacobian),
+                                                 n, n_p, p, scale, self.vectorized, False)
+            return cls(fa, ha, n + n_p, p, m, fja, hja, self.fd_step, self.vectorized)
+        if kind == "casadi":
+            f, h, jit = rest
+            return cls.from_casadi(*par.augment_casadi(f, h, n, n_p, scale, False), jit=jit)
+        if kind == "ode-casadi":
+            rhs, h, dt, settings = rest
+            return cls.from_ode(*par.augment_casadi(rhs, h, n, n_p, scale, True), dt, **settings)
+        rhs, h, dt, rj, hj, settings = rest
+        fa, ha, fja, hja = par.augment_numpy((rhs, h, rj, hj), n, n_p, p, scale, True, True)
+        return cls.from_ode(fa, ha, dt, n + n_p, p, m, rhs_jacobian=fja, h_jacobian=hja, **settings)
 
     # ---- per point (vectorized=False) ------------------------------------------------------
     def _call(self, fn, x, u, size, name):
@@ -442,8 +514,8 @@ class KnownModel(_SharedOnCopy):
         return mx, jx, my, jy
 
     # ----------------------------------------------------------------------------------------
-    def predict(self, x, u=None):
-        """One-step prediction m_x = f(x, u).
+    def predict(self, x, u=None, p=None):
+        """One-step prediction m_x = f(x, u) (f(x, u, p) for a model with parameters).
 
         Parameters
         ----------
@@ -451,6 +523,8 @@ class KnownModel(_SharedOnCopy):
             State.
         u : array_like of shape (dim_u,) or None, default None
             Input; None for no input (dim_u = 0).
+        p : array_like of shape (dim_p,) or None, default None
+            The parameters of a model with parameters (required then, ignored otherwise).
 
         Returns
         -------
@@ -460,7 +534,8 @@ class KnownModel(_SharedOnCopy):
         Raises
         ------
         ValueError
-            If x or u is not a finite vector of dim_x or dim_u values (u missing when dim_u > 0),
+            If x, u or p is not a finite vector of dim_x, dim_u or dim_p values (u missing when
+            dim_u > 0, p missing when dim_p > 0),
             or f returns the wrong shape, NaN, inf or a value of magnitude > 1e150.
 
         Examples
@@ -472,6 +547,12 @@ class KnownModel(_SharedOnCopy):
         >>> print(model.predict([2.0, 4.0], u=[1.0, 0.0]))
         [2. 2.]
         """
+        if self.dim_p:
+            p = finite_vector("p", p, self.dim_p, flatten=True) if p is not None else None
+            if p is None:
+                raise ValueError(f"p: required (dim_p = {self.dim_p})")
+            x = finite_vector("x", x, self.dim_x, flatten=True)
+            return self._unit_model().predict(np.concatenate([x, p]), u)[:self.dim_x]
         x, u = _point(x, u, self.dim_x, self.dim_u)
         if self.vectorized:
             v = self._call_batch(self.f, x[None, :], u[None, :], self.dim_x, "f")[0]
@@ -567,6 +648,8 @@ class KnownModel(_SharedOnCopy):
     def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
         """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`); a CasADi
         model's callbacks skip the checks of the points, which the core passes valid."""
+        if self.dim_p:
+            raise ValueError("model: has parameters; the estimator runs its augmented model")
         if self._casadi is not None:
             stage, predict = self._casadi.stage_callback, self._casadi.predict_callback
         else:

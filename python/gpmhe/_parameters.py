@@ -1,0 +1,84 @@
+"""Unknown constant parameters p of a known model, estimated with the states (see the user guide,
+*Physics models*, "Unknown parameters").
+
+A model with parameters, f(x, u, p) and h(x, u, p), is run by the estimator on the augmented
+state [x; p̃] with p = s ⊙ p̃: s is the parameters' scale (so that p̃ is of order one for the
+solver, whatever the units of p) and p̃ is constant (p̃(t+1) = p̃(t) for a discrete map,
+dp̃/dt = 0 for a right-hand side). The functions here build the augmented callables (numpy, per
+point or vectorised) and CasADi functions; `gpmhe.models.KnownModel` builds the augmented model
+from them when an estimator asks for it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["augment_numpy", "augment_casadi"]
+
+
+def _check(name, a, shape):
+    if a.shape != shape:
+        raise ValueError(f"{name}: returned shape {a.shape}, expected {shape}")
+    return a
+
+
+class _Part:
+    """One augmented numpy callable (picklable when the wrapped one is): ``role`` "f" (the map
+    or right-hand side), "h", "f_jacobian" or "h_jacobian" of the user's ``fn`` of (x, u, p)."""
+
+    def __init__(self, role, fn, n, n_p, rows, scale, vectorized, continuous):
+        self.role, self.fn, self.n, self.n_p, self.rows = role, fn, n, n_p, rows
+        self.scale = np.asarray(scale, dtype=np.float64)
+        self.vectorized, self.continuous = vectorized, continuous
+
+    def __call__(self, X, U):
+        single = not self.vectorized
+        if single:
+            X, U = X[None, :], U[None, :]
+        n, n_p, k = self.n, self.n_p, X.shape[0]
+        x, pt = X[:, :n], X[:, n:]
+        args = (x[0], U[0], pt[0] * self.scale) if single else (x, U, pt * self.scale)
+        v = np.asarray(self.fn(*args), dtype=np.float64)
+        if self.role == "h":
+            return v
+        if self.role == "f":
+            v = v.reshape(k, -1)
+            nxt = np.zeros_like(pt) if self.continuous else pt
+            out = np.hstack([v, nxt])
+            return out[0] if single else out
+        J = _check(self.role, v.reshape((k,) + v.shape[-2:]) if single else v,
+                   (k, self.rows, n + n_p))
+        extra = n_p if self.role == "f_jacobian" else 0
+        out = np.zeros((k, self.rows + extra, n + n_p))
+        out[:, :self.rows, :n], out[:, :self.rows, n:] = J[:, :, :n], J[:, :, n:] * self.scale
+        if extra and not self.continuous:
+            out[:, self.rows:, n:] = np.eye(n_p)
+        return out[0] if single else out
+
+
+def augment_numpy(fns, n, n_p, dim_y, scale, vectorized, continuous):
+    """The augmented (f, h, f_jacobian, h_jacobian) of numpy callables ``fns`` taking (x, u, p)
+    (per point) or (X, U, P) (vectorised); Jacobians are ∂/∂[x; p] (None: finite differences of
+    the augmented functions). ``continuous``: f is a right-hand side (dp̃/dt = 0)."""
+    roles = ("f", "h", "f_jacobian", "h_jacobian")
+    rows = (n, dim_y, n, dim_y)
+    return tuple(None if fn is None else _Part(role, fn, n, n_p, r, scale, vectorized, continuous)
+                 for role, fn, r in zip(roles, fns, rows))
+
+
+def augment_casadi(f, h, n, n_p, scale, continuous):
+    """The augmented CasADi functions of f(x, u, p) (a map or a right-hand side) and h (of x,
+    (x, u) or (x, u, p); or None)."""
+    import casadi as ca
+
+    n_u = f.size1_in(1) * f.size2_in(1)
+    xa, u = ca.SX.sym("x", n + n_p), ca.SX.sym("u", n_u)
+    x, pt = xa[:n], xa[n:]
+    p = pt * ca.DM(np.asarray(scale, dtype=np.float64))
+    nxt = ca.vertcat(f(x, u, p), ca.SX.zeros(n_p) if continuous else pt)
+    fa = ca.Function(f.name() + "_with_parameters", [xa, u], [nxt], ["x", "u"], ["xf"])
+    if h is None:
+        return fa, None
+    args = [x, u, p][:h.n_in()]
+    ha = ca.Function(h.name() + "_with_parameters", [xa, u], [h(*args)], ["x", "u"], ["y"])
+    return fa, ha
