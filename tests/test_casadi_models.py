@@ -234,7 +234,8 @@ def test_signature_errors_name_the_argument():
     cases = [
         (dict(f=lambda x, u: x, h=h), r"^f: must be a casadi.Function"),
         (dict(f=f, h=br.h), r"^h: must be a casadi.Function"),
-        (dict(f=ca.Function("f", [x, u, ca.SX.sym("p")], [x]), h=h), r"^f: must take x or \(x, u\), got 3"),
+        (dict(f=ca.Function("f", [x, u, ca.SX.sym("p"), ca.SX.sym("q")], [x]), h=h), r"^f: must take x or \(x, u\).* got 4"),
+        (dict(f=ca.Function("f", [x, u, ca.SX.sym("p", 0)], [x]), h=h), r"^f: its third input p must have"),
         (dict(f=ca.Function("f", [x, u], [x, x]), h=h), r"^f: must have one output, got 2"),
         (dict(f=ca.Function("f", [X, u], [X[:, 0]]), h=h),
          r"^f: input 0 \('i0'\) must be a vector, got shape \(2, 2\)"),

@@ -369,15 +369,16 @@ case("KnownModel", None, _ctor(KnownModel),
 
 case("GPMHE", None, _ctor(GPMHE), MHE_KW,
      dict(model=[LEARNED.f_gp, 1.0], x0=[[10.0, 0.0]], horizon=BAD_COUNTS + [0],
-          eta=[1.0, -0.1, 2.0, [0.5, 0.5]], P2=NOT_PD_OR_ZERO, Q0=[[[1.0, 0.1], [0.1, 1.0]], 0.0, -1.0],
-          R0=[0.0, -1.0, [[1.0, 0.1], [0.1, 1.0]]],
+          eta=[1.0 + 1e-9, -0.1, 2.0, [0.5, 0.5]], P2=NOT_PD_OR_ZERO, Q0=NOT_PD + [0.0, -1.0],
+          R0=NOT_PD + [0.0, -1.0],
           x_bounds=[([5.0, 5.0], [-5.0, -5.0]), ([0.0, 0.0],), 1.0, ([np.nan, 0.0], [1.0, 1.0]),
                     ([1.0, 1.0], [1.0, 1.0])],
           form=["bogus", "Prediction", 1], solver=["bogus", 1, "GAUSS-NEWTON"],
           solver_options=[{"max_iter": -1}, {"max_iter": 1.5}, {"max_iter": "a"}, {"bogus": 1},
                           {"gtol": float("nan")}, {"gtol": -1.0}, {"interior": "bogus"},
                           {"max_iter": 10**30}, [("max_iter", 3)], "abc"]),
-     allow=dict(P2=[None], Q0=[None], R0=[None], x_bounds=[None], solver_options=[None, {}]),
+     allow=dict(P2=[None], Q0=[None], R0=[None], x_bounds=[None, (None, None)],
+                solver_options=[None, {}]),
      numeric=dict(R0="spoil", model=False, horizon=False, form=False, solver=False, solver_options=False,
                   x_bounds=False))
 for solver, opts in (("trust-constr", {"maxiter": 50}), ("least-squares", {"max_nfev": 50})):
@@ -388,10 +389,11 @@ for solver, opts in (("trust-constr", {"maxiter": 50}), ("least-squares", {"max_
 for mname, model in (("known", KNOWN), ("learned", LEARNED)):
     mk = (lambda model=model: make_mhe(model))
     case(f"GPMHE[{mname}].update", mk, _method("update"), dict(u=[0.1], y=[0.2, 0.3]),
-         dict(u=[], y=[]), _mhe_next, allow=dict(y=[None]))
+         dict(u=[], y=[[], [np.inf, 0.3], [0.2, -np.inf], [1e200, 0.0]]), _mhe_next,
+         allow=dict(y=[None]), numeric=dict(y=False))
     case(f"GPMHE[{mname}].batch_filter", mk, _method("batch_filter"),
          dict(ys=[[0.2, 0.3], None, [0.1, 0.1]], us=[[0.1], [0.2], [0.3]]),
-         dict(ys=[[[0.2, 0.3], [np.nan, 0.1]], [[0.2, 0.3], "ab"], [[0.2, 0.3], [1e200, 0.0]]],
+         dict(ys=[[[0.2, 0.3], [np.inf, 0.1]], [[0.2, 0.3], "ab"], [[0.2, 0.3], [1e200, 0.0]]],
               us=[[[0.1]], [[0.1], [0.2], None], [[0.1], [0.2], [np.inf]]]),
          _mhe_next, numeric=dict(ys=False, us=False))
     case(f"GPMHE[{mname}].reset", mk, _method("reset"), dict(x0=[0.0, 0.1]),

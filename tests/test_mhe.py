@@ -141,7 +141,7 @@ def test_bad_inputs_raise_and_leave_the_state(gp5, known):
     with pytest.raises(ValueError, match="horizon"):
         GPMHE(known, br.X_PRIOR0, horizon=0)
     with pytest.raises(ValueError, match="eta"):
-        GPMHE(known, br.X_PRIOR0, eta=1.0)
+        GPMHE(known, br.X_PRIOR0, eta=1.5)
     with pytest.raises(ValueError, match="P2"):
         GPMHE(known, br.X_PRIOR0, P2=-np.eye(2))
     with pytest.raises(ValueError, match="Q0"):
@@ -161,13 +161,13 @@ def test_bad_inputs_raise_and_leave_the_state(gp5, known):
     est = GPMHE(gp5, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver="least-squares", **br.MHE_SETTINGS)
     est.update(None, [3.9])
     before = {k: np.copy(getattr(est, k)) for k in ("x", "x_prior", "x_window", "P", "cost", "t")}
-    for bad in ([np.nan], [1.0, 2.0], np.inf):
+    for bad in ([np.inf], [1.0, 2.0], np.inf, (None,)):
         with pytest.raises(ValueError, match="y"):
             est.update(None, bad)
     with pytest.raises(ValueError, match="u"):
         est.update([1.0], [3.9])
     with pytest.raises(ValueError, match="row 1"):
-        est.batch_filter([[3.9], [np.nan]])
+        est.batch_filter([[3.9], [-np.inf]])
     for k, v in before.items():
         np.testing.assert_array_equal(getattr(est, k), v)
 

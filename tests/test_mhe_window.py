@@ -259,10 +259,11 @@ def test_solvers_reach_the_same_cost_on_single_windows(reactor_model, bounds):
     z0 = np.clip(est.x_window.reshape(-1) + 0.05 * rng.standard_normal(2 * nodes),
                  np.tile(lb, nodes) + 1e-3, np.tile(ub, nodes) - 1e-3)
     LB, UB = np.tile(lb, nodes), np.tile(ub, nodes)
-    est.solver_options = dict(ftol=1e-15, xtol=1e-15, gtol=1e-12, max_nfev=2000)
-    z_ls, _, ok_ls, _ = est._solve_least_squares(win, z0, LB, UB)
-    est.solver_options = dict(gtol=1e-10, xtol=1e-12, maxiter=3000)
-    z_tc, _, _, _ = est._solve_trust_constr(win, z0, LB, UB)
+    with est._writing():  # the private solver paths read solver_options at each call
+        est.solver_options = dict(ftol=1e-15, xtol=1e-15, gtol=1e-12, max_nfev=2000)
+        z_ls, _, ok_ls, _ = est._solve_least_squares(win, z0, LB, UB)
+        est.solver_options = dict(gtol=1e-10, xtol=1e-12, maxiter=3000)
+        z_tc, _, _, _ = est._solve_trust_constr(win, z0, LB, UB)
     assert ok_ls
     c_ls, c_tc = win.cost(z_ls), win.cost(z_tc)
     # least-squares reaches a KKT point: projected-gradient residual small relative to the

@@ -60,7 +60,8 @@ def signature(ca, name, fn):
     if not isinstance(fn, ca.Function):
         raise ValueError(f"{name}: must be a casadi.Function, got {type(fn).__name__}")
     if fn.n_in() not in (1, 2):
-        raise ValueError(f"{name}: must take x or (x, u), got {fn.n_in()} inputs in {fn}")
+        raise ValueError(f"{name}: must take x or (x, u) (or (x, u, p) for a model with "
+                         f"parameters), got {fn.n_in()} inputs in {fn}")
     if fn.n_out() != 1:
         raise ValueError(f"{name}: must have one output, got {fn.n_out()} in {fn}")
     n = _vector_size(fn, name, "input", 0)

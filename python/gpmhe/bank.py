@@ -22,7 +22,8 @@ from gpmhe.mhe import GPMHE
 __all__ = ["EstimatorBank"]
 
 #: The keyword settings of GPMHE the bank takes (x0 is its own argument).
-_SETTINGS = ("horizon", "eta", "P2", "Q0", "R0", "x_bounds", "form", "solver", "solver_options")
+_SETTINGS = ("horizon", "eta", "P2", "Q0", "R0", "x_bounds", "form", "solver", "solver_options",
+             "arrival_mean", "arrival_weight")
 
 #: The most estimators in one bank (a guard against a mistyped n, not a limit of the method).
 _MAX_ESTIMATORS = 10_000_000
@@ -166,6 +167,9 @@ class EstimatorBank:
         for attr in ("dim_x", "dim_y", "dim_u", "_make_window"):
             if not hasattr(model, attr):
                 raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
+        if getattr(model, "dim_p", 0):
+            raise ValueError("model: a model with parameters (dim_p > 0) runs in GPMHE, not in "
+                             "a bank")
         k = integer("n", n, low=1, high=_MAX_ESTIMATORS)
         solver = gpmhe_options.get("solver", "gauss-newton")
         if not (isinstance(solver, str) and solver == "gauss-newton"):
@@ -202,6 +206,7 @@ class EstimatorBank:
         self.horizon, self.eta, self.form = template.horizon, template.eta, template.form
         self.P2, self.solver_options = template.P2, template.solver_options
         self.solver = "gauss-newton"
+        self.arrival_mean, self.arrival_weight = template.arrival_mean, template.arrival_weight
         self.x0, self.Q0, self.R0, self.x_bounds = x0, q0, r0, (lb, ub)
         self._p0 = template.P
         self._reset_attributes()
@@ -342,7 +347,8 @@ class EstimatorBank:
         return GPMHE(self.model, x0=self.x0[i], horizon=self.horizon, eta=self.eta, P2=self.P2,
                      Q0=self.Q0[i], R0=self.R0[i] if self.dim_y else None,
                      x_bounds=(lb[i], ub[i]), form=self.form, solver="gauss-newton",
-                     solver_options=self.solver_options)
+                     solver_options=self.solver_options, arrival_mean=self.arrival_mean,
+                     arrival_weight=self.arrival_weight)
 
     def __getitem__(self, i):
         """Estimator i as a standalone `GPMHE`: an independent copy with its settings, history
@@ -354,13 +360,14 @@ class EstimatorBank:
         i %= k
         mhe = self._gpmhe(i)
         mhe._core.__setstate__(self._core.member_state(i))
-        mhe.t = self.t
-        mhe.x, mhe.x_prior = self.x[i].copy(), self.x_prior[i].copy()
-        mhe.x_window, mhe.P = self.x_window[i].copy(), self.P[i].copy()
-        mhe.cost, mhe.success = float(self.cost[i]), bool(self.success[i])
-        mhe.nit, mhe.nfev = int(self.nit[i]), int(self.nfev[i])
-        mhe.projected_gradient = float(self.projected_gradient[i])
-        mhe.message = self._message(i)
+        with mhe._writing():
+            mhe.t = self.t
+            mhe.x, mhe.x_prior = self.x[i].copy(), self.x_prior[i].copy()
+            mhe.x_window, mhe.P = self.x_window[i].copy(), self.P[i].copy()
+            mhe.cost, mhe.success = float(self.cost[i]), bool(self.success[i])
+            mhe.nit, mhe.nfev = int(self.nit[i]), int(self.nfev[i])
+            mhe.projected_gradient = float(self.projected_gradient[i])
+            mhe.message = self._message(i)
         return mhe
 
     # ---- copies and pickles -------------------------------------------------------------------

@@ -14,18 +14,21 @@ import inspect
 import warnings
 
 import numpy as np
+import scipy.linalg
 from scipy.optimize import Bounds, least_squares, minimize
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
 from gpmhe._validation import (
+    MAX_ABS,
     finite_vector,
     integer,
     one_of,
     options,
-    positive_diagonal,
+    positive,
     positive_scalar,
     symmetric_matrix,
+    within_limits,
 )
 
 __all__ = ["GPMHE"]
@@ -55,6 +58,66 @@ _SOLVER_OPTIONS = {
 
 _NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
 _NO_INPUT.flags.writeable = False
+
+
+def _check_eta(eta):
+    eta = positive_scalar("eta", eta, allow_zero=True)
+    if eta > 1.0:
+        raise ValueError(f"eta: must be in [0, 1], got {eta!r}")
+    return eta
+
+
+def _covariance(name, value, n):
+    """A symmetric positive definite covariance (n, n) from None (the identity), a scalar, the
+    diagonal or the matrix."""
+    if n == 0:
+        return np.zeros((0, 0))
+    return symmetric_matrix(name, 1.0 if value is None else value, n, definite=True,
+                            vector_is_diagonal=True)
+
+
+def _is_diagonal(a):
+    return bool(np.all(a == np.diag(np.diag(a))))
+
+
+def _bounds(name, bounds, n):
+    """(lower, upper) arrays of shape (n,) from None or a pair whose sides may be None
+    (unbounded) or hold ±inf entries; lower < upper."""
+    sides = (None, None) if bounds is None else bounds
+    try:
+        lower, upper = sides
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a pair (lower, upper)") from None
+    out = []
+    for side, fill in ((lower, -np.inf), (upper, np.inf)):
+        try:
+            a = np.full(n, fill) if side is None else np.asarray(side, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}: lower and upper must be arrays of numbers or None") from None
+        if a.shape != (n,) or np.any(np.isnan(a)):
+            raise ValueError(f"{name}: lower and upper must have shape ({n},) without NaN (or be None)")
+        out.append(a.copy())
+    if np.any(out[0] >= out[1]):
+        raise ValueError(f"{name}: lower must be < upper")
+    return out[0], out[1]
+
+
+def _output(name, y, p):
+    """y(t) of p values; NaN entries are channels not measured (inf is refused)."""
+    try:
+        a = np.asarray(y)
+        if a.dtype.kind not in "fiu":
+            raise TypeError
+        a = a.astype(np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be {p} numbers (NaN for a channel not measured)") from None
+    if a is None or a.shape != (p,):
+        shape = None if a is None else a.shape
+        raise ValueError(f"{name}: expected shape ({p},), got {shape}")
+    if np.any(np.isinf(a)) or not within_limits(a[np.isfinite(a)]):
+        raise ValueError(f"{name}: contains inf or a value of magnitude > {MAX_ABS:g} (NaN marks "
+                         "a channel not measured)")
+    return a
 
 
 def _rows(name, value):
@@ -242,46 +305,183 @@ class GPMHE:
     """
 
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
-                 x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None):
-        for attr in ("dim_x", "dim_y", "dim_u", "predict", "_make_window"):
-            if not hasattr(model, attr):
-                raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
-        n, p = model.dim_x, model.dim_y
-        horizon = integer("horizon", horizon, low=1, high=_MAX_HORIZON)
-        if positive_scalar("eta", eta, allow_zero=True) >= 1.0:
-            raise ValueError(f"eta: must be in [0, 1), got {eta!r}")
-        form = one_of("form", form, ("prediction", "filtering"))
-        solver = one_of("solver", solver, tuple(self._SOLVERS))
-        solver_options = options("solver_options", solver_options, _SOLVER_OPTIONS[solver])
-        P2 = symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True)
-        p2_sqrt = np.ascontiguousarray(np.linalg.cholesky(P2).T)  # P2 = SᵀS
-        q0 = positive_diagonal("Q0", 1.0 if Q0 is None else Q0, n, allow_full=False)
-        r0 = positive_diagonal("R0", 1.0 if R0 is None else R0, p, allow_full=False) if p else np.zeros(0)
-        if x_bounds is None:
-            lb, ub = np.full(n, -np.inf), np.full(n, np.inf)
-        else:
-            try:
-                lb, ub = (np.asarray(b, dtype=np.float64).reshape(-1) for b in x_bounds)
-            except (TypeError, ValueError):
-                raise ValueError("x_bounds: must be a pair (lower, upper)") from None
-            if lb.shape != (n,) or ub.shape != (n,) or np.any(np.isnan(lb)) or np.any(np.isnan(ub)):
-                raise ValueError(f"x_bounds: lower and upper must have shape ({n},) without NaN")
-            if np.any(lb >= ub):
-                raise ValueError("x_bounds: lower must be < upper")
-        self.model = model
-        self.dim_x, self.dim_y, self.dim_u = n, p, model.dim_u
-        self.horizon, self.eta, self.form, self.solver = int(horizon), float(eta), form, solver
-        self.solver_options = dict(solver_options or {})
-        self.P2, self.Q0, self.R0 = P2.copy(), np.diag(q0), np.diag(r0)
-        self.x_bounds = (lb, ub)
-        x0 = self._check_x0(x0)
-        rust_solver = self._rust_solver() if solver == "gauss-newton" else None
-        self._core = model._make_window(
-            self.eta, q0, r0, p2_sqrt, form == "filtering", horizon=self.horizon, x0=x0,
-            lower=lb, upper=ub, solver=rust_solver)
+                 x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None,
+                 P0=None, arrival_mean="estimate", arrival_weight="constant", p0=None, P_p0=None,
+                 p_bounds=None, p_drift=None):
+        with self._writing():
+            for attr in ("dim_x", "dim_y", "dim_u", "predict", "_make_window"):
+                if not hasattr(model, attr):
+                    raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
+            n, p = model.dim_x, model.dim_y
+            self.model, self.dim_x, self.dim_y, self.dim_u = model, n, p, model.dim_u
+            self.dim_p = int(getattr(model, "dim_p", 0))
+            self.horizon = integer("horizon", horizon, low=1, high=_MAX_HORIZON)
+            self.form = one_of("form", form, ("prediction", "filtering"))
+            self.solver = one_of("solver", solver, tuple(self._SOLVERS))
+            self.solver_options = dict(options("solver_options", solver_options,
+                                               _SOLVER_OPTIONS[self.solver]) or {})
+            self.arrival_mean = one_of("arrival_mean", arrival_mean, ("estimate", "smoothed"))
+            self.arrival_weight = one_of("arrival_weight", arrival_weight, ("constant", "ekf"))
+            if P2 is not None and P0 is not None:
+                raise ValueError("P2, P0: give the arrival weight P2 or its covariance P0, not both")
+            self._eta = _check_eta(eta)
+            self._Q0, self._R0 = _covariance("Q0", Q0, n), _covariance("R0", R0, p)
+            self._P2 = (np.linalg.inv(_covariance("P0", P0, n)) if P0 is not None
+                        else symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True))
+            self.x_bounds = _bounds("x_bounds", x_bounds, n)
+            self._parameters(p0, P_p0, p_bounds, p_drift)
+            x0 = self._check_x0(x0)
+            rust_solver = self._rust_solver() if self.solver == "gauss-newton" else None
+            lb, ub = self._core_bounds()
+            core_model = model._augment(self._p_scale) if self.dim_p else model
+            q0, r0, p2_sqrt = self._core_weights()
+            self._core = core_model._make_window(
+                self._eta, q0, r0, p2_sqrt, self.form == "filtering", horizon=self.horizon,
+                x0=self._core_x0(x0), lower=lb, upper=ub, solver=rust_solver,
+                arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight)
+            self._core_model = core_model
         self.reset(x0)
 
-    # ----------------------------------------------------------------------------------------
+    # ---- settings: weights that take effect, parameters, the attribute guard ---------------
+    #: The attributes a user may set (each takes effect from the next update).
+    _SETTABLE = frozenset({"Q0", "R0", "P2", "P0", "eta"})
+    #: Names users of other estimators try, and what to use instead.
+    _DID_YOU_MEAN = {"R": "R0", "Q": "Q0", "P": "P0 (the arrival covariance)", "x0": "reset(x0)",
+                     "M": "horizon (fixed: build a new GPMHE)", "N": "horizon (fixed)"}
+
+    def __setattr__(self, name, value):
+        if name in self._SETTABLE or name.startswith("_") or self.__dict__.get("_unlocked"):
+            object.__setattr__(self, name, value)
+            return
+        hint = self._DID_YOU_MEAN.get(name)
+        if hint is None and hasattr(type(self), name) is False and name not in self.__dict__:
+            raise AttributeError(f"GPMHE has no attribute {name!r}; the settable ones are "
+                                 f"{', '.join(sorted(self._SETTABLE))}")
+        if hint is not None:
+            raise AttributeError(f"GPMHE has no settable attribute {name!r}: did you mean {hint}?")
+        raise AttributeError(f"GPMHE.{name} is read-only; the settable attributes are "
+                             f"{', '.join(sorted(self._SETTABLE))} (the other settings are fixed "
+                             "at construction, the estimate changes only through update and reset)")
+
+    class _Unlock:
+        def __init__(self, owner):
+            self.owner = owner
+
+        def __enter__(self):
+            self.before = self.owner.__dict__.get("_unlocked", False)
+            object.__setattr__(self.owner, "_unlocked", True)
+
+        def __exit__(self, *exc):
+            object.__setattr__(self.owner, "_unlocked", self.before)
+
+    def _writing(self):
+        """A context in which the estimator's own code sets its read-only attributes."""
+        return self._Unlock(self)
+
+    @property
+    def Q0(self):  # noqa: N802 (the paper's symbol)
+        """Process-noise covariance Q0 (dim_x, dim_x); setting it takes effect from the next
+        update (a scalar, the diagonal or the matrix, as in the constructor)."""
+        return self._Q0.copy()
+
+    @Q0.setter
+    def Q0(self, value):  # noqa: N802
+        self._set_weights(Q0=_covariance("Q0", value, self.dim_x))
+
+    @property
+    def R0(self):  # noqa: N802
+        """Output-noise covariance R0 (dim_y, dim_y); settable as ``Q0``."""
+        return self._R0.copy()
+
+    @R0.setter
+    def R0(self, value):  # noqa: N802
+        self._set_weights(R0=_covariance("R0", value, self.dim_y))
+
+    @property
+    def P2(self):  # noqa: N802
+        """Arrival weight P2 (dim_x, dim_x), the inverse of the arrival covariance ``P0``;
+        setting it (or ``P0``) takes effect from the next update and restarts an "ekf" arrival
+        weight from it."""
+        return self._P2.copy()
+
+    @P2.setter
+    def P2(self, value):  # noqa: N802
+        self._set_weights(P2=symmetric_matrix("P2", value, self.dim_x, definite=True))
+
+    @property
+    def P0(self):  # noqa: N802
+        """Arrival covariance P0 = P2⁻¹ (dim_x, dim_x); settable (sets P2)."""
+        return np.linalg.inv(self._P2)
+
+    @P0.setter
+    def P0(self, value):  # noqa: N802
+        self._set_weights(P2=np.linalg.inv(_covariance("P0", value, self.dim_x)))
+
+    @property
+    def eta(self):
+        """Discount factor η in [0, 1]; settable."""
+        return self._eta
+
+    @eta.setter
+    def eta(self, value):
+        self._set_weights(eta=_check_eta(value))
+
+    def _set_weights(self, **new):
+        """Replace validated weights in the core; on error nothing changes."""
+        old = dict(Q0=self._Q0, R0=self._R0, P2=self._P2, eta=self._eta)
+        for key, value in new.items():
+            object.__setattr__(self, "_" + key, value)
+        try:
+            q0, r0, p2_sqrt = self._core_weights()
+            self._core.set_weights(self._eta, q0, r0, p2_sqrt)
+        except (ValueError, np.linalg.LinAlgError) as e:
+            for key, value in old.items():
+                object.__setattr__(self, "_" + key, value)
+            raise ValueError(str(e)) from None
+
+    def _parameters(self, p0, P_p0, p_bounds, p_drift):
+        """Validate the parameter settings (a model with dim_p > 0 needs p0)."""
+        k = self.dim_p
+        if not k:
+            for name, v in (("p0", p0), ("P_p0", P_p0), ("p_bounds", p_bounds), ("p_drift", p_drift)):
+                if v is not None:
+                    raise ValueError(f"{name}: the model has no parameters (dim_p = 0)")
+            self.p_bounds, self._p_scale = None, np.ones(0)
+            self.P_p0, self.p_drift = np.zeros((0, 0)), np.zeros(0)
+            return
+        if p0 is None:
+            raise ValueError(f"p0: required, the model has {k} parameter(s) (dim_p = {k})")
+        self.p0 = finite_vector("p0", p0, k, flatten=True).copy()
+        self.p_bounds = _bounds("p_bounds", p_bounds, k)
+        if np.any(self.p0 < self.p_bounds[0]) or np.any(self.p0 > self.p_bounds[1]):
+            raise ValueError("p0: must lie inside p_bounds")
+        scale = np.abs(self.p0)
+        span = self.p_bounds[1] - self.p_bounds[0]
+        scale = np.where(scale > 0, scale, np.where(np.isfinite(span), span, 1.0))
+        self._p_scale = scale
+        self.P_p0 = _covariance("P_p0", np.diag(scale ** 2) if P_p0 is None else P_p0, k)
+        drift = 1e-4 * scale if p_drift is None else p_drift
+        self.p_drift = np.broadcast_to(positive("p_drift", drift), (k,)).astype(np.float64)
+
+    def _core_weights(self):
+        """(q0, r0, S) for the core: Q0 and R0 (their diagonals when diagonal, else flattened),
+        S with P2 = SᵀS, all on the augmented state [x; p̃] when the model has parameters."""
+        s = self._p_scale
+        Q0, P2 = self._Q0, self._P2
+        if self.dim_p:
+            Q0 = scipy.linalg.block_diag(Q0, np.diag((self.p_drift / s) ** 2))
+            P2 = scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(self.P_p0) * s[None, :])
+        flat = lambda a: np.ascontiguousarray(np.diag(a) if _is_diagonal(a) else a.reshape(-1))  # noqa: E731
+        r0 = flat(self._R0) if self.dim_y else np.zeros(0)
+        return flat(Q0), r0, np.ascontiguousarray(np.linalg.cholesky(P2).T)
+
+    def _core_bounds(self):
+        lb, ub = self.x_bounds
+        if self.dim_p:
+            plb, pub = self.p_bounds
+            lb, ub = np.concatenate([lb, plb / self._p_scale]), np.concatenate([ub, pub / self._p_scale])
+        return lb, ub
+
     def _check_x0(self, x0):
         x0 = finite_vector("x0", x0, self.dim_x, flatten=True).copy()
         lb, ub = self.x_bounds
@@ -289,21 +489,29 @@ class GPMHE:
             raise ValueError("x0: must lie inside x_bounds")
         return x0
 
-    def reset(self, x0):
+    def _core_x0(self, x0, p=None):
+        if not self.dim_p:
+            return x0
+        return np.concatenate([x0, (self.p0 if p is None else p) / self._p_scale])
+
+    def reset(self, x0, p0=None):
         """Forget the history and restart from the estimate x̂(0) = x0.
 
-        Sets ``t`` to 0, ``x``, ``x_prior`` to x0, ``x_window`` to x0 as one row, ``P`` to P2⁻¹
-        and the solver statistics to their initial values. The settings are kept.
+        Sets ``t`` to 0, ``x``, ``x_prior`` to x0, ``x_window`` to x0 as one row, ``P`` to
+        ``P0`` (= P2⁻¹), ``p`` to ``p0`` and ``P_p`` to ``P_p0``, and the solver statistics to
+        their initial values. The settings (and weights set since construction) are kept.
 
         Parameters
         ----------
         x0 : array_like of shape (dim_x,)
             New initial estimate; must lie in ``x_bounds``.
+        p0 : array_like of shape (dim_p,) or None, default None
+            New parameter guess (a model with parameters only); None: the constructor's ``p0``.
 
         Raises
         ------
         ValueError
-            If x0 has the wrong shape, is not finite or lies outside ``x_bounds``.
+            If x0 or p0 has the wrong shape, is not finite or lies outside its bounds.
 
         Examples
         --------
@@ -317,27 +525,83 @@ class GPMHE:
         (0, array([2.]))
         """
         x0 = self._check_x0(x0)
-        self._core.reset(x0)
-        self.t = 0
-        self.x = x0.copy()
-        self.x_prior = x0.copy()
-        self.x_window = x0[None, :].copy()
-        self.P = np.linalg.inv(self.P2)
-        self.cost, self.success, self.nit, self.message = 0.0, True, 0, ""
-        self.nfev, self.projected_gradient = 0, 0.0
+        if p0 is not None:
+            if not self.dim_p:
+                raise ValueError("p0: the model has no parameters (dim_p = 0)")
+            p0 = finite_vector("p0", p0, self.dim_p, flatten=True).copy()
+            if np.any(p0 < self.p_bounds[0]) or np.any(p0 > self.p_bounds[1]):
+                raise ValueError("p0: must lie inside p_bounds")
+        self._core.reset(self._core_x0(x0, p0))
+        with self._writing():
+            self.t = 0
+            self.x = x0.copy()
+            self.x_prior = x0.copy()
+            self.x_window = x0[None, :].copy()
+            self.P = np.linalg.inv(self._P2)
+            self.p = (self.p0 if p0 is None else p0).copy() if self.dim_p else np.zeros(0)
+            self.P_p = self.P_p0.copy()
+            self.cost, self.success, self.nit, self.message = 0.0, True, 0, ""
+            self.nfev, self.projected_gradient = 0, 0.0
+            self._input_pending = False
 
     def _check_step(self, u, y):
         m, p = self.dim_u, self.dim_y
+        if self._input_pending:
+            raise ValueError("u: the last update was given u=None; call set_input(u) with the "
+                             "input applied at that step before the next update")
+        pending = False
         if u is None:
-            if m:
-                raise ValueError(f"u: required (dim_u = {m})")
-            u = _NO_INPUT
+            if m and self.form != "filtering":
+                raise ValueError(f"u: required (dim_u = {m}; only the filtering form accepts "
+                                 "None, see set_input)")
+            u = _NO_INPUT if not m else self._placeholder_input()
+            pending = bool(m)
         else:
             u = finite_vector("u", u, m, flatten=True)
         if y is None:
-            return u, np.zeros(p), False
-        y = finite_vector("y", y, p, flatten=True)
-        return u, y, True
+            return u, np.zeros(p), False, pending
+        y = _output("y", y, p)
+        return u, y, not bool(np.all(np.isnan(y))), pending
+
+    def _placeholder_input(self):
+        """u(t−1) (zeros before the first update): the input at the newest node while u(t) is
+        not known, where only an output that depends on u would use it."""
+        state = self._core.__getstate__()
+        return state["u"][-1].copy() if len(state["u"]) else np.zeros(self.dim_u)
+
+    def set_input(self, u):
+        """Give u(t), the input applied after the last update, when that update had ``u=None``.
+
+        In the filtering form, ``update(None, y(t))`` returns x̂(t) before u(t) is known (a
+        controller computes it from x̂(t)); u(t) drives the next window's transition from x(t)
+        to x(t+1), so it must be given before the next update.
+
+        Parameters
+        ----------
+        u : array_like of shape (dim_u,)
+            The input u(t).
+
+        Raises
+        ------
+        ValueError
+            If u is not a finite vector of dim_u values or no update is waiting for its input.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> model = KnownModel(lambda x, u: x + u, lambda x, u: x, dim_x=1, dim_y=1, dim_u=1)
+        >>> mhe = GPMHE(model, x0=[0.0], horizon=3, form="filtering")
+        >>> x_hat = mhe.update(None, [1.0])     # u(0) not known yet
+        >>> mhe.set_input(-0.5 * x_hat)         # the controller's u(0) = -0.5 x̂(0)
+        >>> _ = mhe.update(None, [0.6])
+        """
+        if not self._input_pending:
+            raise ValueError("u: no update is waiting for its input (set_input follows an "
+                             "update given u=None)")
+        u = finite_vector("u", u, self.dim_u, flatten=True)
+        self._core.set_last_input(u)
+        self._input_pending = False
 
     def update(self, u, y):
         """Add the input and output of the next step, solve the window and update the estimate.
@@ -389,8 +653,8 @@ class GPMHE:
         >>> print(np.round(mhe.update([0.0], None), 3))  # x̂(1) = x̂(0) + u(0): no measurement
         [2.]
         """
-        u, y, present = self._check_step(u, y)
-        self._step(u, y, present)
+        u, y, present, pending = self._check_step(u, y)
+        self._step(u, y, present, pending)
         return self.x
 
     def batch_filter(self, ys, us=None):
@@ -446,14 +710,17 @@ class GPMHE:
                 raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
         xs = np.empty((len(steps), self.dim_x))
         Ps = np.empty((len(steps), self.dim_x, self.dim_x))
-        for i, (u, y, present) in enumerate(steps):
-            self._step(u, y, present)
+        if any(step[3] for step in steps):
+            raise ValueError("us: batch_filter needs every input (u=None is for update and "
+                             "set_input)" if self.dim_u else "us: internal")
+        for i, (u, y, present, _) in enumerate(steps):
+            self._step(u, y, present, False)
             xs[i], Ps[i] = self.x, self.P
         return xs, Ps
 
     # ----------------------------------------------------------------------------------------
     @exclusive  # one update at a time per estimator (gpmhe/_threads.py)
-    def _step(self, u, y, present):
+    def _step(self, u, y, present, pending=False):
         """One update with validated input: the Rust core does it in one call ("gauss-newton"),
         or stages the window for a SciPy solver and records its solution. Nothing changes
         before the core has recorded the step."""
@@ -468,17 +735,27 @@ class GPMHE:
                 message = f"solver raised: {rep.error}"
             x_window, x_prior, P = rep.x_window, rep.x_prior, rep.P
             cost, success, nit = rep.cost, rep.success, rep.nit
-            self.projected_gradient, self.nfev = float(rep.projected_gradient), int(rep.nfev)
+            stats = (float(rep.projected_gradient), int(rep.nfev))
         else:
             z0, lb, ub = core.prepare(u, y)
             z, cost, success, nit, message = self._solve(core, z0, lb, ub)
-            P = self._covariance(core, z)
+            P = self._window_covariance(core, z)
             x_window, x_prior = core.commit(z)
-        self.x_window = x_window
-        self.x, self.x_prior = x_window[-1].copy(), x_prior
-        self.P = self.P.copy() if P is None else P
-        self.cost, self.success, self.nit, self.message = float(cost), bool(success), int(nit), str(message)
-        self.t += 1
+            stats = (0.0, 0)
+        n, s = self.dim_x, self._p_scale
+        with self._writing():
+            self.x_window = np.ascontiguousarray(x_window[:, :n])
+            self.x, self.x_prior = x_window[-1, :n].copy(), x_prior[:n].copy()
+            if P is not None:
+                self.P = P[:n, :n].copy()
+                self.P_p = s[:, None] * P[n:, n:] * s[None, :]
+            self.p = x_window[-1, n:] * s
+            self.cost, self.success, self.nit, self.message = (float(cost), bool(success), int(nit),
+                                                                str(message))
+            self.t += 1
+            self._input_pending = pending
+            if self.solver == "gauss-newton":
+                self.projected_gradient, self.nfev = stats
         if not success and self.solver == "gauss-newton":
             # After the attributes follow the core's recorded step (the warning may be an error).
             self._warn(message, self.t - 1, stacklevel=5)  # 5: past `exclusive`
@@ -490,10 +767,10 @@ class GPMHE:
                       f"{message}; keeping the better of its last iterate and the warm start",
                       RuntimeWarning, stacklevel=stacklevel)
 
-    def _covariance(self, window, z):
+    def _window_covariance(self, window, z):
         """The last block of 4 H⁻¹ at z for the SciPy paths (the Rust solve returns the same
         block from its block-tridiagonal factorisation); None if H is singular."""
-        n = self.dim_x
+        n = self.dim_x + self.dim_p
         H = window.gn_hessian(z)
         try:
             Hinv_last = np.linalg.solve(H, np.eye(len(z))[:, -n:])[-n:]
@@ -557,7 +834,7 @@ class GPMHE:
     # (Copies and pickles need no code here: the Rust core copies and pickles itself with its
     # whole state; its model's GPs are shared, not copied.)
 
-    _CHECKPOINT_VERSION = 1
+    _CHECKPOINT_VERSION = 2  # 2: arrival cost, full weights, parameters, pending input
 
     def save(self, path):
         """Write the estimator's whole state (settings, history, attributes) to an ``.npz`` file.
@@ -610,14 +887,20 @@ class GPMHE:
             raise ValueError(f"solver_options: cannot be saved ({e})") from None
         core = self._core.__getstate__()
         lb, ub = self.x_bounds
+        k = self.dim_p
+        parameters = {} if not k else dict(
+            p0=self.p0, P_p0=self.P_p0, p_lower=self.p_bounds[0], p_upper=self.p_bounds[1],
+            p_drift=self.p_drift, p=self.p, P_p=self.P_p)
         np.savez(
             path, kind="GPMHE", format_version=self._CHECKPOINT_VERSION,
             model_kind=type(self.model).__name__, dim_x=self.dim_x, dim_y=self.dim_y,
-            dim_u=self.dim_u, horizon=self.horizon, eta=self.eta, P2=self.P2, Q0=self.Q0,
-            R0=self.R0, x_lower=lb, x_upper=ub, form=self.form, solver=self.solver,
-            solver_options=options, t=self.t, x=self.x, P=self.P, x_prior=self.x_prior,
-            x_window=self.x_window, cost=self.cost, success=self.success, nit=self.nit,
-            message=self.message, nfev=self.nfev, projected_gradient=self.projected_gradient,
+            dim_u=self.dim_u, dim_p=k, horizon=self.horizon, eta=self.eta, P2=self.P2,
+            Q0=self.Q0, R0=self.R0, x_lower=lb, x_upper=ub, form=self.form, solver=self.solver,
+            solver_options=options, arrival_mean=self.arrival_mean,
+            arrival_weight=self.arrival_weight, input_pending=self._input_pending, t=self.t,
+            x=self.x, P=self.P, x_prior=self.x_prior, x_window=self.x_window, cost=self.cost,
+            success=self.success, nit=self.nit, message=self.message, nfev=self.nfev,
+            projected_gradient=self.projected_gradient, **parameters,
             **{"core_" + key: value for key, value in core.items()})
 
     @classmethod
@@ -670,23 +953,33 @@ class GPMHE:
         from gpmhe._npz import NpzReader
 
         with NpzReader(path, "GPMHE", cls._CHECKPOINT_VERSION) as f:
-            f.allow_nonfinite = ("x_lower", "x_upper", "cost", "projected_gradient")
+            f.allow_nonfinite = ("x_lower", "x_upper", "p_lower", "p_upper", "cost",
+                                 "projected_gradient")
+            v2 = f.version >= 2
             kind = f.string("model_kind")
             if kind not in ("LearnedModel", "KnownModel"):
                 raise f.error("model_kind", f"must be 'LearnedModel' or 'KnownModel', got {kind!r}")
             if type(model).__name__ != kind:
                 raise ValueError(f"model: the file {f.name} was saved with a {kind} (entry "
                                  f"'model_kind'), got {type(model).__name__}")
-            n, p, m = (f.integer(k) for k in ("dim_x", "dim_y", "dim_u"))
+            n, p, m = (f.integer(key) for key in ("dim_x", "dim_y", "dim_u"))
+            k = f.integer("dim_p") if v2 else 0
             if (getattr(model, "dim_x", None), getattr(model, "dim_y", None),
-                    getattr(model, "dim_u", None)) != (n, p, m):
+                    getattr(model, "dim_u", None), getattr(model, "dim_p", 0)) != (n, p, m, k):
                 raise ValueError(f"model: the file {f.name} was saved with dim_x={n}, "
-                                 f"dim_y={p}, dim_u={m}")
+                                 f"dim_y={p}, dim_u={m}, dim_p={k}")
             settings = dict(
                 horizon=f.integer("horizon", low=1), eta=f.float("eta"),
-                P2=f.floats("P2", (n, n)), Q0=np.diag(f.floats("Q0", (n, n))),
-                R0=np.diag(f.floats("R0", (p, p))) if p else None, form=f.string("form"),
+                P2=f.floats("P2", (n, n)), Q0=f.floats("Q0", (n, n)),
+                R0=f.floats("R0", (p, p)) if p else None, form=f.string("form"),
                 solver=f.string("solver"))
+            if v2:
+                settings.update(arrival_mean=f.string("arrival_mean"),
+                                arrival_weight=f.string("arrival_weight"))
+            if k:
+                settings.update(p0=f.floats("p0", (k,)), P_p0=f.floats("P_p0", (k, k)),
+                                p_bounds=(f.floats("p_lower", (k,)), f.floats("p_upper", (k,))),
+                                p_drift=f.floats("p_drift", (k,)))
             lb, ub = f.floats("x_lower", (n,)), f.floats("x_upper", (n,))
             try:
                 options = json.loads(f.string("solver_options"))
@@ -697,11 +990,14 @@ class GPMHE:
                           solver_options=options, **settings)
             except ValueError as e:
                 raise ValueError(f"path: {f.name}: the saved settings are invalid ({e})") from None
+            na = n + k
             t = f.integer("t")
             state = {"t": f.integer("core_t"), "window_t0": f.integer("core_window_t0"),
                      "present": f.array("core_present", "b", (None,))}
-            for key, cols in (("u", m), ("y", p), ("priors", n), ("x_window", n)):
+            for key, cols in (("u", m), ("y", p), ("priors", na), ("x_window", na)):
                 state[key] = f.floats("core_" + key, (None, cols))
+            if v2:
+                state["arrival_sqrt"] = f.floats("core_arrival_sqrt", (na, na))
             if kind == "LearnedModel":
                 for key in ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y",
                             "dmean_y", "dvar_y"):
@@ -712,10 +1008,15 @@ class GPMHE:
                 mhe._core.__setstate__(state)
             except ValueError as e:
                 raise f.state_error("core_", e) from None
-            mhe.t = t
-            mhe.x, mhe.x_prior = f.floats("x", (n,)), f.floats("x_prior", (n,))
-            mhe.P, mhe.x_window = f.floats("P", (n, n)), f.floats("x_window", (None, n))
-            mhe.cost, mhe.success = f.float("cost"), f.boolean("success")
-            mhe.nit, mhe.message = f.integer("nit"), f.string("message")
-            mhe.nfev, mhe.projected_gradient = f.integer("nfev"), f.float("projected_gradient")
+            with mhe._writing():
+                mhe.t = t
+                mhe.x, mhe.x_prior = f.floats("x", (n,)), f.floats("x_prior", (n,))
+                mhe.P, mhe.x_window = f.floats("P", (n, n)), f.floats("x_window", (None, n))
+                mhe.cost, mhe.success = f.float("cost"), f.boolean("success")
+                mhe.nit, mhe.message = f.integer("nit"), f.string("message")
+                mhe.nfev, mhe.projected_gradient = f.integer("nfev"), f.float("projected_gradient")
+                if k:
+                    mhe.p, mhe.P_p = f.floats("p", (k,)), f.floats("P_p", (k, k))
+                if v2:
+                    mhe._input_pending = f.boolean("input_pending")
         return mhe
