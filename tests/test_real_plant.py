@@ -46,7 +46,7 @@ def test_linear_mhe_with_ekf_arrival_weight_is_the_kalman_filter():
     Q, R, P0 = np.array([[0.01, 0.004], [0.004, 0.02]]), np.array([[0.04, 0.01], [0.01, 0.02]]), np.eye(2)
     _, us, ys = _data()
     est = GPMHE(_linear(), x0=[0.0, 0.0], horizon=4, eta=1.0, P0=P0, Q0=Q, R0=R, form="filtering",
-                arrival_weight="ekf", solver_options=dict(dtol=0.0, gtol=1e-10))
+                arrival_mean="estimate", arrival_weight="ekf", solver_options=dict(dtol=0.0, gtol=1e-10))
     x, P = np.zeros(2), P0.copy()
     for u, y in zip(us, ys):
         # Kalman filter: update with y(t), then x̂(t|t); predict with u(t).
@@ -56,7 +56,8 @@ def test_linear_mhe_with_ekf_arrival_weight_is_the_kalman_filter():
         np.testing.assert_allclose(est.x, x, atol=1e-7)
         x, P = A @ x + B @ u, A @ P @ A.T + Q
     # The constant-weight MHE (the paper's) differs once the window slides.
-    paper = GPMHE(_linear(), x0=[0.0, 0.0], horizon=4, eta=1.0, P0=P0, Q0=Q, R0=R, form="filtering")
+    paper = GPMHE(_linear(), x0=[0.0, 0.0], horizon=4, eta=1.0, P0=P0, Q0=Q, R0=R, form="filtering",
+                  arrival_mean="estimate", arrival_weight="constant")
     xs, _ = paper.batch_filter(ys, us)
     assert np.abs(xs[-1] - est.x).max() > 1e-4
 
@@ -97,7 +98,8 @@ def test_full_covariances_enter_the_window_cost_as_their_inverse():
     Q = np.array([[0.02, 0.005], [0.005, 0.01]])
     R = np.array([[0.04, 0.01], [0.01, 0.02]])
     _, us, ys = _data()
-    est = GPMHE(_linear(), x0=[0.0, 0.0], horizon=3, eta=0.8, P2=np.eye(2), Q0=Q, R0=R)
+    est = GPMHE(_linear(), x0=[0.0, 0.0], horizon=3, eta=0.8, P2=np.eye(2), Q0=Q, R0=R,
+                arrival_mean="estimate", arrival_weight="constant")
     est.batch_filter(ys[:5], us[:5])
     z0, _, _ = est._core.prepare(us[5], ys[5])
     z = z0 + 0.1

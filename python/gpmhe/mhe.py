@@ -301,12 +301,12 @@ class GPMHE:
     >>> mhe.t, mhe.success, mhe.x_window.shape
     (10, True, (6, 2))
     >>> print(np.round(mhe.x, 1), np.round(x_true[10], 1))  # x̂(10) and x(10)
-    [1.5 1.7] [1.5 1.8]
+    [1.6 1.6] [1.5 1.8]
     """
 
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
                  x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None,
-                 P0=None, arrival_mean="estimate", arrival_weight="constant", p0=None, P_p0=None,
+                 P0=None, arrival_mean="smoothed", arrival_weight="ekf", p0=None, P_p0=None,
                  p_bounds=None, p_drift=None):
         with self._writing():
             for attr in ("dim_x", "dim_y", "dim_u", "predict", "_make_window"):

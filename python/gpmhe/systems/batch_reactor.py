@@ -28,7 +28,8 @@ X_PRIOR0 = np.array([0.1, 4.5])  # the classic poor prior
 X_BOUNDS = (np.array([0.1, 0.1]), np.array([4.5, 4.5]))
 #: The paper's MHE settings with Q0, R0 as covariances (the weights are their inverses; see the
 #: user guide, *Weights from GP variances*).
-MHE_SETTINGS = dict(horizon=15, eta=0.91, P2=np.eye(2), Q0=1e-3 * np.eye(2), R0=1e-2 * np.eye(1))
+MHE_SETTINGS = dict(horizon=15, eta=0.91, P2=np.eye(2), Q0=1e-3 * np.eye(2), R0=1e-2 * np.eye(1),
+                    arrival_mean="estimate", arrival_weight="constant")
 #: The paper's GP model for `gpmhe.LearnedModel.from_trajectories` (zero prior mean, maximum
 #: likelihood in natural units), which the paper's comparison and its figures use.
 PAPER_GP = dict(mean="zero", normalize=False, hyperprior=None)

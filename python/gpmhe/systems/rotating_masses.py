@@ -52,9 +52,10 @@ STEPS = 50
 P_X = np.eye(DIM_X)
 P_P = 10.0
 P_V = np.eye(DIM_Y)
-#: `gpmhe.GPMHE` settings for the states with Θ1 known: P2 = P_X, R0 = P_V⁻¹, and "no process
-#: noise" as a process weight Q0⁻¹ = 1e8 I.
-MHE_SETTINGS = dict(horizon=HORIZON, eta=0.99, P2=P_X, R0=np.linalg.inv(P_V), Q0=1e-8 * np.eye(DIM_X))
+#: `gpmhe.GPMHE` settings for the states with Θ1 known: P2 = P_X, R0 = P_V⁻¹, "no process
+#: noise" as a process weight Q0⁻¹ = 1e8 I, and do-mpc's constant arrival weight.
+MHE_SETTINGS = dict(horizon=HORIZON, eta=0.99, P2=P_X, R0=np.linalg.inv(P_V), Q0=1e-8 * np.eye(DIM_X),
+                    arrival_mean="estimate", arrival_weight="constant")
 
 #: The true initial state, and the relative perturbation of the estimator's initial guess.
 X0 = np.pi * np.array([1.0, 1.0, -1.5, 1.0, -5.0, 5.0, 0.0, 0.0])
