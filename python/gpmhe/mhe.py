@@ -14,7 +14,7 @@ import inspect
 import warnings
 
 import numpy as np
-from scipy.optimize import Bounds, least_squares, minimize
+from scipy.optimize import Bounds, least_squares, lsq_linear, minimize
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
@@ -35,13 +35,14 @@ _MAX_HORIZON = 1_000_000
 
 #: The options each solver accepts (see `gpmhe._validation.options`): gpmhe's own for the Rust
 #: solver; for SciPy's, the keywords of `scipy.optimize.least_squares` and of `minimize`'s
-#: "trust-constr" options except those gpmhe sets itself (the problem, its bounds and method).
+#: "trust-constr" options except those gpmhe sets itself (the problem, its bounds and method),
+#: plus gpmhe's decrement stop ``dtol`` for "trust-constr".
 _SOLVER_OPTIONS = {
     "gauss-newton": dict(max_iter="count", gtol="tol", xtol="tol", ftol="tol", dtol="tol",
                          interior=("auto", "always", "never"), interior_zone="tol",
                          mu_init="positive", mu_final="positive"),
-    "trust-constr": dict(xtol="tol", gtol="tol", barrier_tol="tol", sparse_jacobian=None,
-                         maxiter="count", verbose=(0, 1, 2, 3), finite_diff_rel_step=None,
+    "trust-constr": dict(dtol="tol", xtol="tol", gtol="tol", barrier_tol="tol",
+                         sparse_jacobian=None, maxiter="count", verbose=(0, 1, 2, 3), finite_diff_rel_step=None,
                          initial_constr_penalty="positive", initial_tr_radius="positive",
                          initial_barrier_parameter="positive", initial_barrier_tolerance="positive",
                          factorization_method=None, disp=(True, False)),
@@ -52,6 +53,12 @@ _SOLVER_OPTIONS = {
                f_scale="positive"),
     },
 }
+
+#: The "trust-constr" decrement stop (see `GPMHE._solve_trust_constr`): tested once SciPy's
+#: barrier parameter is at most this (two reductions from its initial 0.1), at the iterate and
+#: after up to _TC_GN_STEPS projected Gauss-Newton steps from it.
+_TC_DECREMENT_BARRIER = 1e-2
+_TC_GN_STEPS = 3
 
 _NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
 _NO_INPUT.flags.writeable = False
@@ -65,6 +72,24 @@ def _rows(name, value):
         return list(value)
     except TypeError:
         raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
+
+
+def _gn_decrement(window, z, lb, ub):
+    """The Gauss-Newton decrement at z in the box [lb, ub]: (decrement, step, cost).
+
+    J = ‖r‖² with r the window's residuals and J_r their Jacobian; the Gauss-Newton model
+    ‖r + J_r Δ‖² of J(z + Δ), minimised over the steps that stay in the box (a bounded linear
+    least-squares problem), predicts the decrease ``decrement`` = ‖r‖² − ‖r + J_r Δ‖² by the
+    step Δ = ``step``. Without active bounds the decrement is ½ ∇Jᵀ H⁻¹ ∇J (H = 2 J_rᵀ J_r);
+    it is 0 exactly at first-order (KKT) points of the box-constrained problem. If r or J_r is
+    not finite: (inf, None, inf).
+    """
+    r, jac = window.residuals(z), window.jacobian(z)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
+        return np.inf, None, np.inf
+    cost = float(r @ r)
+    step = lsq_linear(jac, -r, bounds=(lb - z, ub - z), method="bvls").x
+    return max(cost - float(np.sum((r + jac @ step) ** 2)), 0.0), step, cost
 
 
 class GPMHE:
@@ -522,15 +547,47 @@ class GPMHE:
         return z, float(cost), bool(ok), int(nit), str(message)
 
     def _solve_trust_constr(self, window, z0, lb, ub):
-        # Tuned for warm-started windows (batch reactor, 60 steps): a small initial barrier
-        # parameter halves the iterations against SciPy's default 0.1 at the same costs; the
-        # iteration cap bounds the rare slow windows (SciPy's default 1000 took > 10 s).
-        options = dict(gtol=1e-6, xtol=1e-8, maxiter=200, initial_barrier_parameter=1e-4)
+        """SciPy's interior-point method, stopped by the Gauss-Newton decrement (see
+        `_gn_decrement` and the user guide, *The SciPy reference solvers*)."""
+        options = dict(gtol=1e-6, xtol=1e-8, maxiter=200, initial_barrier_parameter=0.1)
         options.update(self.solver_options)
+        dtol = options.pop("dtol", 1e-4)
+        stop = {}
+
+        def decrement_stop(xk, state):
+            # Not while the barrier steers the iterates away from the bounds (and from the
+            # bound-pinned local minima there). Without finite bounds SciPy runs its SQP method,
+            # which has no barrier.
+            if not getattr(state, "barrier_parameter", 0.0) <= _TC_DECREMENT_BARRIER:
+                return False
+            z = np.clip(xk, lb, ub)
+            decrement, step, cost = _gn_decrement(window, z, lb, ub)
+            # SciPy's barrier method creeps along flat directions close to a bound; a few
+            # projected Gauss-Newton steps from its iterate (each must lower J) finish there.
+            for k in range(_TC_GN_STEPS + 1):
+                if decrement <= dtol:
+                    stop.update(z=z, decrement=decrement, steps=k)
+                    return True
+                if k == _TC_GN_STEPS or step is None:
+                    return False
+                z_new = np.clip(z + step, lb, ub)
+                decrement_new, step_new, cost_new = _gn_decrement(window, z_new, lb, ub)
+                if not cost_new < cost:
+                    return False
+                z, decrement, step, cost = z_new, decrement_new, step_new, cost_new
+            return False
+
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "delta_grad == 0.0" chatter
             res = minimize(window.cost_grad, z0, jac=True, hess=window.gn_hessian,
-                           method="trust-constr", bounds=Bounds(lb, ub), options=options)
+                           method="trust-constr", bounds=Bounds(lb, ub), options=options,
+                           callback=decrement_stop if dtol > 0 else None)
+        if stop:  # SciPy's status 3, stopped by the callback: this success
+            barrier = getattr(res, "barrier_parameter", None)
+            message = (f"decrement-tolerance (Gauss-Newton decrement {stop['decrement']:.2e} "
+                       f"after {stop['steps']} Gauss-Newton steps"
+                       + ("" if barrier is None else f", barrier parameter {barrier:.1e}") + ")")
+            return stop["z"], res.nit, True, message
         return res.x, res.nit, res.status in (1, 2), res.message
 
     def _solve_least_squares(self, window, z0, lb, ub):
