@@ -163,10 +163,12 @@ class GPMHE:
         on ‖z − Π(z − ∇J)‖∞ with Π the projection on the box), ``dtol`` (1e-2, see Notes),
         ``xtol`` (1e-12), ``ftol`` (1e-15), ``interior`` ("auto", "always" or "never": when the
         barrier phase runs), ``interior_zone`` (1e-5) and ``mu_init`` (0.1), ``mu_final``
-        (1e-5), the first and last barrier parameter. For "trust-constr" the options of
-        `scipy.optimize.minimize` (defaults gtol=1e-6, xtol=1e-8, maxiter=200,
-        initial_barrier_parameter=1e-4); for "least-squares" the keywords of
-        `scipy.optimize.least_squares` (defaults ftol=xtol=gtol=1e-10, max_nfev=200).
+        (1e-5), the first and last barrier parameter. For "trust-constr": gpmhe's ``dtol``
+        (1e-4, its decrement stop, see Notes; 0 leaves the stop to SciPy's tests) and the
+        "trust-constr" options of `scipy.optimize.minimize` (defaults gtol=1e-6, xtol=1e-8,
+        maxiter=200, initial_barrier_parameter=0.1; SciPy's for the others). For
+        "least-squares" the keywords of `scipy.optimize.least_squares` (defaults
+        ftol=xtol=gtol=1e-10, max_nfev=200).
 
     Attributes
     ----------
@@ -188,7 +190,8 @@ class GPMHE:
     message : str
         The solver's message. With "gauss-newton" it starts with the stopping reason:
         gradient-tolerance, decrement-tolerance, step-tolerance, cost-tolerance, noise-floor
-        (successes); max-iterations, no-progress (failures).
+        (successes); max-iterations, no-progress (failures). With "trust-constr" it is
+        "decrement-tolerance (...)" after gpmhe's decrement stop, else SciPy's message.
     nit : int
         Iterations of the last window's solver ("least-squares": function evaluations).
     nfev : int
@@ -229,6 +232,16 @@ class GPMHE:
     a large σ_f, J is only accurate to about 1e-6 relative and its gradient to about 1e-3, so
     ``gtol`` cannot be reached; the solver stops once its next step predicts less decrease than
     that noise.
+
+    ``dtol`` stops "trust-constr" (SciPy's interior-point method; message
+    "decrement-tolerance", a success) by the same measure with the bounds: the decrease
+    ‖r‖² − ‖r + J_r Δ‖² (J = ‖r‖², r the residuals, J_r their Jacobian) that the Gauss-Newton
+    model predicts for its best step Δ inside the box is <= dtol; it is 0 exactly at a KKT point.
+    The test runs once SciPy's barrier parameter is at most 1e-2 (earlier the barrier still
+    steers the iterates off the bounds), at SciPy's iterate and after each of up to three
+    projected Gauss-Newton steps from it (each must lower J); the first point that passes is
+    returned. The default 1e-4 is 100 times below the Rust solver's, so that "trust-constr" can
+    check it.
 
     On a solver failure (``success`` False, a `RuntimeWarning`), the window keeps whichever of
     the solver's last finite iterate and the warm start costs less; ``x`` is never NaN. Bad
