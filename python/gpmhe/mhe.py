@@ -42,8 +42,9 @@ _SOLVER_OPTIONS = {
                          interior=("auto", "always", "never"), interior_zone="tol",
                          mu_init="positive", mu_final="positive"),
     "trust-constr": dict(dtol="tol", xtol="tol", gtol="tol", barrier_tol="tol",
-                         sparse_jacobian=None, maxiter="count", verbose=(0, 1, 2, 3), finite_diff_rel_step=None,
-                         initial_constr_penalty="positive", initial_tr_radius="positive",
+                         sparse_jacobian=None, maxiter="count", verbose=(0, 1, 2, 3),
+                         finite_diff_rel_step=None, initial_constr_penalty="positive",
+                         initial_tr_radius="positive",
                          initial_barrier_parameter="positive", initial_barrier_tolerance="positive",
                          factorization_method=None, disp=(True, False)),
     "least-squares": {
@@ -568,9 +569,10 @@ class GPMHE:
         stop = {}
 
         def decrement_stop(xk, state):
-            # Not while the barrier steers the iterates away from the bounds (and from the
-            # bound-pinned local minima there). Without finite bounds SciPy runs its SQP method,
-            # which has no barrier.
+            # SciPy's (xk, state) callback of "trust-constr" (every SciPy >= 1.10): True stops
+            # the solve with status 3. Not while the barrier steers the iterates away from the
+            # bounds (and from the bound-pinned local minima there). Without finite bounds SciPy
+            # runs its SQP method, which has no barrier.
             if not getattr(state, "barrier_parameter", 0.0) <= _TC_DECREMENT_BARRIER:
                 return False
             z = np.clip(xk, lb, ub)
