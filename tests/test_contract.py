@@ -384,7 +384,8 @@ case("GPMHE", None, _ctor(GPMHE), MHE_KW,
 for solver, opts in (("trust-constr", {"maxiter": 50}), ("least-squares", {"max_nfev": 50})):
     case(f"GPMHE[{solver}]", None, _ctor(GPMHE), {**MHE_KW, "solver": solver, "solver_options": opts},
          dict(solver_options=[{"bogus": 1}, {"max_iter": 3}, {"maxiter": -1}, {"max_nfev": "a"},
-                              {"gtol": float("nan")}, {"method": "trf"}, {"bounds": None}]),
+                              {"gtol": float("nan")}, {"dtol": -1.0}, {"method": "trf"},
+                              {"bounds": None}]),
          allow=dict(solver_options=[None, {}]), numeric=dict(solver_options=False))
 for mname, model in (("known", KNOWN), ("learned", LEARNED)):
     mk = (lambda model=model: make_mhe(model))

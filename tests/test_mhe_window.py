@@ -262,7 +262,7 @@ def test_solvers_reach_the_same_cost_on_single_windows(reactor_model, bounds):
     with est._writing():  # the private solver paths read solver_options at each call
         est.solver_options = dict(ftol=1e-15, xtol=1e-15, gtol=1e-12, max_nfev=2000)
         z_ls, _, ok_ls, _ = est._solve_least_squares(win, z0, LB, UB)
-        est.solver_options = dict(gtol=1e-10, xtol=1e-12, maxiter=3000)
+        est.solver_options = dict(gtol=1e-10, xtol=1e-12, maxiter=3000, dtol=0.0)  # to gtol
         z_tc, _, _, _ = est._solve_trust_constr(win, z0, LB, UB)
     assert ok_ls
     c_ls, c_tc = win.cost(z_ls), win.cost(z_tc)

@@ -162,6 +162,69 @@ def test_whole_runs_match_the_least_squares_path(reactor_gp):
     assert np.mean(r_gn) < 1.5  # and it converges (the exact-model EKF gives ~3 here)
 
 
+def test_trust_constr_reaches_the_rust_optimum_in_nearly_every_window(reactor_gp):
+    """SciPy's trust-constr with its defaults on whole batch-reactor runs from the poor prior
+    (the transient and full windows): before each update the same window (a copy of the core,
+    same warm start) is solved by the Rust solver to its gradient tolerance. trust-constr
+    reports convergence in nearly every window, its cost is never more than a few dtol above the
+    Rust optimum's, and where it stopped on the decrement the Gauss-Newton model leaves at most
+    dtol to gain at the point returned."""
+    import copy
+
+    from gpmhe.mhe import _gn_decrement
+
+    dtol = 1e-4  # the documented default (GPMHE docstring, the solver page)
+    reference = _core.WindowSolver(dtol=0.0, max_iter=500)
+    lb, ub = br.X_BOUNDS
+    converged, decrement_stops, windows = 0, 0, 0
+    for seed in (0, 1):
+        _, y = br.simulate(br.X_TRUE0, 40, np.random.default_rng(seed))
+        est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver="trust-constr",
+                    **br.MHE_SETTINGS)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # counted below
+            for t in range(40):
+                ref = copy.copy(est._core)
+                z0, LB, UB = ref.prepare(np.zeros(0), y[t])
+                z_ref, c_ref, status, ok = reference.solve(ref, z0, LB, UB)[:4]
+                assert ok, status
+                est.update(None, y[t])
+                z = est.x_window.reshape(-1)
+                assert np.all((z >= LB) & (z <= UB))
+                assert est.cost <= c_ref + 10 * dtol, (seed, t, est.cost, c_ref, est.message)
+                windows += 1
+                converged += est.success
+                if est.message.startswith("decrement-tolerance"):
+                    decrement_stops += 1
+                    assert _gn_decrement(est._core, z, LB, UB)[0] <= dtol
+    assert converged >= 0.95 * windows, (converged, windows)
+    assert decrement_stops >= 0.5 * windows, (decrement_stops, windows)
+
+
+def test_trust_constr_options(reactor_gp):
+    """The default dtol is the documented one, dtol=0 leaves the stop to SciPy's own tests, and
+    SciPy's options still reach SciPy; a bad dtol is refused when the estimator is built."""
+    _, y = br.simulate(br.X_TRUE0, 3, np.random.default_rng(4))
+    runs = {}
+    for key, opts in (("default", None), ("1e-4", {"dtol": 1e-4}), ("0", {"dtol": 0.0}),
+                      ("capped", {"dtol": 0.0, "maxiter": 3})):
+        est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver="trust-constr",
+                    solver_options=opts, **br.MHE_SETTINGS)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            est.batch_filter(y)
+        runs[key] = est
+    assert np.array_equal(runs["default"].x_window, runs["1e-4"].x_window)
+    assert runs["default"].message.startswith("decrement-tolerance") and runs["default"].success
+    assert not runs["0"].message.startswith("decrement-tolerance")
+    assert runs["0"].nit > runs["default"].nit
+    assert runs["capped"].nit == 3 and not runs["capped"].success
+    for bad in (-1.0, float("nan"), float("inf"), "small", None):
+        with pytest.raises(ValueError, match="solver_options: dtol"):
+            GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver="trust-constr",
+                  solver_options={"dtol": bad}, **br.MHE_SETTINGS)
+
+
 def test_all_bounds_active_returns_the_box():
     win, z0, LB, UB = reactor_window(reactor_known, np.random.default_rng(0), 5, [4.5, 4.5])
     fixed = np.linspace(0.5, 1.5, len(z0))

@@ -15,7 +15,7 @@ import warnings
 
 import numpy as np
 import scipy.linalg
-from scipy.optimize import Bounds, least_squares, minimize
+from scipy.optimize import Bounds, least_squares, lsq_linear, minimize
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
@@ -38,14 +38,16 @@ _MAX_HORIZON = 1_000_000
 
 #: The options each solver accepts (see `gpmhe._validation.options`): gpmhe's own for the Rust
 #: solver; for SciPy's, the keywords of `scipy.optimize.least_squares` and of `minimize`'s
-#: "trust-constr" options except those gpmhe sets itself (the problem, its bounds and method).
+#: "trust-constr" options except those gpmhe sets itself (the problem, its bounds and method),
+#: plus gpmhe's decrement stop ``dtol`` for "trust-constr".
 _SOLVER_OPTIONS = {
     "gauss-newton": dict(max_iter="count", gtol="tol", xtol="tol", ftol="tol", dtol="tol",
                          interior=("auto", "always", "never"), interior_zone="tol",
                          mu_init="positive", mu_final="positive"),
-    "trust-constr": dict(xtol="tol", gtol="tol", barrier_tol="tol", sparse_jacobian=None,
-                         maxiter="count", verbose=(0, 1, 2, 3), finite_diff_rel_step=None,
-                         initial_constr_penalty="positive", initial_tr_radius="positive",
+    "trust-constr": dict(dtol="tol", xtol="tol", gtol="tol", barrier_tol="tol",
+                         sparse_jacobian=None, maxiter="count", verbose=(0, 1, 2, 3),
+                         finite_diff_rel_step=None, initial_constr_penalty="positive",
+                         initial_tr_radius="positive",
                          initial_barrier_parameter="positive", initial_barrier_tolerance="positive",
                          factorization_method=None, disp=(True, False)),
     "least-squares": {
@@ -55,6 +57,12 @@ _SOLVER_OPTIONS = {
                f_scale="positive"),
     },
 }
+
+#: The "trust-constr" decrement stop (see `GPMHE._solve_trust_constr`): tested once SciPy's
+#: barrier parameter is at most this (two reductions from its initial 0.1), at the iterate and
+#: after up to _TC_GN_STEPS projected Gauss-Newton steps from it.
+_TC_DECREMENT_BARRIER = 1e-2
+_TC_GN_STEPS = 3
 
 _NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
 _NO_INPUT.flags.writeable = False
@@ -130,6 +138,24 @@ def _rows(name, value):
         raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
 
 
+def _gn_decrement(window, z, lb, ub):
+    """The Gauss-Newton decrement at z in the box [lb, ub]: (decrement, step, cost).
+
+    J = ‖r‖² with r the window's residuals and J_r their Jacobian; the Gauss-Newton model
+    ‖r + J_r Δ‖² of J(z + Δ), minimised over the steps that stay in the box (a bounded linear
+    least-squares problem), predicts the decrease ``decrement`` = ‖r‖² − ‖r + J_r Δ‖² by the
+    step Δ = ``step``. Without active bounds the decrement is ½ ∇Jᵀ H⁻¹ ∇J (H = 2 J_rᵀ J_r);
+    it is 0 exactly at first-order (KKT) points of the box-constrained problem. If r or J_r is
+    not finite: (inf, None, inf).
+    """
+    r, jac = window.residuals(z), window.jacobian(z)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
+        return np.inf, None, np.inf
+    cost = float(r @ r)
+    step = lsq_linear(jac, -r, bounds=(lb - z, ub - z), method="bvls").x
+    return max(cost - float(np.sum((r + jac @ step) ** 2)), 0.0), step, cost
+
+
 class GPMHE:
     """Moving horizon estimator with a learned (GP) or known model, in filterpy's style.
 
@@ -201,10 +227,12 @@ class GPMHE:
         on ‖z − Π(z − ∇J)‖∞ with Π the projection on the box), ``dtol`` (1e-2, see Notes),
         ``xtol`` (1e-12), ``ftol`` (1e-15), ``interior`` ("auto", "always" or "never": when the
         barrier phase runs), ``interior_zone`` (1e-5) and ``mu_init`` (0.1), ``mu_final``
-        (1e-5), the first and last barrier parameter. For "trust-constr" the options of
-        `scipy.optimize.minimize` (defaults gtol=1e-6, xtol=1e-8, maxiter=200,
-        initial_barrier_parameter=1e-4); for "least-squares" the keywords of
-        `scipy.optimize.least_squares` (defaults ftol=xtol=gtol=1e-10, max_nfev=200).
+        (1e-5), the first and last barrier parameter. For "trust-constr": gpmhe's ``dtol``
+        (1e-4, its decrement stop, see Notes; 0 leaves the stop to SciPy's tests) and the
+        "trust-constr" options of `scipy.optimize.minimize` (defaults gtol=1e-6, xtol=1e-8,
+        maxiter=200, initial_barrier_parameter=0.1; SciPy's for the others). For
+        "least-squares" the keywords of `scipy.optimize.least_squares` (defaults
+        ftol=xtol=gtol=1e-10, max_nfev=200).
 
     Attributes
     ----------
@@ -226,7 +254,8 @@ class GPMHE:
     message : str
         The solver's message. With "gauss-newton" it starts with the stopping reason:
         gradient-tolerance, decrement-tolerance, step-tolerance, cost-tolerance, noise-floor
-        (successes); max-iterations, no-progress (failures).
+        (successes); max-iterations, no-progress (failures). With "trust-constr" it is
+        "decrement-tolerance (...)" after gpmhe's decrement stop, else SciPy's message.
     nit : int
         Iterations of the last window's solver ("least-squares": function evaluations).
     nfev : int
@@ -267,6 +296,16 @@ class GPMHE:
     a large σ_f, J is only accurate to about 1e-6 relative and its gradient to about 1e-3, so
     ``gtol`` cannot be reached; the solver stops once its next step predicts less decrease than
     that noise.
+
+    ``dtol`` stops "trust-constr" (SciPy's interior-point method; message
+    "decrement-tolerance", a success) by the same measure with the bounds: the decrease
+    ‖r‖² − ‖r + J_r Δ‖² (J = ‖r‖², r the residuals, J_r their Jacobian) that the Gauss-Newton
+    model predicts for its best step Δ inside the box is <= dtol; it is 0 exactly at a KKT point.
+    The test runs once SciPy's barrier parameter is at most 1e-2 (earlier the barrier still
+    steers the iterates off the bounds), at SciPy's iterate and after each of up to three
+    projected Gauss-Newton steps from it (each must lower J); the first point that passes is
+    returned. The default 1e-4 is 100 times below the Rust solver's, so that "trust-constr" can
+    check it.
 
     On a solver failure (``success`` False, a `RuntimeWarning`), the window keeps whichever of
     the solver's last finite iterate and the warm start costs less; ``x`` is never NaN. Bad
@@ -799,15 +838,48 @@ class GPMHE:
         return z, float(cost), bool(ok), int(nit), str(message)
 
     def _solve_trust_constr(self, window, z0, lb, ub):
-        # Tuned for warm-started windows (batch reactor, 60 steps): a small initial barrier
-        # parameter halves the iterations against SciPy's default 0.1 at the same costs; the
-        # iteration cap bounds the rare slow windows (SciPy's default 1000 took > 10 s).
-        options = dict(gtol=1e-6, xtol=1e-8, maxiter=200, initial_barrier_parameter=1e-4)
+        """SciPy's interior-point method, stopped by the Gauss-Newton decrement (see
+        `_gn_decrement` and the user guide, *The SciPy reference solvers*)."""
+        options = dict(gtol=1e-6, xtol=1e-8, maxiter=200, initial_barrier_parameter=0.1)
         options.update(self.solver_options)
+        dtol = options.pop("dtol", 1e-4)
+        stop = {}
+
+        def decrement_stop(xk, state):
+            # SciPy's (xk, state) callback of "trust-constr" (every SciPy >= 1.10): True stops
+            # the solve with status 3. Not while the barrier steers the iterates away from the
+            # bounds (and from the bound-pinned local minima there). Without finite bounds SciPy
+            # runs its SQP method, which has no barrier.
+            if not getattr(state, "barrier_parameter", 0.0) <= _TC_DECREMENT_BARRIER:
+                return False
+            z = np.clip(xk, lb, ub)
+            decrement, step, cost = _gn_decrement(window, z, lb, ub)
+            # SciPy's barrier method creeps along flat directions close to a bound; a few
+            # projected Gauss-Newton steps from its iterate (each must lower J) finish there.
+            for k in range(_TC_GN_STEPS + 1):
+                if decrement <= dtol:
+                    stop.update(z=z, decrement=decrement, steps=k)
+                    return True
+                if k == _TC_GN_STEPS or step is None:
+                    return False
+                z_new = np.clip(z + step, lb, ub)
+                decrement_new, step_new, cost_new = _gn_decrement(window, z_new, lb, ub)
+                if not cost_new < cost:
+                    return False
+                z, decrement, step, cost = z_new, decrement_new, step_new, cost_new
+            return False
+
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "delta_grad == 0.0" chatter
             res = minimize(window.cost_grad, z0, jac=True, hess=window.gn_hessian,
-                           method="trust-constr", bounds=Bounds(lb, ub), options=options)
+                           method="trust-constr", bounds=Bounds(lb, ub), options=options,
+                           callback=decrement_stop if dtol > 0 else None)
+        if stop:  # SciPy's status 3, stopped by the callback: this success
+            barrier = getattr(res, "barrier_parameter", None)
+            message = (f"decrement-tolerance (Gauss-Newton decrement {stop['decrement']:.2e} "
+                       f"after {stop['steps']} Gauss-Newton steps"
+                       + ("" if barrier is None else f", barrier parameter {barrier:.1e}") + ")")
+            return stop["z"], res.nit, True, message
         return res.x, res.nit, res.status in (1, 2), res.message
 
     def _solve_least_squares(self, window, z0, lb, ub):
