@@ -1,6 +1,6 @@
 """Benchmark: estimators of the rotating masses with the unknown inertia Θ1, on the same data.
 
-    python benches/rotating_masses.py [--seeds 3] [--steps 50] [--quick]
+    python benches/rotating_masses.py [--seeds 3] [--steps 50] [--restarts 1] [--quick]
 
 The plant and setting are do-mpc's moving-horizon estimation example
 (gpmhe.systems.rotating_masses): 8 states, y = φ1..3 + v, v ~ N(0, 0.1² I), Θ1 unknown (true
@@ -21,21 +21,22 @@ x̂(t), Θ̂1(t) for t = 1..T. Estimators, each a function run_<name>(data, sett
   model mismatch that is do-mpc's example discretisation, not noise.
 * filterpy's EKF and UKF (`run_ekf`, `run_ukf`) on the 9-state model z = [x; θ], Θ1 = 1e-4 θ
   (θ is O(1)), the discrete map RK4 with 10 sub-steps (gpmhe.discretize) and its exact Jacobian
-  (rm.rhs_jacobian plus the analytic ∂F/∂θ column); P0 = blockdiag(P_x⁻¹, P_p⁻¹/1e-8) (P_p⁻¹ as
-  Θ1's variance, in θ's units); R = P_v⁻¹ = I, the MHEs' output weight (the true σ_v² is 0.01),
-  so that all estimators share one tuning; Q = 1e-6 I for numerical health only; θ clipped into
-  its bounds after every update (a Kalman filter has no box; the MHEs do). The UKF uses Merwe's
-  sigma points (α = 0.1, β = 2, κ = 0), all propagated in one vectorised call at their θ clipped
-  into the bounds: P_p⁻¹ = 0.1 is a standard deviation of 0.32 in Θ1's units, 1400 times Θ1,
+  (rm.rhs_jacobian plus the analytic ∂F/∂θ column); P0 = blockdiag(P_x⁻¹, P_p⁻¹/1e-8)
+  (P_p⁻¹ as Θ1's variance, in θ's units); R = P_v⁻¹ = I, the MHEs' output weight (the true
+  σ_v² is 0.01), so that all estimators share one tuning; Q = 1e-6 I for numerical health only;
+  θ clipped into its bounds after every update (a Kalman filter has no box; the MHEs do). The
+  UKF uses Merwe's sigma points (α = 0.1, β = 2, κ = 0), all propagated in one vectorised call
+  at their θ clipped into the bounds: P_p⁻¹ = 0.1 is a standard deviation of 0.32 in Θ1's units, 1400 times Θ1,
   so the unclipped sigma points reach negative and huge inertias (with α = 1e-3 and no clipping
   P loses definiteness within a few steps). A filter that fails is noted and holds its last
-  estimate.
+  estimate. The rows "tight Θ1 prior" give the filters Θ1's prior standard deviation 1e-4
+  (`TIGHT_THETA1_STD`) instead: the wide prior, not filterpy, is what throws Θ̂1 to a bound.
 * gpmhe's GPMHE with the exact model (`run_gpmhe_casadi`, `run_gpmhe_numpy`), Θ1 appended to the
   state by hand (θ, dθ/dt = 0, box [0.1, 10]): KnownModel.from_ode on the 9-state right-hand
   side (CasADi, or numpy with the analytic Jacobian), 10 RK4 sub-steps, P2 =
   blockdiag(P_x, P_p·1e-8) (P_p on Θ1 = 1e-4 θ), R0 = P_v⁻¹, Q0 = 1e-6 on all states (see
-  `MHE_Q0`; the row "same, Q0 = 1e-8" uses the known-Θ1 setting's 1e-8), η = 0.99, the filtering
-  form, the default Rust Gauss-Newton solver.
+  `MHE_Q0`; the row "GPMHE CasADi, Q0 = 1e-8" uses the known-Θ1 setting's 1e-8), η = 0.99, the
+  filtering form, the default Rust Gauss-Newton solver.
 * GP-MHE with a learned model (`run_gpmhe_learned`): LearnedModel.from_trajectories (defaults:
   linear prior mean, standardised, default hyperprior) on `TRAIN_TRAJECTORIES` simulated
   trajectories of the plant with the TRUE Θ1 (the learned model has no parameter), states
@@ -74,10 +75,14 @@ THETA_GUESS = rm.THETA1_GUESS / SCALE
 THETA_BOUNDS = (rm.THETA1_BOUNDS[0] / SCALE, rm.THETA1_BOUNDS[1] / SCALE)
 #: The filters' process noise (θ units for the last state), for numerical health only.
 FILTER_Q = 1e-6
+#: Θ1's prior standard deviation in the "tight Θ1 prior" filter rows (the guess 1e-4 ± 1e-4;
+#: do-mpc's P_p = 10 read as a covariance is ± 0.32).
+TIGHT_THETA1_STD = 1e-4
 #: The hand-augmented MHE's process-noise covariance Q0 on all 9 states ("no process noise").
 #: With 1e-8, the known-Θ1 setting, many windows stop at the Gauss-Newton solver's 100
-#: iterations (the "Q0 1e-8" row shows it): the 1e8 weight makes the bilinear (x, 1/Θ1) window
-#: problem a stiff penalty problem. 1e-6 (process std 1e-3 against outputs of std 0.1) converges.
+#: iterations (the "GPMHE CasADi, Q0 = 1e-8" row shows it): the 1e8 weight makes the bilinear
+#: (x, 1/Θ1) window problem a stiff penalty problem. 1e-6 (process std 1e-3 against outputs of
+#: std 0.1) converges in most windows.
 MHE_Q0 = 1e-6
 #: Training data of the learned model: trajectories, steps each, state-measurement noise.
 TRAIN_TRAJECTORIES, TRAIN_STEPS, SIGMA_X_TRAIN = 4, 50, 0.01
@@ -182,7 +187,8 @@ def run_dompc(data, settings):
 
 
 # ---- the 9-state model [x; θ] -------------------------------------------------------------
-_ROW3 = rm.rhs_jacobian(np.zeros((1, N_X)), np.zeros((1, rm.DIM_U)), theta1=1.0)[0, 3]  # Θ1 · ∂φ̈1/∂x
+#: Θ1 · ∂φ̈1/∂x (row 3 of A(Θ1), the only row that depends on Θ1).
+_ROW3 = rm.rhs_jacobian(np.zeros((1, N_X)), np.zeros((1, rm.DIM_U)), theta1=1.0)[0, 3]
 
 
 def aug_rhs(Z, U):
@@ -226,11 +232,13 @@ def aug_casadi_functions():
 
 
 # ---- filterpy ----------------------------------------------------------------------------
-def _filter_prior(data):
+def _filter_prior(data, theta1_std=None):
+    """z0 = [x̂(0); θ guess], P0 = blockdiag(P_x⁻¹, var θ): by default P_p⁻¹ as Θ1's variance
+    (θ's is P_p⁻¹ / SCALE²), else ``theta1_std``² / SCALE²."""
     z0 = np.append(data["x0"], THETA_GUESS)
     P0 = np.zeros((N_X + 1, N_X + 1))
     P0[:N_X, :N_X] = np.linalg.inv(rm.P_X)
-    P0[N_X, N_X] = 1.0 / rm.P_P / SCALE**2  # P_p⁻¹ is Θ1's variance: θ's is P_p⁻¹ / SCALE²
+    P0[N_X, N_X] = (1.0 / rm.P_P if theta1_std is None else theta1_std**2) / SCALE**2
     return z0, P0
 
 
@@ -262,7 +270,7 @@ def _run_filter(kf, data, settings, name, get_z, set_theta):
     return np.array(xs), np.array(thetas), times, len(caught) + failed
 
 
-def run_ekf(data, settings):
+def run_ekf(data, settings, theta1_std=None, name="filterpy EKF"):
     """filterpy's ExtendedKalmanFilter on [x; θ] (see the module docstring)."""
     from filterpy.kalman import ExtendedKalmanFilter
 
@@ -278,17 +286,17 @@ def run_ekf(data, settings):
             super().update(np.reshape(z, (-1, 1)), lambda s: aug_h_jacobian(s.ravel())[0],
                            lambda s: aug_h(s.ravel()).reshape(-1, 1))
 
-    z0, P0 = _filter_prior(data)
+    z0, P0 = _filter_prior(data, theta1_std)
     ekf = EKF(dim_x=N_X + 1, dim_z=rm.DIM_Y, dim_u=rm.DIM_U)
     ekf.x, ekf.P = z0.reshape(-1, 1), P0
     ekf.Q, ekf.R = FILTER_Q * np.eye(N_X + 1), np.linalg.inv(rm.P_V)
 
     def set_theta(v):
         ekf.x[N_X, 0] = v
-    return _run_filter(ekf, data, settings, "filterpy EKF", lambda: ekf.x.ravel(), set_theta)
+    return _run_filter(ekf, data, settings, name, lambda: ekf.x.ravel(), set_theta)
 
 
-def run_ukf(data, settings):
+def run_ukf(data, settings, theta1_std=None, name="filterpy UKF"):
     """filterpy's UnscentedKalmanFilter on [x; θ], its sigma points propagated in one call at
     their θ clipped into the bounds."""
     from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
@@ -304,13 +312,23 @@ def run_ukf(data, settings):
 
     points = MerweScaledSigmaPoints(N_X + 1, alpha=0.1, beta=2.0, kappa=0.0)
     ukf = UKF(dim_x=N_X + 1, dim_z=rm.DIM_Y, dt=rm.T, hx=lambda z: z[:rm.DIM_Y], fx=fx, points=points)
-    z0, P0 = _filter_prior(data)
+    z0, P0 = _filter_prior(data, theta1_std)
     ukf.x, ukf.P = z0, P0
     ukf.Q, ukf.R = FILTER_Q * np.eye(N_X + 1), np.linalg.inv(rm.P_V)
 
     def set_theta(v):
         ukf.x[N_X] = v
-    return _run_filter(ukf, data, settings, "filterpy UKF", lambda: ukf.x, set_theta)
+    return _run_filter(ukf, data, settings, name, lambda: ukf.x, set_theta)
+
+
+def run_ekf_tight(data, settings):
+    """The EKF with Θ1's prior standard deviation `TIGHT_THETA1_STD` instead of P_p^(-1/2)."""
+    return run_ekf(data, settings, TIGHT_THETA1_STD, "filterpy EKF, tight Θ1 prior")
+
+
+def run_ukf_tight(data, settings):
+    """The UKF with Θ1's prior standard deviation `TIGHT_THETA1_STD` instead of P_p^(-1/2)."""
+    return run_ukf(data, settings, TIGHT_THETA1_STD, "filterpy UKF, tight Θ1 prior")
 
 
 # ---- gpmhe --------------------------------------------------------------------------------
@@ -400,9 +418,11 @@ ESTIMATORS = {
     "do-mpc MHE (collocation)": run_dompc,
     "filterpy EKF": run_ekf,
     "filterpy UKF": run_ukf,
+    "  EKF, tight Θ1 prior": run_ekf_tight,
+    "  UKF, tight Θ1 prior": run_ukf_tight,
     "GPMHE exact, CasADi": run_gpmhe_casadi,
     "GPMHE exact, numpy": run_gpmhe_numpy,
-    "  same, Q0 = 1e-8": run_gpmhe_casadi_q0_1e8,
+    "  GPMHE CasADi, Q0 = 1e-8": run_gpmhe_casadi_q0_1e8,
     "GP-MHE learned (true Θ1)": run_gpmhe_learned,
     "ref.: GPMHE, Θ1 known": run_gpmhe_known_theta,
 }
@@ -416,12 +436,13 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--steps", type=int, default=rm.STEPS)
+    ap.add_argument("--restarts", type=int, default=1, help="GP hyperparameter restarts")
     ap.add_argument("--quick", action="store_true",
-                    help="1 seed, 20 steps, 2 training trajectories, 1 GP restart")
+                    help="1 seed, 20 steps, 2 training trajectories")
     args = ap.parse_args(argv)
     if args.quick:
         args.seeds, args.steps = 1, min(args.steps, 20)
-    settings = dict(restarts=1 if args.quick else 2, gp_options={}, notes=[],
+    settings = dict(restarts=args.restarts, gp_options={}, notes=[],
                     n_train=2 if args.quick else TRAIN_TRAJECTORIES)
     do_mpc, why = import_dompc()
     settings["do_mpc"] = do_mpc
@@ -445,8 +466,10 @@ def main(argv=None):
 
     print(f"rotating masses (do-mpc's MHE example): {args.seeds} seeds, {args.steps} steps, "
           f"horizon {rm.HORIZON}; RMSE over the 8 states, t = 1..{args.steps} and t > {half}")
-    print("do-mpc " + (f"{do_mpc.__version__}" if do_mpc is not None else f"not available ({why}): its row is left out"))
-    ref = {k: np.median(results[k]["times"]) for k in ("do-mpc MHE (collocation)", "filterpy EKF") if k in results}
+    print(f"do-mpc {do_mpc.__version__}" if do_mpc is not None
+          else f"do-mpc not available ({why}): its row is left out")
+    refs = ("do-mpc MHE (collocation)", "filterpy EKF")
+    ref = {k: np.median(results[k]["times"]) for k in refs if k in results}
     print(f"{'estimator':27} {'RMSE':>7} {'2nd half':>8} {'|dΘ1|/Θ1':>9} {'(max)':>7} {'ms med':>7} "
           f"{'p95':>7} {'warn':>5} {'/do-mpc':>8} {'/EKF':>7}")
     for name, r in results.items():
@@ -455,19 +478,20 @@ def main(argv=None):
         theta = np.array(r["theta"])
         th = (f"{np.mean(theta):9.3f} {np.max(theta):7.3f}" if np.all(np.isfinite(theta))
               else f"{'-':>9} {'-':>7}")
-        ratios = [f"{med / ref[k]:.2f}" if k in ref else "-" for k in ("do-mpc MHE (collocation)", "filterpy EKF")]
+        ratios = [f"{med / ref[k]:.2f}" if k in ref else "-" for k in refs]
         print(f"{name:27} {np.mean(r['all']):7.3f} {np.mean(r['late']):8.3f} {th} {np.median(t):7.2f} "
               f"{np.percentile(t, 95):7.2f} {r['warnings']:5d} {ratios[0]:>8} {ratios[1]:>7}")
     fit = settings.get("fit_seconds", [])
     if fit:
-        print(f"learned model: {settings['n_train']} x {TRAIN_STEPS} training steps, {settings['restarts']} "
-              f"restart(s), fit {np.mean(fit):.1f} s per seed (max {np.max(fit):.1f} s), "
+        print(f"learned model: {settings['n_train']} x {TRAIN_STEPS} training steps, "
+              f"{settings['restarts']} restart(s), fit {np.mean(fit):.1f} s per seed "
+              f"(max {np.max(fit):.1f} s), "
               f"{settings.get('fit_warnings', 0)} fit warnings")
     for note in settings["notes"]:
         print("note:", note)
     for name, lines in console.items():
         if lines:
-            print(f"{name}: {len(lines)} console lines captured (first: {lines[0][:90]!r})")
+            print(f"{name}: {len(lines)} console lines captured, e.g. {' / '.join(lines[:2])[:150]!r}")
 
 
 if __name__ == "__main__":
