@@ -28,9 +28,10 @@ x̂(t), Θ̂1(t) for t = 1..T. Estimators, each a function run_<name>(data, sett
   UKF uses Merwe's sigma points (α = 0.1, β = 2, κ = 0), all propagated in one vectorised call
   at their θ clipped into the bounds: P_p⁻¹ = 0.1 is a standard deviation of 0.32 in Θ1's
   units, 1400 times Θ1, so the unclipped sigma points reach negative and huge inertias (with
-  α = 1e-3 and no clipping P loses definiteness within a few steps). A filter that fails is noted and holds its last
-  estimate. The rows "tight Θ1 prior" give the filters Θ1's prior standard deviation 1e-4
-  (`TIGHT_THETA1_STD`) instead: the wide prior, not filterpy, is what throws Θ̂1 to a bound.
+  α = 1e-3 and no clipping P loses definiteness within a few steps). A filter that fails is
+  noted and holds its last estimate. The rows "tight Θ1 prior" give the filters Θ1's prior
+  standard deviation 1e-4 (`TIGHT_THETA1_STD`) instead: the wide prior, not filterpy, is what
+  throws Θ̂1 to a bound.
 * gpmhe's GPMHE with the exact model (`run_gpmhe_casadi`, `run_gpmhe_numpy`), Θ1 appended to the
   state by hand (θ, dθ/dt = 0, box [0.1, 10]): KnownModel.from_ode on the 9-state right-hand
   side (CasADi, or numpy with the analytic Jacobian), 10 RK4 sub-steps, P2 =
