@@ -172,7 +172,9 @@ class GPMHE:
 
     with w̄_j = x̄_{j+1} − m_x(d̄_j), v̄_j = y_j − m_y(d̄_j), d̄_j = [x̄_j; u_j],
     Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0 and M_t = min(t, M) (full information
-    while t < M). Missing outputs (``y=None``) drop their v̄ term. The estimate is the last window
+    while t < M). Missing outputs (``y=None``) drop their v̄ term; NaN entries of y are channels
+    not measured and drop their rows (with a full R0, v̄ is weighted by R's block of the
+    measured channels). The estimate is the last window
     state, x̂(t) = x̄_t.
 
     The loop, next to filterpy's EKF::
@@ -200,16 +202,19 @@ class GPMHE:
     horizon : int, default 15
         Window length M >= 1 (number of stages).
     eta : float, default 0.91
-        Discount factor η in [0, 1): older terms are weighted by η^{j−1}.
+        Discount factor η in [0, 1]: older terms are weighted by η^{j−1} (1: no discount).
     P2 : array_like of shape (dim_x, dim_x) or None, default None
-        Symmetric positive definite weight of the arrival prior; None is the identity.
+        Symmetric positive definite weight of the arrival prior, the inverse of the arrival
+        covariance ``P0``; None is the identity. Give P2 or P0, not both.
     Q0 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
-        Process-noise covariance: a scalar (times I), the diagonal, or a diagonal matrix. Its
-        inverse (plus the GP variances) weights w̄. None is the identity.
+        Process-noise covariance: a scalar (times I), the diagonal, or a full symmetric positive
+        definite matrix. Its inverse (with the GP variances added to the diagonal) weights w̄.
+        None is the identity.
     R0 : float, array_like of shape (dim_y,) or (dim_y, dim_y), or None, default None
         Output-noise covariance, as ``Q0``. None is the identity.
-    x_bounds : tuple (lower, upper) of array_like of shape (dim_x,), or None, default None
-        The box X for every window state (entries may be ±inf; lower < upper). None: unbounded.
+    x_bounds : tuple (lower, upper), or None, default None
+        The box X for every window state: arrays of shape (dim_x,) (entries may be ±inf;
+        lower < upper), or None for an unbounded side. None: unbounded.
     form : {"prediction", "filtering"}, default "prediction"
         Which estimate ``x`` holds after an update, see above.
     solver : {"gauss-newton", "trust-constr", "least-squares"}, default "gauss-newton"
@@ -233,6 +238,27 @@ class GPMHE:
         maxiter=200, initial_barrier_parameter=0.1; SciPy's for the others). For
         "least-squares" the keywords of `scipy.optimize.least_squares` (defaults
         ftol=xtol=gtol=1e-10, max_nfev=200).
+
+    P0 : array_like of shape (dim_x, dim_x) or None, default None
+        The arrival covariance, the covariance form of ``P2`` (P2 = P0⁻¹, as filterpy's ``P``).
+    arrival_mean : {"smoothed", "estimate"}, default "smoothed"
+        The arrival prior x̂(t−M_t) once the window slides: "smoothed" is the previous window's
+        estimate of the new first node; "estimate" is the estimator's own earlier estimate of
+        x(t−M_t) (the paper's).
+    arrival_weight : {"ekf", "constant"}, default "ekf"
+        The arrival weight: "ekf" updates the arrival covariance by an extended Kalman filter
+        step over the node that leaves the window (starting from P0); "constant" keeps P2 (the
+        paper's). The paper's setting is ``arrival_mean="estimate", arrival_weight="constant"``.
+    p0 : array_like of shape (dim_p,) or None, default None
+        The initial guess of a model's unknown constant parameters p (required when the model
+        has parameters, ``dim_p > 0``; see `KnownModel`).
+    P_p0 : float or array_like of shape (dim_p,) or (dim_p, dim_p), or None, default None
+        Prior covariance of p around ``p0``; None: abs(p0)² on the diagonal (one relative unit).
+    p_bounds : tuple (lower, upper) or None, default None
+        Bounds of p, as ``x_bounds``.
+    p_drift : float or array_like of shape (dim_p,) or None, default None
+        Standard deviation of a random walk of p per step (p is estimated as a state with
+        p(t+1) = p(t) plus this drift); None: 1e-4 · abs(p0), constant for any practical purpose.
 
     Attributes
     ----------
@@ -264,13 +290,21 @@ class GPMHE:
         Final ‖z − Π(z − ∇J)‖∞ of the last update ("gauss-newton" only; 0 otherwise).
     t : int
         Number of updates since construction or ``reset``.
-    model, horizon, eta, form, solver, solver_options, P2, x_bounds
-        The settings as given (``x_bounds`` as a (lower, upper) pair of arrays, ±inf where
-        unbounded).
-    Q0, R0 : ndarray
-        The covariances as diagonal matrices of shape (dim_x, dim_x) and (dim_y, dim_y).
-    dim_x, dim_y, dim_u : int
-        The model's dimensions n, p, m.
+    p : ndarray of shape (dim_p,)
+        The estimate of the parameters (empty without parameters).
+    P_p : ndarray of shape (dim_p, dim_p)
+        Its covariance, the parameters' block of 4 H⁻¹ at the newest node.
+    Q0, R0, P2, P0, eta
+        The weights, settable between updates (each takes effect from the next update and is
+        validated as in the constructor; setting P2 or P0 restarts the "ekf" arrival weight).
+        Other names are rejected (``est.R = ...`` raises AttributeError).
+    model, horizon, form, solver, solver_options, arrival_mean, arrival_weight, x_bounds
+        The settings as given, read-only (``x_bounds`` as a (lower, upper) pair of arrays, ±inf
+        where unbounded).
+    p0, P_p0, p_bounds, p_drift
+        The parameter settings (with parameters).
+    dim_x, dim_y, dim_u, dim_p : int
+        The model's dimensions n, p, m and its number of parameters.
 
     Raises
     ------
@@ -652,9 +686,13 @@ class GPMHE:
         Parameters
         ----------
         u : array_like of shape (dim_u,) or None
-            Input u(t); None when the model has no input (dim_u = 0).
+            Input u(t); None when the model has no input (dim_u = 0), or in the filtering form
+            when u(t) is not known yet (give it with `set_input` before the next update: it
+            drives the transition to x(t+1); at the newest node it only enters h(x, u), so pass
+            it here if h depends on u).
         y : array_like of shape (dim_y,) or None
-            Output y(t); None when there is no measurement at this step.
+            Output y(t); None when there is no measurement at this step, NaN entries for
+            channels not measured.
 
         Returns
         -------

@@ -85,6 +85,12 @@ class KnownModel(_SharedOnCopy):
         those (2n+1)k rows. The callables must not modify X, U in place. `predict` calls f with
         k = 1.
 
+    dim_p : int, default 0
+        Number of unknown constant parameters p, estimated by `GPMHE` with the states (its
+        ``p0``): every callable then takes p as a third argument (P of shape (k, dim_p) when
+        vectorised), and the Jacobians are with respect to [x; p], of shape (n, n + dim_p) and
+        (p, n + dim_p). `predict` then needs p.
+
     Attributes
     ----------
     f, h : callable
@@ -301,6 +307,11 @@ class KnownModel(_SharedOnCopy):
             Implicit schemes: the most Newton iterations per sub-step.
         jit : bool, default False
             CasADi only: compile the model (see `from_casadi`).
+        dim_p : int, default 0
+            Numpy only: the number of unknown parameters p; ``rhs(X, U, P)``, ``h(X, U, P)`` and
+            the Jacobians (with respect to [x; p]) then take P (k, dim_p). A CasADi ``rhs`` with
+            a third input p has parameters without this (see the user guide, *Unknown
+            parameters*).
 
         Returns
         -------
