@@ -28,7 +28,7 @@
 //! Cholesky factorisation and products), `box_lsq.rs` ([`BoxLsqSolver`]: buffers, the driver
 //! `solve` and what both phases share), `barrier.rs` (the interior phase), `active_set.rs` (the
 //! active-set phase), `damping.rs` (its damping), `correction.rs` (its correction of steps along
-//! stiff valleys).
+//! stiff valleys), `stiff_tests.rs` (tests on stiff windows).
 
 mod active_set;
 mod barrier;
@@ -37,6 +37,8 @@ mod box_lsq;
 mod correction;
 mod damping;
 mod options;
+#[cfg(test)]
+mod stiff_tests;
 #[cfg(test)]
 pub(crate) mod test_problem;
 
