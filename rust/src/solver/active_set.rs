@@ -178,7 +178,7 @@ impl BoxLsqSolver {
         // A step along a stiff valley (κ < STIFF) is corrected before it is given up.
         let stiff = t.ct.is_finite() && !t.unmeasurable && t.kappa < STIFF;
         if stiff {
-            if let Some(c) = self.correct(prob, lim, pr, t.kappa, t.pred)? {
+            if let Some(c) = self.correct(prob, lim, pr, t.kappa, t.pred, t.ct)? {
                 let old = pr.cost;
                 self.take_trial(prob, z, pr, c);
                 st.moved();

@@ -15,7 +15,10 @@
 //! the rejected step relative to the Marquardt scaling D = diag H. The stiff directions have
 //! curvature ~1 relative to D (they set its diagonal) and the valley's ~κ, so λ_r ≫ κ freezes the
 //! valley directions while λ_r ≪ 1 leaves the restoring ones undamped. The corrected point is
-//! accepted if it lowers J by the usual fraction of the original step's predicted decrease. It
+//! accepted if it lowers J by the usual fraction of the original step's predicted decrease;
+//! while it does not but the restoring steps converge (each cuts the excess of J over J(z)
+//! tenfold), up to RESTORE_STEPS of them are taken, from the derivatives at each new point
+//! (at weight ratios of 1e12 one step seldom suffices). It
 //! is tried only for steps along directions at least 1/STIFF times flatter than the diagonal
 //! (κ < STIFF), where the separation exists; elsewhere a rejected step is handled as before.
 
@@ -29,6 +32,8 @@ use crate::error::{Error, Result};
 /// Largest step curvature κ (relative to the Marquardt scaling) at which a rejected step is
 /// corrected: the restoring damping √κ then sits at least 100 times from both scales.
 pub(super) const STIFF: f64 = 1e-4;
+/// Most restoring steps per correction.
+const RESTORE_STEPS: usize = 3;
 
 /// Copies of what describes z (its derivatives, the step and held set of this iteration) while
 /// the correction works at the trial point.
@@ -58,9 +63,9 @@ impl BoxLsqSolver {
         }
     }
 
-    /// The correction of the rejected trial point in `work.trial` (its derivatives the last the
-    /// problem computed), the step from z with model curvature `kappa` and predicted decrease
-    /// `pred`: Some(J) at the corrected point when it is accepted (it is then in `work.trial`
+    /// The correction of the rejected trial point in `work.trial` (cost `ct`, its derivatives
+    /// the last the problem computed), the step from z with model curvature `kappa` and
+    /// predicted decrease `pred`: Some(J) at the corrected point when it is accepted (it is then in `work.trial`
     /// and the problem holds its derivatives); None otherwise, with the solver's state of z
     /// restored. Err if an evaluation fails with an error that is not numerical.
     pub(super) fn correct<P: BlockLsqProblem + ?Sized>(
@@ -70,24 +75,39 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         kappa: f64,
         pred: f64,
+        ct: f64,
     ) -> Result<Option<f64>> {
         let Limits { lower, upper, .. } = lim;
         let (nodes, n) = (self.nodes, self.n);
         self.save();
         self.take_derivatives(prob);
-        let zt = std::mem::take(&mut self.saved.trial);
+        let mut zt = std::mem::take(&mut self.saved.trial);
         let mut result = None;
-        if self.g.iter().all(|v| v.is_finite()) {
+        let mut excess = ct - pr.cost;
+        for _ in 0..RESTORE_STEPS {
+            if !self.g.iter().all(|v| v.is_finite()) {
+                break;
+            }
             pr.nit += 1;
             self.hold_active(n, &zt, lower, upper, kappa.sqrt());
-            if self.reduced_step(nodes, n, &zt, lower, upper) {
-                self.project_step(&zt, lower, upper);
-                let c = Error::as_trial_cost(prob.evaluate(&self.work.trial, true))?;
-                pr.nfev += 1;
-                if c.is_finite() && pr.cost - c > ARMIJO * pred {
-                    result = Some(c);
-                }
+            if !self.reduced_step(nodes, n, &zt, lower, upper) {
+                break;
             }
+            self.project_step(&zt, lower, upper);
+            let c = Error::as_trial_cost(prob.evaluate(&self.work.trial, true))?;
+            pr.nfev += 1;
+            if c.is_finite() && pr.cost - c > ARMIJO * pred {
+                result = Some(c);
+                break;
+            }
+            // Another restoring step only while they converge (the excess over J(z) falls
+            // tenfold per step); the derivatives are then those at the new point.
+            if !(c.is_finite() && c - pr.cost < 0.1 * excess) {
+                break;
+            }
+            excess = c - pr.cost;
+            zt.copy_from_slice(&self.work.trial);
+            self.take_derivatives(prob);
         }
         self.saved.trial = zt;
         if result.is_none() {

@@ -8,12 +8,17 @@
 //! steps along them a hundredfold, so a "nearly undamped" λ is no such thing. Damping is applied
 //! only after a failure, and then sized by the failed step: from λ = 0 it restarts at the model's
 //! curvature along that step relative to D (its Rayleigh quotient κ = sᵀHs / sᵀDs), which about
-//! halves the step along it whatever the weights; from there Nielsen's update takes over.
+//! halves the step along it whatever the weights; from there Nielsen's update takes over, and λ
+//! returns to 0 once it falls below 1e-3 of the value it restarted at.
 
 use super::box_lsq::LAMBDA_MAX;
 
-/// Damping below which λ is set to 0 after a well-predicted step.
+/// Damping below which λ is set to 0 after a well-predicted step, until a restart from 0 sets
+/// the floor relative to the damping it restarted at.
 const LAMBDA_MIN: f64 = 1e-12;
+/// The floor after a restart at λ₀: λ below FLOOR·λ₀ is 0.1 % of the curvature along the failed
+/// step (absolute floors fail at weight ratios beyond 1/LAMBDA_MIN, where κ itself is smaller).
+const FLOOR: f64 = 1e-3;
 /// Damping after a failure from λ = 0 when no curvature along a step is known (the Gauss-Newton
 /// matrix was singular, or no candidate predicted a decrease).
 pub(super) const LAMBDA_RESTART: f64 = 1e-6;
@@ -33,6 +38,8 @@ pub(super) struct LmState {
     /// Whether an undamped step was rejected since the last accepted point (the `dtol` test may
     /// then stop on a damped step).
     pub(super) undamped_failed: bool,
+    /// λ below this is set to 0.
+    floor: f64,
 }
 
 impl LmState {
@@ -43,6 +50,7 @@ impl LmState {
             noise_failures: 0,
             noise_est: 0.0,
             undamped_failed: false,
+            floor: LAMBDA_MIN,
         }
     }
 
@@ -64,7 +72,8 @@ impl LmState {
         } else if self.lambda == 0.0 {
             // Nielsen's factor 1 + x from λ = 0: x·κ (x = 1 for rho ≤ 0 halves the step).
             let x = (-(2.0 * rho.max(0.0) - 1.0).powi(3)).max(0.0);
-            if kappa.is_finite() {
+            if kappa.is_finite() && x > 0.0 {
+                self.floor = FLOOR * kappa;
                 x * kappa
             } else {
                 0.0
@@ -108,6 +117,7 @@ impl LmState {
             } else {
                 LAMBDA_RESTART
             };
+            self.floor = FLOOR * self.lambda;
         } else {
             self.lambda *= self.nu;
             self.nu *= 2.0;
@@ -116,7 +126,7 @@ impl LmState {
     }
 
     fn snap(&mut self) {
-        if self.lambda < LAMBDA_MIN {
+        if self.lambda < self.floor {
             self.lambda = 0.0;
         }
     }
@@ -147,5 +157,16 @@ mod tests {
         let mut st = LmState::new();
         assert!(!st.damp_harder(f64::NAN));
         assert_eq!(st.lambda, LAMBDA_RESTART);
+        // At weight ratios of 1e14 the step curvature is ~1e-14: a well-predicted step lowers λ
+        // tenfold, not to 0 as an absolute floor of 1e-12 would.
+        let mut st = LmState::new();
+        st.damp_harder(2e-14);
+        st.moved();
+        st.after_step(1.0, 2e-14);
+        assert!((st.lambda - 2e-15).abs() < 1e-29);
+        for _ in 0..3 {
+            st.after_step(1.0, 2e-14);
+        }
+        assert_eq!(st.lambda, 0.0);
     }
 }

@@ -1,4 +1,4 @@
-//! Tests of the solver on stiff windows: process rows weighted 1e8 or 1e10 in J against output
+//! Tests of the solver on stiff windows: process rows weighted 1e8 to 1e12 in J against output
 //! rows of weight 1 (an MHE window with near-zero process noise), started like an MHE warm start
 //! on the model's trajectory from a poor initial state. There a "small" Marquardt damping still
 //! freezes the directions that matter, the `dtol` test must use the undamped step, and long steps
@@ -35,8 +35,8 @@ fn solve_stiff(seed: u64, wq: f64) -> (usize, f64) {
 fn stiff_windows_are_solved_to_dtol_in_few_evaluations() {
     // With a damping that started at 1e-6, a `dtol` test on damped steps and no correction,
     // most of these windows ended at the iteration cap or stopped on a damped step's decrement
-    // far above the minimum (at wq = 1e5 several after a single evaluation).
-    for wq in [1e4, 1e5] {
+    // far above the minimum (at wq ≥ 1e5 several after a single evaluation).
+    for wq in [1e4, 1e5, 1e6] {
         let mut total = 0;
         for seed in 0..8 {
             let (nfev, gain) = solve_stiff(seed, wq);
@@ -44,9 +44,9 @@ fn stiff_windows_are_solved_to_dtol_in_few_evaluations() {
                 gain <= 2.0 * SolverOptions::default().dtol,
                 "seed {seed}, wq {wq}: {gain} left to gain"
             );
-            assert!(nfev <= 60, "seed {seed}, wq {wq}: {nfev} evaluations");
+            assert!(nfev <= 50, "seed {seed}, wq {wq}: {nfev} evaluations");
             total += nfev;
         }
-        assert!(total <= 240, "wq {wq}: {total} evaluations for 8 windows");
+        assert!(total <= 160, "wq {wq}: {total} evaluations for 8 windows");
     }
 }
