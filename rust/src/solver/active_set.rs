@@ -1,7 +1,7 @@
 //! The active-set phase: projected Levenberg-Marquardt iterations (monotone in J). Variables at a
 //! bound whose gradient pushes outward are held (an ε-active set), the others take a damped
-//! Gauss-Newton step (Marquardt scaling), the trial point is projected on the box and accepted on
-//! the gain ratio, and the damping follows Nielsen's update.
+//! Gauss-Newton step (Marquardt scaling; the damping, which starts at 0, in `damping.rs`), the
+//! trial point is projected on the box and accepted on the gain ratio.
 //!
 //! One iteration, `active_set_iteration`, in order: the stopping tests on the
 //! projected gradient and the iteration cap; the held set (`hold_active`); the
@@ -9,8 +9,8 @@
 //! (`project_step`) and, for a clipped one, better candidates judged by the model
 //! (`improve_clipped_step`); the tests that stop or damp before an evaluation
 //! (`verdict`); the evaluation and the acceptance
-//! (`judge_trial`); then `accept` or `reject`,
-//! which update the damping.
+//! (`judge_trial`); then `accept`, or for a rejected step along a stiff valley the
+//! correction (`correction.rs`) and, failing that, `reject`; both update the damping.
 
 // Index loops over variables touch several parallel arrays (z, bounds, duals, steps) and read
 // better than zipped iterator chains.
@@ -18,9 +18,11 @@
 
 use super::block_tridiag::block_tridiag_matvec;
 use super::box_lsq::{
-    finite_lower, finite_upper, Limits, Progress, ARMIJO, DTOL_MAX_LAMBDA, EXTRAP_MAX, LAMBDA_MAX,
-    LAMBDA_MIN, NOISE, NOISE_PG,
+    finite_lower, finite_upper, Limits, Progress, ARMIJO, DTOL_MAX_LAMBDA, EXTRAP_MAX, NOISE,
+    NOISE_MAX, NOISE_PG,
 };
+use super::correction::STIFF;
+use super::damping::{LmState, LAMBDA_RESTART};
 use super::{projected_gradient_norm, BlockLsqProblem, BoxLsqSolver, SolverOptions, Status};
 use crate::error::{Error, Result};
 use crate::interrupt;
@@ -40,29 +42,6 @@ fn model_decrease(
     -(0..s.len())
         .map(|k| g[k] * s[k] + 0.5 * s[k] * hp[k])
         .sum::<f64>()
-}
-
-/// What the active-set phase carries from one iteration to the next.
-struct LmState {
-    /// Marquardt damping λ (relative to the scaling [`BoxLsqSolver::scale`]).
-    lambda: f64,
-    /// Nielsen's growth factor of λ after a failed step.
-    nu: f64,
-    /// Consecutive steps whose effect was below J's rounding noise and that did not lower the
-    /// projected gradient.
-    noise_failures: usize,
-    /// Rounding noise of J: at least NOISE relative, raised when small steps show more (a GP
-    /// with a large σ_f has variances σ_f² − ‖v‖² with large cancellation).
-    noise_est: f64,
-}
-
-impl LmState {
-    /// λ ← λν, ν ← 2ν (Nielsen); true when λ passed LAMBDA_MAX: no step can lower J.
-    fn damp_harder(&mut self) -> bool {
-        self.lambda *= self.nu;
-        self.nu *= 2.0;
-        self.lambda > LAMBDA_MAX
-    }
 }
 
 /// The candidate step of one iteration (the step in `work.step`, its point in `work.trial`).
@@ -91,6 +70,11 @@ struct Trial {
     unmeasurable: bool,
     /// Whether the point is accepted.
     accept: bool,
+    /// The projected gradient at the trial point over that at z, for an unmeasurable step (NaN
+    /// otherwise).
+    pg_ratio: f64,
+    /// sᵀHs / sᵀDs: the model's curvature along the step relative to the scaling.
+    kappa: f64,
 }
 
 /// What the tests before an evaluation decided.
@@ -99,6 +83,8 @@ enum Verdict {
     Evaluate,
     /// Damp harder and compute a new step without evaluating.
     Retry,
+    /// Compute the undamped step without evaluating.
+    Undamp,
     /// The phase stops.
     Stop(Status),
 }
@@ -112,12 +98,7 @@ impl BoxLsqSolver {
         lim: Limits<'_>,
         pr: &mut Progress,
     ) -> Result<Status> {
-        let mut st = LmState {
-            lambda: 1e-6,
-            nu: 2.0,
-            noise_failures: 0,
-            noise_est: 0.0,
-        };
+        let mut st = LmState::new();
         // `g`, `diag`, `off` hold the derivatives at z here (start() or the interior phase).
         // Bounded: every iteration that does not stop the phase counts in pr.nit, which stops it
         // at opts.max_iter.
@@ -151,7 +132,7 @@ impl BoxLsqSolver {
         pr.nit += 1;
         self.hold_active(n, z, lower, upper, st.lambda);
         if !self.reduced_step(nodes, n, z, lower, upper) {
-            return Ok(st.damp_harder().then_some(Status::NoProgress));
+            return Ok(st.damp_harder(LAMBDA_RESTART).then_some(Status::NoProgress));
         }
         let (clipped, pnorm, znorm) = self.project_step(z, lower, upper);
         if pnorm <= opts.xtol * (opts.xtol + znorm) {
@@ -178,14 +159,34 @@ impl BoxLsqSolver {
         };
         match self.verdict(&cand, opts, pr, st) {
             Verdict::Evaluate => {}
-            Verdict::Retry => return Ok(st.damp_harder().then_some(Status::NoProgress)),
+            Verdict::Retry => {
+                return Ok(st.damp_harder(LAMBDA_RESTART).then_some(Status::NoProgress))
+            }
+            Verdict::Undamp => {
+                st.lambda = 0.0;
+                return Ok(None);
+            }
             Verdict::Stop(status) => return Ok(Some(status)),
         }
-        match self.judge_trial(prob, lim, pr, st, &cand)? {
-            Err(status) => Ok(Some(status)),
-            Ok(t) if t.accept => self.accept(prob, z, lim, pr, st, &t),
-            Ok(t) => self.reject(prob, z, lim, pr, st, &t),
+        let t = match self.judge_trial(prob, lim, pr, st, &cand)? {
+            Err(status) => return Ok(Some(status)),
+            Ok(t) => t,
+        };
+        if t.accept {
+            return self.accept(prob, z, lim, pr, st, &t);
         }
+        // A step along a stiff valley (κ < STIFF) is corrected before it is given up.
+        let stiff = t.ct.is_finite() && !t.unmeasurable && t.kappa < STIFF;
+        if stiff {
+            if let Some(c) = self.correct(prob, lim, pr, t.kappa, t.pred, t.ct)? {
+                let old = pr.cost;
+                self.take_trial(prob, z, pr, c);
+                st.moved();
+                st.after_corrected_step((old - c) / t.pred, t.kappa);
+                return Ok((old - c <= opts.ftol * old).then_some(Status::CostTolerance));
+            }
+        }
+        self.reject(prob, z, lim, pr, st, &t, stiff)
     }
 
     /// The held set and the damping of this iteration into `work.fixed` and `work.shift`.
@@ -194,7 +195,14 @@ impl BoxLsqSolver {
     /// gradient pushing outward is held on that bound, with ε the size of the diagonally scaled
     /// projected-gradient step (capped), so that variables creeping towards a bound are caught
     /// instead of producing tiny projected steps.
-    fn hold_active(&mut self, n: usize, z: &[f64], lower: &[f64], upper: &[f64], lambda: f64) {
+    pub(super) fn hold_active(
+        &mut self,
+        n: usize,
+        z: &[f64],
+        lower: &[f64],
+        upper: &[f64],
+        lambda: f64,
+    ) {
         let len = z.len();
         let mut eps = 0.0f64;
         for k in 0..len {
@@ -216,7 +224,7 @@ impl BoxLsqSolver {
     /// crosses a bound while the gradient pushes outward join the held set and the step is
     /// recomputed (a few passes; factorisations are cheap next to evaluations). False if the
     /// damped matrix is not positive definite or the step is not finite.
-    fn reduced_step(
+    pub(super) fn reduced_step(
         &mut self,
         nodes: usize,
         n: usize,
@@ -273,7 +281,12 @@ impl BoxLsqSolver {
     /// The projected trial point P(z + step) into `work.trial` and the step actually taken into
     /// `work.step` (the unprojected one kept in `clip.unprojected`). Returns whether a free
     /// variable's step was clipped, ‖step‖∞ and ‖z‖∞.
-    fn project_step(&mut self, z: &[f64], lower: &[f64], upper: &[f64]) -> (bool, f64, f64) {
+    pub(super) fn project_step(
+        &mut self,
+        z: &[f64],
+        lower: &[f64],
+        upper: &[f64],
+    ) -> (bool, f64, f64) {
         let w = &mut self.work;
         let mut znorm = 0.0f64;
         let mut pnorm = 0.0f64;
@@ -381,10 +394,15 @@ impl BoxLsqSolver {
             return Verdict::Stop(Status::NoiseFloor);
         }
         if !clipped && st.lambda <= DTOL_MAX_LAMBDA && pred <= opts.dtol {
-            // (Damped by λ ≤ 1e-3 the step is within ~0.1 % of the Gauss-Newton step, so pred is
-            // the Gauss-Newton decrement; a clipped step's pred says nothing about the free
-            // minimiser.)
-            return Verdict::Stop(Status::DecrementTolerance);
+            // The Gauss-Newton decrement is the undamped step's pred (a clipped step's pred says
+            // nothing about the free minimiser). A damped step can predict far less than it:
+            // λ·diag H may dwarf the curvature of the directions that matter (stiff weights;
+            // module `damping`), so a small damped pred only stops the phase once the undamped
+            // step has failed since the last move; otherwise the undamped step is computed.
+            if st.lambda == 0.0 || st.undamped_failed {
+                return Verdict::Stop(Status::DecrementTolerance);
+            }
+            return Verdict::Undamp;
         }
         Verdict::Evaluate
     }
@@ -419,16 +437,27 @@ impl BoxLsqSolver {
         let mut accept = ct.is_finite() && pred > 0.0 && rho > ARMIJO;
         let mut noise = known_noise.max(NOISE * pr.cost.abs().max(1.0));
         let mismatch = (ct - (pr.cost - pred)).abs();
-        if !accept && ct.is_finite() && pred > 0.0 && mismatch > 10.0 * pred {
-            // A small step that "failed" by far more than its predicted decrease: the mismatch
-            // is rounding noise, not model error.
-            st.noise_est = st.noise_est.max(mismatch.min(1e-4 * pr.cost.abs()));
+        if !accept
+            && ct.is_finite()
+            && pred > 0.0
+            && mismatch > 10.0 * pred
+            && mismatch <= NOISE_MAX * pr.cost.abs()
+        {
+            // A small step that "failed" by far more than its predicted decrease, by an amount
+            // J's rounding could explain: the mismatch is rounding noise, not model error. (A
+            // larger mismatch is model error: along a stiff valley a long step misses by
+            // many times J.)
+            st.noise_est = st.noise_est.max(mismatch);
             noise = noise.max(st.noise_est);
         }
         let unmeasurable = !clipped && pred <= 2.0 * noise;
-        if !accept && unmeasurable && ct.is_finite() {
+        let mut pg_trial = f64::NAN;
+        if unmeasurable && ct.is_finite() {
             prob.gradient_into(&mut w.hp);
-            if projected_gradient_norm(&w.trial, &w.hp, lim.lower, lim.upper) < pg {
+            pg_trial = projected_gradient_norm(&w.trial, &w.hp, lim.lower, lim.upper);
+        }
+        if !accept && unmeasurable && ct.is_finite() {
+            if pg_trial < pg {
                 accept = true;
             } else {
                 st.noise_failures += 1;
@@ -445,6 +474,8 @@ impl BoxLsqSolver {
             pred,
             unmeasurable,
             accept,
+            pg_ratio: pg_trial / pg,
+            kappa: self.step_curvature(-2.0 * (pred + gp)),
         }))
     }
 
@@ -468,23 +499,15 @@ impl BoxLsqSolver {
             unmeasurable,
             ..
         } = *t;
-        st.noise_failures = 0;
+        st.moved();
         let decrease = pr.cost - ct;
         let old = pr.cost;
         self.take_trial(prob, z, pr, ct);
-        st.nu = 2.0;
         if unmeasurable {
-            st.lambda /= 3.0;
+            st.after_unmeasurable_step(t.pg_ratio, rho, t.kappa);
             return Ok(None);
         }
-        st.lambda = if (0.75..=1.25).contains(&rho) {
-            // The model predicted this step well: damping only slows the flat directions
-            // (Marquardt's λ·diag H dwarfs their curvature), so drop it fast rather than by
-            // Nielsen's 1/3 per step.
-            (st.lambda / 10.0).max(LAMBDA_MIN)
-        } else {
-            st.lambda * (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0)
-        };
+        st.after_step(rho, t.kappa);
         if decrease <= opts.ftol * old {
             return Ok(Some(Status::CostTolerance));
         }
@@ -507,8 +530,10 @@ impl BoxLsqSolver {
     }
 
     /// After a rejected trial point: before damping harder, tries the minimiser of the parabola
-    /// through J(0), J'(0) and J(1) along the same step (a one-evaluation line search). Some
-    /// (NoProgress) when the damping is exhausted.
+    /// through J(0), J'(0) and J(1) along the same step (a one-evaluation line search), unless
+    /// the step was `corrected` in vain (along a stiff valley the parabola only shortens the
+    /// step to a crawl). Some(NoProgress) when the damping is exhausted.
+    #[allow(clippy::too_many_arguments)]
     fn reject<P: BlockLsqProblem + ?Sized>(
         &mut self,
         prob: &mut P,
@@ -517,6 +542,7 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         st: &mut LmState,
         t: &Trial,
+        corrected: bool,
     ) -> Result<Option<Status>> {
         let Trial {
             ct,
@@ -527,7 +553,7 @@ impl BoxLsqSolver {
         } = *t;
         pr.derivs_at_z = false;
         let c = 2.0 * (ct - pr.cost - gp);
-        if ct.is_finite() && !unmeasurable && gp < 0.0 && c > 0.0 {
+        if ct.is_finite() && !unmeasurable && !corrected && gp < 0.0 && c > 0.0 {
             let a = (-gp / c).clamp(0.05, 0.9);
             let php = -2.0 * (pred + gp); // stepᵀ H step
             let pred2 = -(a * gp + 0.5 * a * a * php);
@@ -539,7 +565,7 @@ impl BoxLsqSolver {
                 return Ok(None);
             }
         }
-        Ok(st.damp_harder().then_some(Status::NoProgress))
+        Ok(st.damp_harder(t.kappa).then_some(Status::NoProgress))
     }
 
     /// J at P(z + a·step) (left in `work.trial`), +∞ if the evaluation fails numerically (any

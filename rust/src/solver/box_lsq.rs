@@ -34,6 +34,8 @@ pub struct BoxLsqSolver {
     pub(super) duals: Duals,
     /// The active-set phase's alternatives to a clipped step.
     pub(super) clip: ClipWork,
+    /// The state of z kept while the active-set phase corrects a step (`correction.rs`).
+    pub(super) saved: super::correction::Saved,
     /// The problem's cost and gradient noise at the point whose derivatives are in `g`, `diag`,
     /// `off`.
     pub(super) noise_at_z: f64,
@@ -98,19 +100,20 @@ pub(super) struct Progress {
 
 pub(super) const ARMIJO: f64 = 1e-4;
 pub(super) const LAMBDA_MAX: f64 = 1e16;
-/// Floor of the damping after well-predicted steps (relative to the Marquardt scaling).
-pub(super) const LAMBDA_MIN: f64 = 1e-12;
 /// Relative size below which a predicted decrease of J cannot be verified by evaluating J
 /// (the floor of the solver's running noise estimate).
 pub(super) const NOISE: f64 = 1e-10;
+/// Largest mismatch between a failed step's cost and its prediction, relative to J, that the
+/// active-set phase takes for rounding noise of J (a larger one is model error).
+pub(super) const NOISE_MAX: f64 = 1e-4;
 /// A projected gradient within this multiple of the gradient's rounding noise is noise (the
 /// noise estimate is an ∞-norm of standard deviations; the steepest components sit in
 /// directions of large curvature, where a large gradient is a tiny distance).
 pub(super) const NOISE_PG: f64 = 10.0;
 /// Longest extrapolated step (in multiples of the Gauss-Newton step) tried along flat directions.
 pub(super) const EXTRAP_MAX: f64 = 10.0;
-/// Largest Marquardt damping at which a step's predicted decrease counts as the Gauss-Newton
-/// decrement for the `dtol` test.
+/// Largest Marquardt damping at which a damped step may stop the active-set phase on `dtol`
+/// (only once the undamped step has failed since the last move).
 pub(super) const DTOL_MAX_LAMBDA: f64 = 1e-3;
 
 pub(super) fn finite_lower(l: f64) -> bool {

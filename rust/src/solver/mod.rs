@@ -13,11 +13,13 @@
 //!    their bounds (docs/user_guide/solver.rst): projected/reflective least-squares methods started from the
 //!    batch reactor's poor prior stop at worse minima with x1 on its bound.
 //! 2. **Active-set Levenberg-Marquardt phase**: variables at a bound whose gradient pushes outward
-//!    are held fixed, the others take a damped Gauss-Newton step (Marquardt scaling, Nielsen's
-//!    damping update), the trial point is projected on the box and accepted on the gain ratio.
+//!    are held fixed, the others take a Gauss-Newton step, undamped until a step fails (then
+//!    Marquardt scaling, Nielsen's damping update), the trial point is projected on the box and
+//!    accepted on the gain ratio; a rejected step along a stiff valley of J (residual weights
+//!    that differ by orders of magnitude) is first corrected back into the valley.
 //!    It stops on the projected-gradient norm (`gtol`), the Gauss-Newton decrement (`dtol`: the
-//!    next step would lower J by less than that), the step size (`xtol`), the relative cost
-//!    decrease (`ftol`) or the iteration cap, and says which in [`Status`].
+//!    next undamped step would lower J by less than that), the step size (`xtol`), the relative
+//!    cost decrease (`ftol`) or the iteration cap, and says which in [`Status`].
 //!
 //! The problem is reached through [`BlockLsqProblem`]; the MHE window implements it
 //! (`crate::mhe::WindowLsq`).
@@ -25,13 +27,18 @@
 //! Files: `options.rs` (settings, status, report), `block_tridiag.rs` (the block-tridiagonal
 //! Cholesky factorisation and products), `box_lsq.rs` ([`BoxLsqSolver`]: buffers, the driver
 //! `solve` and what both phases share), `barrier.rs` (the interior phase), `active_set.rs` (the
-//! active-set phase).
+//! active-set phase), `damping.rs` (its damping), `correction.rs` (its correction of steps along
+//! stiff valleys), `stiff_tests.rs` (tests on stiff windows).
 
 mod active_set;
 mod barrier;
 mod block_tridiag;
 mod box_lsq;
+mod correction;
+mod damping;
 mod options;
+#[cfg(test)]
+mod stiff_tests;
 #[cfg(test)]
 pub(crate) mod test_problem;
 

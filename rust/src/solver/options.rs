@@ -26,8 +26,8 @@ pub struct SolverOptions {
     pub xtol: f64,
     /// Stop when an accepted step lowers the cost by at most ftol·J.
     pub ftol: f64,
-    /// Stop when the next (nearly undamped, unclipped) Gauss-Newton step Δ predicts a decrease
-    /// of J of at most dtol: pred = ½ΔᵀHΔ (H = 2JᵀJ on the free variables), the Gauss-Newton
+    /// Stop when the next undamped, unclipped Gauss-Newton step Δ predicts a decrease of J of
+    /// at most dtol (a damped step only once the undamped one has failed since the last move): pred = ½ΔᵀHΔ (H = 2JᵀJ on the free variables), the Gauss-Newton
     /// decrement, so the point is within √(2·dtol) of the model's minimiser in the H-norm and
     /// its cost within ~dtol of the minimum. 0 disables the test (run to `gtol`). The default
     /// 1e-2 is statistical: GPMHE's J is 4× a negative log-likelihood, so such a step is
@@ -107,8 +107,9 @@ pub enum Status {
     /// small multiple of the gradient's rounding noise (GPs fitted to a large σ_f): neither the
     /// cost nor the gradient can verify further progress.
     NoiseFloor,
-    /// The next (nearly undamped, unclipped) Gauss-Newton step predicts a decrease of J of at
-    /// most `dtol`: what is left to gain is below the requested accuracy.
+    /// The next undamped, unclipped Gauss-Newton step (or, after it failed, a lightly damped
+    /// one) predicts a decrease of J of at most `dtol`: what is left to gain is below the
+    /// requested accuracy.
     DecrementTolerance,
     /// `max_iter` reached.
     MaxIterations,

@@ -50,6 +50,19 @@ const P: usize = 2;
 
 impl Synthetic {
     pub(super) fn new(nodes: usize, n: usize, seed: u64) -> Self {
+        Self::with_weights(nodes, n, seed, 3.0, 2.0, 0.3)
+    }
+
+    /// A stiff window: process rows weighted `wq` (e.g. 1e4, i.e. 1e8 in J against 1 for the
+    /// outputs), data from a trajectory with process noise 1/wq, output weight 1, so that the
+    /// optimum lies in a narrow valley of J along the trajectories of the (nonlinear) model.
+    pub(super) fn stiff(nodes: usize, n: usize, seed: u64, wq: f64) -> Self {
+        Self::with_weights(nodes, n, seed, wq, 1.0, 1.0 / wq)
+    }
+
+    /// Process weight `wq`, output weight `wr`, data from a trajectory with process noise
+    /// `sigma_w` (uniform in ±sigma_w).
+    fn with_weights(nodes: usize, n: usize, seed: u64, wq: f64, wr: f64, sigma_w: f64) -> Self {
         let mut rng = Lcg(seed);
         let a: Vec<f64> = (0..n).map(|_| rng.next()).collect();
         let rows = n + (nodes - 1) * n + nodes * P;
@@ -58,8 +71,8 @@ impl Synthetic {
             n,
             a: a.clone(),
             y: vec![0.0; nodes * P],
-            wq: 3.0,
-            wr: 2.0,
+            wq,
+            wr,
             blowup: f64::INFINITY,
             r: vec![0.0; rows],
             jac: DMatrix::zeros(rows, nodes * n),
@@ -76,7 +89,7 @@ impl Synthetic {
             }
             p.f(&x, &mut fx, &mut fj);
             for r in 0..n {
-                x[r] = fx[r] + 0.3 * rng.next();
+                x[r] = fx[r] + sigma_w * rng.next();
             }
         }
         p
@@ -175,6 +188,19 @@ impl BlockLsqProblem for Synthetic {
             }
         }
     }
+}
+
+/// The model's trajectory from `x0` over the window (an MHE warm start: on the valley of a
+/// stiff window, where the process rows vanish).
+pub(super) fn trajectory(p: &Synthetic, x0: &[f64]) -> Vec<f64> {
+    let n = p.n;
+    let mut z = x0.to_vec();
+    let (mut fx, mut fj) = (vec![0.0; n], DMatrix::zeros(n, n));
+    for j in 1..p.nodes {
+        p.f(&z[(j - 1) * n..j * n], &mut fx, &mut fj);
+        z.extend_from_slice(&fx);
+    }
+    z
 }
 
 pub(super) fn random_z(nodes: usize, n: usize, seed: u64) -> Vec<f64> {
