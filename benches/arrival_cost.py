@@ -30,8 +30,8 @@ def reactor(seed, mean, weight):
     model = KnownModel(br.f_batch, br.h_batch, dim_x=2, dim_y=1, vectorized=True,
                        f_jacobian=br.f_jacobian_batch, h_jacobian=br.h_jacobian_batch)
     x, y = br.simulate(br.X_TRUE0, 60, np.random.default_rng(seed))
-    est = GPMHE(model, x0=br.X_PRIOR0, x_bounds=br.X_BOUNDS, arrival_mean=mean,
-                arrival_weight=weight, **br.MHE_SETTINGS)
+    est = GPMHE(model, x0=br.X_PRIOR0, x_bounds=br.X_BOUNDS,
+                **{**br.MHE_SETTINGS, "arrival_mean": mean, "arrival_weight": weight})
     xs, nfev = [], []
     for t in range(60):
         xs.append(est.update(None, y[t]).copy())
@@ -58,9 +58,9 @@ def rotating_masses(seed, mean, weight):
     model = KnownModel.from_ode(F, h, rm.T, substeps=rm.SUBSTEPS)
     x, u, y = rm.simulate(rm.STEPS, rng)
     x0 = rm.initial_estimate(rng)
-    est = GPMHE(model, x0=x0, arrival_mean=mean, arrival_weight=weight, p0=[rm.THETA1_GUESS],
-                P_p0=1.0 / rm.P_P * rm.THETA1_GUESS ** 2, p_bounds=rm.THETA1_BOUNDS, **{
-                    k: v for k, v in rm.MHE_SETTINGS.items()})
+    est = GPMHE(model, x0=x0, p0=[rm.THETA1_GUESS], P_p0=1.0 / rm.P_P * rm.THETA1_GUESS ** 2,
+                p_bounds=rm.THETA1_BOUNDS,
+                **{**rm.MHE_SETTINGS, "arrival_mean": mean, "arrival_weight": weight})
     xs, nfev = [], []
     for t in range(rm.STEPS):
         xs.append(est.update(u[t], y[t]).copy())
