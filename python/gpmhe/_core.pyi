@@ -357,12 +357,30 @@ class MovingHorizon:
         lower: _F | None = None,
         upper: _F | None = None,
         solver: WindowSolver | None = None,
+        arrival_mean: str = "estimate",
+        arrival_weight: str = "constant",
     ) -> None:
-        """`q0`, `r0`: diagonals of Q0, R0; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form;
-        `horizon`: M; `x0`: x̂(0) (zeros if None); `lower`, `upper`: the state box (±inf if
-        None); `solver`: the solver settings (defaults if None)."""
+        """`q0`, `r0`: Q0, R0 as diagonals or flattened matrices; `p2_sqrt`: S with P2 = SᵀS;
+        `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros if None); `lower`, `upper`: the
+        state box (±inf if None); `solver`: the solver settings (defaults if None);
+        `arrival_mean` ("estimate", "smoothed"), `arrival_weight` ("constant", "ekf")."""
         ...
     def reset(self, x0: _F) -> None: ...
+    def set_weights(self, eta: float, q0: _F, r0: _F, p2_sqrt: _F) -> None:
+        """Replace η, Q0, R0 and S of P2 from the next update on (P2 is the next arrival
+        weight); on error nothing changes."""
+        ...
+    def set_last_input(self, u: _F) -> None:
+        """Replace u(t − 1), the input of the last update."""
+        ...
+    @property
+    def last_input(self) -> _F:
+        """u(t − 1) (zeros before the first update)."""
+        ...
+    @property
+    def arrival_weight(self) -> _F:
+        """The next window's arrival weight SᵀS (n, n)."""
+        ...
     def update(self, u: _F, y: _F | None = None) -> UpdateReport:
         """One whole update; on error the estimator is unchanged."""
         ...

@@ -427,11 +427,11 @@ class GPMHE:
             object.__setattr__(self, name, value)
             return
         hint = self._DID_YOU_MEAN.get(name)
-        if hint is None and hasattr(type(self), name) is False and name not in self.__dict__:
-            raise AttributeError(f"GPMHE has no attribute {name!r}; the settable ones are "
-                                 f"{', '.join(sorted(self._SETTABLE))}")
         if hint is not None:
             raise AttributeError(f"GPMHE has no settable attribute {name!r}: did you mean {hint}?")
+        if not hasattr(self, name):
+            raise AttributeError(f"GPMHE has no attribute {name!r}; the settable ones are "
+                                 f"{', '.join(sorted(self._SETTABLE))}")
         raise AttributeError(f"GPMHE.{name} is read-only; the settable attributes are "
                              f"{', '.join(sorted(self._SETTABLE))} (the other settings are fixed "
                              "at construction, the estimate changes only through update and reset)")
@@ -639,8 +639,7 @@ class GPMHE:
     def _placeholder_input(self):
         """u(t−1) (zeros before the first update): the input at the newest node while u(t) is
         not known, where only an output that depends on u would use it."""
-        state = self._core.__getstate__()
-        return state["u"][-1].copy() if len(state["u"]) else np.zeros(self.dim_u)
+        return self._core.last_input
 
     def set_input(self, u):
         """Give u(t), the input applied after the last update, when that update had ``u=None``.
@@ -789,7 +788,7 @@ class GPMHE:
         Ps = np.empty((len(steps), self.dim_x, self.dim_x))
         if any(step[3] for step in steps):
             raise ValueError("us: batch_filter needs every input (u=None is for update and "
-                             "set_input)" if self.dim_u else "us: internal")
+                             "set_input)")
         for i, (u, y, present, _) in enumerate(steps):
             self._step(u, y, present, False)
             xs[i], Ps[i] = self.x, self.P

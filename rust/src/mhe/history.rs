@@ -135,15 +135,20 @@ impl History {
         }
     }
 
-    /// Replaces the input row of the last recorded step (t − 1); false if there is none.
-    pub fn set_last_input(&mut self, u: &[f64]) -> bool {
+    /// Replaces the input row of the last recorded step (t − 1), if there is one (`u` of m
+    /// values, checked by the caller).
+    pub fn set_last_input(&mut self, u: &[f64]) {
         let m = self.dims.1;
-        if self.t == 0 || u.len() != m {
-            return false;
+        if self.t > 0 && u.len() == m {
+            let at = self.u.len() - m;
+            self.u[at..].copy_from_slice(u);
         }
-        let at = self.u.len() - m;
-        self.u[at..].copy_from_slice(u);
-        true
+    }
+
+    /// The input of the last recorded step (t − 1), or None before the first.
+    pub fn last_input(&self) -> Option<&[f64]> {
+        let m = self.dims.1;
+        (self.t > 0).then(|| &self.u[self.u.len() - m..])
     }
 
     /// Replaces the newest arrival prior (for time t).

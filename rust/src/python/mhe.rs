@@ -468,6 +468,18 @@ impl PyMovingHorizon {
         self.run(py, |core, model| core.set_last_input(model, u))
     }
 
+    /// u(t − 1), the input of the last update (zeros before the first).
+    #[getter]
+    fn last_input<'py>(&self, py: Python<'py>) -> Arr1<'py> {
+        let m = self.core.problem().dim_u();
+        let u = self
+            .core
+            .history()
+            .last_input()
+            .map_or_else(|| vec![0.0; m], <[f64]>::to_vec);
+        PyArray1::from_vec(py, u)
+    }
+
     /// The next window's arrival weight P = SᵀS (n, n).
     #[getter]
     fn arrival_weight<'py>(&self, py: Python<'py>) -> PyResult<Arr2<'py>> {
