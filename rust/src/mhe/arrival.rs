@@ -38,27 +38,42 @@ pub struct Arrival {
     pub weight: ArrivalWeight,
 }
 
+/// The model's values at the single point d = [x; u] (for [`ekf_step`] when no window
+/// evaluation at that node is at hand).
+pub fn evaluate_at(model: &mut dyn StageModel, x: &[f64], u: &[f64]) -> Result<StageEval> {
+    let mut d = x.to_vec();
+    d.extend_from_slice(u);
+    let mut st = StageEval::default();
+    model.evaluate(&d, &mut st)?;
+    st.check_sizes(1, model.dim_x(), model.dim_u(), model.dim_y())?;
+    Ok(st)
+}
+
 /// One EKF step of the arrival covariance over the node x̄_0 that leaves the window (input u_0,
 /// output y_0 with NaN for channels not measured, None if not measured or not in the window):
 /// the measurement update W⁺ = W + Cᵀ R⁻¹ C with W = SᵀS, then the time update
 /// Π' = A (W⁺)⁻¹ Aᵀ + Q, with A = ∂m_x/∂x, C = ∂m_y/∂x, Q = diag σ²_x + Q0, R = diag σ²_y + R0
-/// at d̄_0 = [x̄_0; u_0]. Returns S' (n × n, row-major) with S'ᵀS' = Π'⁻¹; a numerical error if a
-/// matrix is not positive definite (the caller keeps the old weight).
+/// at d̄_0 = [x̄_0; u_0], read from the first point of `st` (the model's values there: the
+/// window's last evaluation, or [`evaluate_at`]). Returns S' (n × n, row-major) with
+/// S'ᵀS' = Π'⁻¹; a numerical error if a matrix is not positive definite (the caller keeps the
+/// old weight).
 pub fn ekf_step(
-    model: &mut dyn StageModel,
+    st: &StageEval,
     problem: &WindowProblem,
-    x0: &[f64],
-    u0: &[f64],
     y0: Option<&[f64]>,
     s: &[f64],
 ) -> Result<Vec<f64>> {
     let (n, p) = (problem.dim_x(), problem.dim_y());
     let nd = n + problem.dim_u();
-    let mut d = x0.to_vec();
-    d.extend_from_slice(u0);
-    let mut st = StageEval::default();
-    model.evaluate(&d, &mut st)?;
-    st.check_sizes(1, n, problem.dim_u(), p)?;
+    if st.var_x.len() < n
+        || st.var_y.len() < p
+        || st.dmean_x.len() < n * nd
+        || st.dmean_y.len() < p * nd
+    {
+        return Err(Error::numerical(
+            "arrival covariance update: no model values at the node",
+        ));
+    }
     let not_pd =
         || Error::numerical("arrival covariance update: a matrix is not positive definite");
     let s = DMatrix::from_row_slice(n, n, s);
@@ -78,7 +93,7 @@ pub fn ekf_step(
     let pi_plus = info.cholesky().ok_or_else(not_pd)?.inverse();
     let a = DMatrix::from_fn(n, n, |i, j| st.dmean_x[i * nd + j]);
     let all: Vec<usize> = (0..n).collect();
-    let q = problem.q0_cov().with_variances(&all, &st.var_x);
+    let q = problem.q0_cov().with_variances(&all, &st.var_x[..n]);
     let pi = &a * pi_plus * a.transpose() + q;
     let pi = (&pi + pi.transpose()) * 0.5;
     let l = pi.cholesky().ok_or_else(not_pd)?.l();
@@ -133,7 +148,8 @@ mod tests {
         )
         .unwrap();
         let s = [2.0, 0.0, 0.5, 1.0];
-        let next = ekf_step(&mut Linear, &problem, &[0.3, -0.2], &[], Some(&[0.1]), &s).unwrap();
+        let st = evaluate_at(&mut Linear, &[0.3, -0.2], &[]).unwrap();
+        let next = ekf_step(&st, &problem, Some(&[0.1]), &s).unwrap();
         // Kalman: Π = (SᵀS)⁻¹; K = ΠCᵀ(CΠCᵀ + R)⁻¹; Π⁺ = (I − KC)Π; Π' = AΠ⁺Aᵀ + Q.
         let sm = DMatrix::from_row_slice(2, 2, &s);
         let pi = (sm.transpose() * &sm).try_inverse().unwrap();
@@ -146,15 +162,7 @@ mod tests {
         let got = (sn.transpose() * sn).try_inverse().unwrap();
         assert!((got - expected).norm() < 1e-12);
         // Without the output only the time update remains.
-        let next = ekf_step(
-            &mut Linear,
-            &problem,
-            &[0.3, -0.2],
-            &[],
-            Some(&[f64::NAN]),
-            &s,
-        )
-        .unwrap();
+        let next = ekf_step(&st, &problem, Some(&[f64::NAN]), &s).unwrap();
         let sn = DMatrix::from_row_slice(2, 2, &next);
         let got = (sn.transpose() * sn).try_inverse().unwrap();
         let expected = &a * pi * a.transpose() + DMatrix::from_row_slice(2, 2, &q0);

@@ -9,7 +9,7 @@
 //! [`MovingHorizon::evaluate`] evaluates the staged window at any z, and
 //! [`MovingHorizon::commit`] records a solution.
 
-use super::arrival::{ekf_step, Arrival, ArrivalMean, ArrivalWeight};
+use super::arrival::{ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
 use super::lsq::WindowLsq;
 use super::problem::{Form, WindowEval, WindowProblem};
@@ -58,6 +58,44 @@ pub struct MovingHorizon {
     has_window: bool,
     /// The arrival cost's mean and weight (`arrival.rs`).
     arrival: Arrival,
+    /// The last one-step prediction: the filtering form's commit computes the one the next
+    /// warm start needs.
+    prediction: LastPrediction,
+}
+
+/// A one-step prediction m_x(x, u) and the bits of the point it was made at (a model is a
+/// function of (x, u), so the same point gives the same prediction without calling it again).
+#[derive(Debug, Clone, Default)]
+struct LastPrediction {
+    d: Vec<u64>,
+    x_next: Vec<f64>,
+}
+
+impl LastPrediction {
+    fn predict(
+        &mut self,
+        model: &mut dyn StageModel,
+        x: &[f64],
+        u: &[f64],
+        out: &mut [f64],
+    ) -> Result<()> {
+        let same = self.d.len() == x.len() + u.len()
+            && x.iter()
+                .chain(u)
+                .zip(&self.d)
+                .all(|(v, b)| v.to_bits() == *b)
+            && self.x_next.len() == out.len();
+        if same {
+            out.copy_from_slice(&self.x_next);
+            return Ok(());
+        }
+        self.d.clear();
+        model.predict_state(x, u, out)?;
+        self.d.extend(x.iter().chain(u).map(|v| v.to_bits()));
+        self.x_next.clear();
+        self.x_next.extend_from_slice(out);
+        Ok(())
+    }
 }
 
 impl MovingHorizon {
@@ -111,6 +149,7 @@ impl MovingHorizon {
             staged: None,
             has_window: false,
             arrival: Arrival::default(),
+            prediction: LastPrediction::default(),
         })
     }
 
@@ -152,7 +191,8 @@ impl MovingHorizon {
         if self.problem.form() == Form::Filtering && self.arrival.mean == ArrivalMean::Estimate {
             let (window, _) = self.history.x_window();
             let mut out = vec![0.0; n];
-            model.predict_state(&window[window.len() - n..], u, &mut out)?;
+            self.prediction
+                .predict(model, &window[window.len() - n..], u, &mut out)?;
             check_finite("u", &out)
                 .map_err(|_| Error::numerical("the model's prediction with u is not finite"))?;
             prior = Some(out);
@@ -309,7 +349,7 @@ impl MovingHorizon {
         Ok(z0)
     }
 
-    fn warm_start(&self, model: &mut dyn StageModel, data: &WindowData) -> Result<Vec<f64>> {
+    fn warm_start(&mut self, model: &mut dyn StageModel, data: &WindowData) -> Result<Vec<f64>> {
         let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         let (prev, prev_t0) = self.history.x_window();
         let rows = prev.len() / n;
@@ -325,7 +365,8 @@ impl MovingHorizon {
         for i in kept..data.nodes {
             let (done, rest) = z.split_at_mut(i * n);
             let u = &data.u[(i - 1) * m..i * m];
-            model.predict_state(&done[(i - 1) * n..], u, &mut next)?;
+            self.prediction
+                .predict(model, &done[(i - 1) * n..], u, &mut next)?;
             rest[..n].copy_from_slice(&next);
         }
         let (lo, hi) = &self.inner;
@@ -377,7 +418,7 @@ impl MovingHorizon {
             Form::Filtering => {
                 let mut out = vec![0.0; n];
                 let u_t = &data.u[(data.nodes - 1) * m..data.nodes * m];
-                model.predict_state(last, u_t, &mut out)?;
+                self.prediction.predict(model, last, u_t, &mut out)?;
                 out
             }
         };
@@ -387,7 +428,16 @@ impl MovingHorizon {
                 let p = self.problem.dim_y();
                 let y0 = data.present[0].then(|| &data.y[..p]);
                 let s = self.history.arrival_sqrt();
-                match ekf_step(model, &self.problem, &z[..n], &data.u[..m], y0, s) {
+                // The window's last evaluation holds the model's values at node 0 when it was
+                // at z (the solver's solution); otherwise evaluate there.
+                let fresh;
+                let st = if self.evaluated_at == z {
+                    self.eval.stage()
+                } else {
+                    fresh = evaluate_at(model, &z[..n], &data.u[..m])?;
+                    &fresh
+                };
+                match ekf_step(st, &self.problem, y0, s) {
                     Ok(next) => Some(next),
                     Err(Error::Numerical(_)) => None, // keep the weight
                     Err(e) => return Err(e),
@@ -531,6 +581,34 @@ mod tests {
                 assert_eq!(est.history().t(), t + 1);
             }
             assert!(last_err < 1e-3, "{form:?}: {last_err}");
+        }
+    }
+
+    /// Once the window is full, the filtering form's update calls the model for the solver's
+    /// evaluations and once more, for the next arrival prior m_x(x̂(t), u(t)): the next warm
+    /// start's new node is that same prediction, and the EKF arrival step reads node 0 from the
+    /// solution's evaluation.
+    #[test]
+    fn a_full_window_update_calls_the_model_only_for_the_solver() {
+        let mut est = estimator(Form::Filtering);
+        est.set_arrival(Arrival {
+            mean: ArrivalMean::Smoothed,
+            weight: ArrivalWeight::Ekf,
+        });
+        let mut model = Scalar {
+            calls: 0,
+            fail_at: usize::MAX,
+        };
+        let mut x = 2.0;
+        for t in 0..10 {
+            let u = [0.1 * t as f64];
+            let before = model.calls;
+            let rep = est.update(&mut model, &u, Some(&[x])).unwrap();
+            x = 0.9 * x + u[0];
+            if t >= 5 {
+                let nfev = rep.solve.as_ref().map(|s| s.nfev).unwrap();
+                assert_eq!(model.calls - before, nfev + 1, "t = {t}");
+            }
         }
     }
 
