@@ -80,6 +80,30 @@ def test_rotating_masses_parameter():
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
 
 
+def test_rotating_masses_with_theta1_as_the_parameter():
+    """known_model(theta1=None): Θ1 is p; at any p it is the model with that Θ1 (numpy and
+    CasADi), and the numpy Jacobian's Θ1 column agrees with central differences."""
+    X, U = random_points(rm, 3, seed=4)
+    P = np.array([[1e-4], [2.25e-4], [6e-4]])
+    numpy_p = rm.known_model(None, backend="numpy")
+    assert numpy_p.dim_p == 1
+    for x, u, p in zip(X, U, P):
+        np.testing.assert_allclose(numpy_p.predict(x, u, p),
+                                   rm.known_model(p[0], backend="numpy").predict(x, u), rtol=1e-12)
+    J = rm._rhs_jacobian_of_theta1(X, U, P)
+    step = 1e-6 * P
+    fd = (rm._rhs_of_theta1(X, U, P + step) - rm._rhs_of_theta1(X, U, P - step)) / (2 * step)
+    np.testing.assert_allclose(J[:, :, 8], fd, rtol=1e-7, atol=1e-9)
+    A = np.stack([rm.rhs_jacobian(X[:1], U[:1], theta1=p[0])[0] for p in P])
+    np.testing.assert_allclose(J[:, :, :8], A, rtol=1e-12)
+    pytest.importorskip("casadi")
+    casadi_p = rm.known_model(None)
+    assert casadi_p.dim_p == 1
+    for x, u, p in zip(X, U, P):
+        np.testing.assert_allclose(casadi_p.predict(x, u, p), numpy_p.predict(x, u, p), rtol=1e-10,
+                                   atol=1e-10)
+
+
 def test_rotating_masses_rk4_stable_over_the_parameter_bounds():
     for theta1 in rm.THETA1_BOUNDS:
         A = rm.rhs_jacobian(np.zeros((1, 8)), None, theta1=theta1)[0]

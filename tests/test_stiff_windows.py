@@ -25,20 +25,30 @@ def run(mhe, u, y):
     return np.array(est), np.array(nfev)
 
 
-def test_exact_model_mhe_solves_every_rotating_masses_window_in_few_evaluations():
+@pytest.mark.parametrize("arrival", [("estimate", "constant"), ("smoothed", "ekf"),
+                                     ("smoothed", "constant")])
+def test_exact_model_mhe_solves_every_rotating_masses_window_in_few_evaluations(arrival):
     x, u, y = rm.simulate(30, rng=2)
     model = rm.known_model(backend="numpy")
-    est, nfev = run(GPMHE(model, rm.initial_estimate(3), **rm.MHE_SETTINGS), u, y)
+    settings = dict(rm.MHE_SETTINGS, arrival_mean=arrival[0], arrival_weight=arrival[1])
+    est, nfev = run(GPMHE(model, rm.initial_estimate(3), **settings), u, y)
     # The model is linear: one Gauss-Newton step solves a window, one more evaluation confirms.
     assert nfev.max() <= 3, nfev
     # Stopping on the decrement (dtol = 1e-2) gives the estimates of windows run to the gradient
     # tolerance: the decrement is that of the undamped step, which the process weights
     # do not hide.
-    ref, _ = run(GPMHE(model, rm.initial_estimate(3), solver_options={"dtol": 0.0},
-                       **rm.MHE_SETTINGS), u, y)
-    np.testing.assert_allclose(est, ref, atol=1e-3)
-    rmse = np.sqrt(np.mean((est[:-1] - x[1:])[:, :3] ** 2, axis=1))
-    assert rmse[-10:].mean() < 1.5 * rm.SIGMA_V
+    ref, _ = run(GPMHE(model, rm.initial_estimate(3), solver_options={"dtol": 0.0}, **settings),
+                 u, y)
+    rmse = [np.sqrt(np.mean((e[:-1] - x[1:])[-10:, :3] ** 2)) for e in (est, ref)]
+    assert rmse[0] < 1.5 * rm.SIGMA_V
+    if arrival != ("smoothed", "constant"):
+        np.testing.assert_allclose(est, ref, atol=1e-3)
+    else:
+        # do-mpc's arrival cost carries each window's smoothed estimate into the next with the
+        # weak weight P_x = I: a cost left within dtol of the optimum moves the weakly
+        # determined directions by up to ~0.1, statistically nothing, and the accuracy stays.
+        np.testing.assert_allclose(est, ref, atol=0.1)
+        assert abs(rmse[0] - rmse[1]) < 0.1 * rmse[1]
 
 
 def test_theta1_as_a_ninth_state_converges_in_every_window():

@@ -52,10 +52,14 @@ STEPS = 50
 P_X = np.eye(DIM_X)
 P_P = 10.0
 P_V = np.eye(DIM_Y)
-#: `gpmhe.GPMHE` settings for the states with Θ1 known: P2 = P_X, R0 = P_V⁻¹, "no process
-#: noise" as a process weight Q0⁻¹ = 1e8 I, and do-mpc's constant arrival weight.
+#: `gpmhe.GPMHE` settings for the states: P2 = P_X, R0 = P_V⁻¹, "no process noise" as a
+#: process weight Q0⁻¹ = 1e8 I, and do-mpc's arrival cost (the previous window's estimate of
+#: the new first node, constant weights).
 MHE_SETTINGS = dict(horizon=HORIZON, eta=0.99, P2=P_X, R0=np.linalg.inv(P_V), Q0=1e-8 * np.eye(DIM_X),
-                    arrival_mean="estimate", arrival_weight="constant")
+                    arrival_mean="smoothed", arrival_weight="constant")
+#: `gpmhe.GPMHE`'s parameter settings for Θ1 unknown (with ``known_model(theta1=None)``): the
+#: guess, P_P as the prior weight of Θ1 in its own units (covariance P_P⁻¹), the bounds.
+PARAMETER_SETTINGS = dict(p0=[THETA1_GUESS], P_p0=1.0 / P_P, p_bounds=THETA1_BOUNDS)
 
 #: The true initial state, and the relative perturbation of the estimator's initial guess.
 X0 = np.pi * np.array([1.0, 1.0, -1.5, 1.0, -5.0, 5.0, 0.0, 0.0])
@@ -149,6 +153,35 @@ def rhs_jacobian(X, U, theta1=THETA1):
     [-23.809  11.822   0.     -0.301   0.      0.     11.987   0.   ]
     """
     return np.broadcast_to(_system_matrix(theta1), (np.shape(X)[0], DIM_X, DIM_X)).copy()
+
+
+_A_UNIT_THETA1 = _system_matrix(1.0)
+
+
+def _rhs_of_theta1(X, U, P):
+    """`rhs` with Θ1 = P[:, 0] per row (the model with Θ1 as its parameter)."""
+    return rhs(X, U, theta1=np.asarray(P, dtype=np.float64)[:, 0])
+
+
+def _rhs_jacobian_of_theta1(X, U, P):
+    """∂F/∂[x; Θ1] per row: A(Θ1) (only its row 3 depends on Θ1, as 1/Θ1) and the column
+    ∂F/∂Θ1 = [0, 0, 0, −φ̈1/Θ1, 0, 0, 0, 0]."""
+    X = np.asarray(X, dtype=np.float64)
+    theta1 = np.asarray(P, dtype=np.float64)[:, 0]
+    J = np.empty((X.shape[0], DIM_X, DIM_X + 1))
+    J[:, :, :DIM_X] = _A_UNIT_THETA1
+    J[:, :, DIM_X] = 0.0
+    J[:, 3, :DIM_X] /= theta1[:, None]
+    J[:, 3, DIM_X] = -(X @ _A_UNIT_THETA1[3]) / theta1**2  # φ̈1 = (A(1) x)_3 / Θ1
+    return J
+
+
+def _h_of_theta1(X, U, P):
+    return h_batch(X)
+
+
+def _h_jacobian_of_theta1(X, U, P):
+    return np.broadcast_to(np.eye(DIM_Y, DIM_X + 1), (np.shape(X)[0], DIM_Y, DIM_X + 1)).copy()
 
 
 def h_batch(X, U=None):
@@ -250,8 +283,9 @@ def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS
 
     Parameters
     ----------
-    theta1 : float, default ``THETA1`` (2.25e-4)
-        Inertia Θ1 of disc 1.
+    theta1 : float or None, default ``THETA1`` (2.25e-4)
+        Inertia Θ1 of disc 1; None: Θ1 is the model's unknown parameter p = [Θ1]
+        (``dim_p = 1``), to estimate with `gpmhe.GPMHE`'s ``p0`` (do-mpc's setting).
     backend : {"casadi", "numpy"}, default "casadi"
         CasADi functions, or the numpy `rhs` with its Jacobian `rhs_jacobian`.
     method : {"rk4", "implicit-midpoint", "backward-euler"}, default "rk4"
@@ -264,7 +298,7 @@ def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS
     Returns
     -------
     KnownModel
-        The model x(t+1) = f(x, u), y = [φ1, φ2, φ3].
+        The model x(t+1) = f(x, u), y = [φ1, φ2, φ3] (f(x, u, p) with ``theta1=None``).
 
     Raises
     ------
@@ -280,6 +314,8 @@ def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS
     (8, 2, 3)
     >>> print(np.round(model.predict(np.zeros(8), [1.0, 0.0])[6:], 6))  # exact: 1 − e⁻¹⁰
     [0.999945 0.      ]
+    >>> rm.known_model(None, backend="numpy").dim_p      # Θ1 unknown
+    1
     """
     from gpmhe.models import KnownModel
 
@@ -288,6 +324,11 @@ def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS
         return KnownModel.from_ode(F, h, T, substeps=substeps, method=method, jit=jit)
     if backend != "numpy":
         raise ValueError(f"backend: must be 'casadi' or 'numpy', got {backend!r}")
+    if theta1 is None:
+        return KnownModel.from_ode(_rhs_of_theta1, _h_of_theta1, T, DIM_X, DIM_Y, DIM_U,
+                                   substeps=substeps, method=method,
+                                   rhs_jacobian=_rhs_jacobian_of_theta1,
+                                   h_jacobian=_h_jacobian_of_theta1, dim_p=1)
     return KnownModel.from_ode(functools.partial(rhs, theta1=theta1), h_batch, T, DIM_X, DIM_Y,
                                DIM_U, substeps=substeps, method=method,
                                rhs_jacobian=functools.partial(rhs_jacobian, theta1=theta1),
