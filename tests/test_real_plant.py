@@ -156,6 +156,41 @@ def test_filtering_form_takes_the_input_after_the_update():
         GPMHE(_linear(), x0=[0.0, 0.0]).update(None, ys[0])  # prediction form needs u(t)
 
 
+def test_u_none_is_refused_when_the_output_depends_on_u():
+    _, us, ys = _data()
+    feedthrough = KnownModel(_f, lambda x, u: C @ x + np.array([0.0, 0.3 * u[0]]), dim_x=2,
+                             dim_y=2, dim_u=1)
+    est = GPMHE(feedthrough, x0=[0.0, 0.0], horizon=4, form="filtering")
+    est.update(us[0], ys[0])
+    before = copy.deepcopy(est)
+    with pytest.raises(ValueError, match="depends on u"):
+        est.update(None, ys[1])
+    np.testing.assert_array_equal(est.x_window, before.x_window)
+    assert est.t == before.t
+    est.update(None, None)  # no measurement: u(t) is not used at the newest node
+    est.set_input(us[1])
+    # The probe is once per estimator; a model without feedthrough passes it.
+    plain = GPMHE(_linear(), x0=[0.0, 0.0], horizon=4, form="filtering")
+    plain.update(None, ys[0])
+    assert plain._h_uses_u is False
+
+
+def test_u_none_with_casadi_outputs():
+    ca = pytest.importorskip("casadi")
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    f = ca.Function("f", [x, u], [ca.mtimes(ca.DM(A), x) + ca.mtimes(ca.DM(B), u)])
+    _, us, ys = _data()
+    for h_expr, uses in ((ca.mtimes(ca.DM(C), x), False), (ca.mtimes(ca.DM(C), x) + u, True)):
+        model = KnownModel.from_casadi(f, ca.Function("h", [x, u], [h_expr]))
+        est = GPMHE(model, x0=[0.0, 0.0], horizon=4, form="filtering")
+        if uses:
+            with pytest.raises(ValueError, match="depends on u"):
+                est.update(None, ys[0])
+        else:
+            est.update(None, ys[0])
+            est.set_input(us[0])
+
+
 def _scalar_with_parameter(x, u, p):
     return np.array([p[0] * x[0] + u[0]])
 

@@ -111,7 +111,9 @@ def _bounds(name, bounds, n):
 
 
 def _output(name, y, p):
-    """y(t) of p values; NaN entries are channels not measured (inf is refused)."""
+    """y(t) of p values (NaN entries are channels not measured, inf is refused) and whether any
+    channel is measured. A Python loop over the values: cheaper than numpy's reductions for
+    the few values of one sample."""
     try:
         a = np.asarray(y)
         if a.dtype.kind not in "fiu":
@@ -119,13 +121,16 @@ def _output(name, y, p):
         a = a.astype(np.float64).reshape(-1)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: must be {p} numbers (NaN for a channel not measured)") from None
-    if a is None or a.shape != (p,):
-        shape = None if a is None else a.shape
-        raise ValueError(f"{name}: expected shape ({p},), got {shape}")
-    if np.any(np.isinf(a)) or not within_limits(a[np.isfinite(a)]):
-        raise ValueError(f"{name}: contains inf or a value of magnitude > {MAX_ABS:g} (NaN marks "
-                         "a channel not measured)")
-    return a
+    if a.shape != (p,):
+        raise ValueError(f"{name}: expected shape ({p},), got {a.shape}")
+    measured = False
+    for v in a.tolist():
+        if v == v:  # not NaN
+            if not -MAX_ABS <= v <= MAX_ABS:
+                raise ValueError(f"{name}: contains inf or a value of magnitude > {MAX_ABS:g} "
+                                 "(NaN marks a channel not measured)")
+            measured = True
+    return a, measured
 
 
 def _rows(name, value):
@@ -633,8 +638,24 @@ class GPMHE:
             u = finite_vector("u", u, m, flatten=True)
         if y is None:
             return u, np.zeros(p), False, pending
-        y = _output("y", y, p)
-        return u, y, not bool(np.all(np.isnan(y))), pending
+        y, present = _output("y", y, p)
+        if pending and present and self._output_uses_input(u):
+            raise ValueError("u: required, the model's output h depends on u (u=None is for "
+                             "models whose h(x, u) does not use u)")
+        return u, y, present, pending
+
+    def _output_uses_input(self, u):
+        """Whether the model's output mean h depends on u: probed once, at the current estimate
+        and u, against u shifted in every entry (a model is a function of (x, u))."""
+        known = self.__dict__.get("_h_uses_u")
+        if known is None:
+            x = self._core_x0(self.x, self.p) if self.dim_p else self.x
+            shifted = u + 1e-3 * (1.0 + np.abs(u))
+            d = np.vstack([np.concatenate([x, u]), np.concatenate([x, shifted])])
+            y0, y1 = self._core_model.stage_eval(d)[4]
+            known = bool(np.any(np.abs(y1 - y0) > 1e-12 * (1.0 + np.abs(y0))))
+            object.__setattr__(self, "_h_uses_u", known)
+        return known
 
     def _placeholder_input(self):
         """u(t−1) (zeros before the first update): the input at the newest node while u(t) is
@@ -687,8 +708,9 @@ class GPMHE:
         u : array_like of shape (dim_u,) or None
             Input u(t); None when the model has no input (dim_u = 0), or in the filtering form
             when u(t) is not known yet (give it with `set_input` before the next update: it
-            drives the transition to x(t+1); at the newest node it only enters h(x, u), so pass
-            it here if h depends on u).
+            drives the transition to x(t+1); at the newest node it only enters h(x, u), so a
+            model whose h depends on u needs it here: u=None with a measured y is then refused,
+            checked once by evaluating h at two inputs).
         y : array_like of shape (dim_y,) or None
             Output y(t); None when there is no measurement at this step, NaN entries for
             channels not measured.
@@ -701,8 +723,8 @@ class GPMHE:
         Raises
         ------
         ValueError
-            On bad input (shape, NaN or inf, a required u missing) or bad output of a
-            `KnownModel` callable; the estimator is then unchanged.
+            On bad input (shape, NaN or inf, a required u missing, u=None while h depends
+            on u) or bad output of a `KnownModel` callable; the estimator is then unchanged.
         Exception
             Any exception a `KnownModel` callable raises (``KeyboardInterrupt`` included) is
             passed on with the estimator unchanged, except an ``ArithmeticError`` or
@@ -819,19 +841,19 @@ class GPMHE:
             x_window, x_prior = core.commit(z)
             stats = (0.0, 0)
         n, s = self.dim_x, self._p_scale
-        with self._writing():
-            self.x_window = np.ascontiguousarray(x_window[:, :n])
-            self.x, self.x_prior = x_window[-1, :n].copy(), x_prior[:n].copy()
+        # The estimator's own attributes, written past the __setattr__ guard in one go.
+        new = dict(x_window=np.ascontiguousarray(x_window[:, :n]), x=x_window[-1, :n].copy(),
+                   x_prior=x_prior[:n].copy(), cost=float(cost), success=bool(success),
+                   nit=int(nit), message=str(message), t=self.t + 1, _input_pending=pending)
+        if P is not None:
+            new["P"] = P[:n, :n].copy()
+        if self.dim_p:
+            new["p"] = x_window[-1, n:] * s
             if P is not None:
-                self.P = P[:n, :n].copy()
-                self.P_p = s[:, None] * P[n:, n:] * s[None, :]
-            self.p = x_window[-1, n:] * s
-            self.cost, self.success, self.nit, self.message = (float(cost), bool(success), int(nit),
-                                                                str(message))
-            self.t += 1
-            self._input_pending = pending
-            if self.solver == "gauss-newton":
-                self.projected_gradient, self.nfev = stats
+                new["P_p"] = s[:, None] * P[n:, n:] * s[None, :]
+        if self.solver == "gauss-newton":
+            new["projected_gradient"], new["nfev"] = stats
+        self.__dict__.update(new)
         if not success and self.solver == "gauss-newton":
             # After the attributes follow the core's recorded step (the warning may be an error).
             self._warn(message, self.t - 1, stacklevel=5)  # 5: past `exclusive`
