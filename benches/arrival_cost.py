@@ -54,12 +54,9 @@ def cart_pole(seed, mean, weight):
 
 def rotating_masses(seed, mean, weight):
     rng = np.random.default_rng(seed)
-    F, h = rm.casadi_functions(theta1=None)
-    model = KnownModel.from_ode(F, h, rm.T, substeps=rm.SUBSTEPS)
     x, u, y = rm.simulate(rm.STEPS, rng)
     x0 = rm.initial_estimate(rng)
-    est = GPMHE(model, x0=x0, p0=[rm.THETA1_GUESS], P_p0=1.0 / rm.P_P * rm.THETA1_GUESS ** 2,
-                p_bounds=rm.THETA1_BOUNDS,
+    est = GPMHE(rm.known_model(theta1=None), x0=x0, **rm.PARAMETER_SETTINGS,
                 **{**rm.MHE_SETTINGS, "arrival_mean": mean, "arrival_weight": weight})
     xs, nfev = [], []
     for t in range(rm.STEPS):

@@ -32,12 +32,14 @@ x̂(t), Θ̂1(t) for t = 1..T. Estimators, each a function run_<name>(data, sett
   noted and holds its last estimate. The rows "tight Θ1 prior" give the filters Θ1's prior
   standard deviation 1e-4 (`TIGHT_THETA1_STD`) instead: the wide prior, not filterpy, is what
   throws Θ̂1 to a bound.
-* gpmhe's GPMHE with the exact model (`run_gpmhe_casadi`, `run_gpmhe_numpy`), Θ1 appended to the
-  state by hand (θ, dθ/dt = 0, box [0.1, 10]): KnownModel.from_ode on the 9-state right-hand
-  side (CasADi, or numpy with the analytic Jacobian), 10 RK4 sub-steps, P2 =
-  blockdiag(P_x, P_p·1e-8) (P_p on Θ1 = 1e-4 θ), R0 = P_v⁻¹, Q0 = 1e-6 on all states (see
-  `MHE_Q0`; the row "GPMHE CasADi, Q0 = 1e-8" uses the known-Θ1 setting's 1e-8), η = 0.99, the
-  filtering form, the default Rust Gauss-Newton solver.
+* gpmhe's GPMHE with the exact model (`run_gpmhe_casadi`, `run_gpmhe_numpy`), Θ1 the model's
+  parameter: rm.known_model(theta1=None) (KnownModel.from_ode on the right-hand side of (x, u, Θ1),
+  CasADi, or numpy with the analytic Jacobian; 10 RK4 sub-steps), rm.PARAMETER_SETTINGS (p0 =
+  the guess, P_p0 = P_p⁻¹, p_bounds = Θ1's bounds); rm.MHE_SETTINGS for the states (P2 = P_x, R0 = P_v⁻¹,
+  Q0 = 1e-8 I for "no process noise", η = 0.99) with gpmhe's default arrival cost (smoothed
+  mean, EKF weight); the filtering form, the default Rust Gauss-Newton solver. The row
+  "CasADi, do-mpc's arrival" uses do-mpc's arrival cost instead (the previous window's
+  estimate of the new first node, constant weights: rm.MHE_SETTINGS').
 * GP-MHE with a learned model (`run_gpmhe_learned`): LearnedModel.from_trajectories (defaults:
   linear prior mean, standardised, default hyperprior) on `TRAIN_TRAJECTORIES` simulated
   trajectories of the plant with the TRUE Θ1 (the learned model has no parameter), states
@@ -67,10 +69,10 @@ import warnings
 
 import numpy as np
 
-from gpmhe import GPMHE, KnownModel, LearnedModel, discretize
+from gpmhe import GPMHE, LearnedModel, discretize
 from gpmhe.systems import rotating_masses as rm
 
-#: Θ1 = SCALE · θ inside the filters and the hand-augmented MHE, so that θ is O(1).
+#: Θ1 = SCALE · θ inside the filters, so that θ is O(1).
 SCALE = 1e-4
 THETA_GUESS = rm.THETA1_GUESS / SCALE
 THETA_BOUNDS = (rm.THETA1_BOUNDS[0] / SCALE, rm.THETA1_BOUNDS[1] / SCALE)
@@ -79,12 +81,6 @@ FILTER_Q = 1e-6
 #: Θ1's prior standard deviation in the "tight Θ1 prior" filter rows (the guess 1e-4 ± 1e-4;
 #: do-mpc's P_p = 10 read as a covariance is ± 0.32).
 TIGHT_THETA1_STD = 1e-4
-#: The hand-augmented MHE's process-noise covariance Q0 on all 9 states ("no process noise").
-#: With 1e-8, the known-Θ1 setting, many windows stop at the Gauss-Newton solver's 100
-#: iterations (the "GPMHE CasADi, Q0 = 1e-8" row shows it): the 1e8 weight makes the bilinear
-#: (x, 1/Θ1) window problem a stiff penalty problem. 1e-6 (process std 1e-3 against outputs of
-#: std 0.1) converges in most windows.
-MHE_Q0 = 1e-6
 #: Training data of the learned model: trajectories, steps each, state-measurement noise.
 TRAIN_TRAJECTORIES, TRAIN_STEPS, SIGMA_X_TRAIN = 4, 50, 0.01
 N_X = rm.DIM_X
@@ -221,17 +217,6 @@ def aug_h_jacobian(Z, U=None):
 AUG_F = discretize(aug_rhs, rm.T, substeps=rm.SUBSTEPS, rhs_jacobian=aug_rhs_jacobian)
 
 
-def aug_casadi_functions():
-    """The 9-state right-hand side and output as CasADi functions (rm's with Θ1 = SCALE θ)."""
-    import casadi as ca
-
-    F, _ = rm.casadi_functions(theta1=None)
-    z, u = ca.SX.sym("z", N_X + 1), ca.SX.sym("u", rm.DIM_U)
-    rhs = ca.Function("rm_theta", [z, u], [ca.vertcat(F(z[:N_X], u, SCALE * z[N_X]), 0)])
-    h = ca.Function("rm_theta_output", [z, u], [z[:rm.DIM_Y]])
-    return rhs, h
-
-
 # ---- filterpy ----------------------------------------------------------------------------
 def _filter_prior(data, theta1_std=None):
     """z0 = [x̂(0); θ guess], P0 = blockdiag(P_x⁻¹, var θ): by default P_p⁻¹ as Θ1's variance
@@ -351,40 +336,43 @@ def _run_gpmhe(est, split, data):
     return np.array(xs), np.array(thetas), times, len(caught)
 
 
-def _hand_augmented_gpmhe(data, backend, q0=MHE_Q0):
-    """GPMHE on [x; θ] with Θ1 = SCALE θ appended to the state by hand, and how to read x̂ and
-    Θ̂1 from it. (To become GPMHE(rm.known_model(...), x0, p0=..., P_p0=..., p_bounds=...) with
-    ``est.p`` once gpmhe estimates parameters itself.)"""
-    if backend == "casadi":
-        rhs, h = aug_casadi_functions()
-        model = KnownModel.from_ode(rhs, h, rm.T, substeps=rm.SUBSTEPS)
-    else:
-        model = KnownModel.from_ode(aug_rhs, aug_h, rm.T, N_X + 1, rm.DIM_Y, rm.DIM_U,
-                                    substeps=rm.SUBSTEPS, rhs_jacobian=aug_rhs_jacobian,
-                                    h_jacobian=aug_h_jacobian)
-    P2 = np.zeros((N_X + 1, N_X + 1))
-    P2[:N_X, :N_X] = rm.P_X
-    P2[N_X, N_X] = rm.P_P * SCALE**2  # P_p (ΔΘ1)² = P_p SCALE² (Δθ)²
-    lower = np.append(np.full(N_X, -np.inf), THETA_BOUNDS[0])
-    upper = np.append(np.full(N_X, np.inf), THETA_BOUNDS[1])
-    est = GPMHE(model, np.append(data["x0"], THETA_GUESS), horizon=rm.HORIZON, eta=0.99, P2=P2,
-                Q0=q0, R0=np.linalg.inv(rm.P_V), x_bounds=(lower, upper), form="filtering")
-    return est, lambda e: (e.x[:N_X].copy(), SCALE * float(e.x[N_X]))
+def _parameter_gpmhe(data, backend, arrival=None, jit=False):
+    """GPMHE with the exact model and Θ1 as its parameter (rm.known_model(theta1=None),
+    rm.PARAMETER_SETTINGS), rm.MHE_SETTINGS for the states with gpmhe's default arrival cost
+    unless `arrival` (arrival_mean, arrival_weight) is given."""
+    settings = {k: v for k, v in rm.MHE_SETTINGS.items() if not k.startswith("arrival_")}
+    if arrival is not None:
+        settings.update(arrival_mean=arrival[0], arrival_weight=arrival[1])
+    est = GPMHE(rm.known_model(None, backend=backend, jit=jit), data["x0"], form="filtering",
+                **rm.PARAMETER_SETTINGS, **settings)
+    return est, lambda e: (e.x.copy(), float(e.p[0]))
 
 
 def run_gpmhe_casadi(data, settings):
-    """GPMHE, exact model in CasADi, Θ1 appended to the state by hand."""
-    return _run_gpmhe(*_hand_augmented_gpmhe(data, "casadi"), data)
+    """GPMHE, exact model in CasADi, Θ1 estimated as the model's parameter."""
+    return _run_gpmhe(*_parameter_gpmhe(data, "casadi"), data)
+
+
+def run_gpmhe_casadi_jit(data, settings):
+    """As `run_gpmhe_casadi` with the CasADi model compiled (``jit=True``). Building the
+    estimator plus its slowest update (which may include compiling) are also kept in
+    settings["compile_seconds"]."""
+    t0 = time.perf_counter()
+    est, split = _parameter_gpmhe(data, "casadi", jit=True)
+    built = time.perf_counter() - t0
+    xs, thetas, times, n_warn = _run_gpmhe(est, split, data)
+    settings.setdefault("compile_seconds", []).append(built + max(times))
+    return xs, thetas, times, n_warn
 
 
 def run_gpmhe_numpy(data, settings):
-    """GPMHE, exact model in numpy (analytic Jacobian), Θ1 appended to the state by hand."""
-    return _run_gpmhe(*_hand_augmented_gpmhe(data, "numpy"), data)
+    """GPMHE, exact model in numpy (analytic Jacobian), Θ1 estimated as the model's parameter."""
+    return _run_gpmhe(*_parameter_gpmhe(data, "numpy"), data)
 
 
-def run_gpmhe_casadi_q0_1e8(data, settings):
-    """As `run_gpmhe_casadi` with Q0 = 1e-8 on all 9 states, the known-Θ1 setting."""
-    return _run_gpmhe(*_hand_augmented_gpmhe(data, "casadi", q0=1e-8), data)
+def run_gpmhe_casadi_dompc_arrival(data, settings):
+    """As `run_gpmhe_casadi` with do-mpc's arrival cost: smoothed mean, constant weight."""
+    return _run_gpmhe(*_parameter_gpmhe(data, "casadi", ("smoothed", "constant")), data)
 
 
 def run_gpmhe_known_theta(data, settings):
@@ -422,8 +410,9 @@ ESTIMATORS = {
     "  EKF, tight Θ1 prior": run_ekf_tight,
     "  UKF, tight Θ1 prior": run_ukf_tight,
     "GPMHE exact, CasADi": run_gpmhe_casadi,
+    "GPMHE exact, CasADi, jit": run_gpmhe_casadi_jit,
     "GPMHE exact, numpy": run_gpmhe_numpy,
-    "  GPMHE CasADi, Q0 = 1e-8": run_gpmhe_casadi_q0_1e8,
+    "  CasADi, do-mpc's arrival": run_gpmhe_casadi_dompc_arrival,
     "GP-MHE learned (true Θ1)": run_gpmhe_learned,
     "ref.: GPMHE, Θ1 known": run_gpmhe_known_theta,
 }
@@ -488,6 +477,11 @@ def main(argv=None):
               f"{settings['restarts']} restart(s), fit {np.mean(fit):.1f} s per seed "
               f"(max {np.max(fit):.1f} s), "
               f"{settings.get('fit_warnings', 0)} fit warnings")
+    compiled = settings.get("compile_seconds", [])
+    if compiled:
+        print(f"compiled CasADi model (jit=True): building the estimator and its slowest update "
+              f"(compiling) took {np.mean(compiled):.2f} s (mean over seeds; CasADi may reuse an "
+              f"earlier compilation)")
     for note in settings["notes"]:
         print("note:", note)
     for name, lines in console.items():
