@@ -184,10 +184,6 @@ def run_dompc(data, settings):
 
 
 # ---- the 9-state model [x; θ] -------------------------------------------------------------
-#: Θ1 · ∂φ̈1/∂x (row 3 of A(Θ1), the only row that depends on Θ1).
-_ROW3 = rm.rhs_jacobian(np.zeros((1, N_X)), np.zeros((1, rm.DIM_U)), theta1=1.0)[0, 3]
-
-
 def aug_rhs(Z, U):
     """d[x; θ]/dt for all rows: rm.rhs with Θ1 = SCALE θ, and dθ/dt = 0."""
     Z = np.atleast_2d(Z)
@@ -195,14 +191,12 @@ def aug_rhs(Z, U):
 
 
 def aug_rhs_jacobian(Z, U):
-    """∂F/∂[x; θ]: rm.rhs_jacobian with row 3 divided by each row's Θ1, and the θ column
-    ∂φ̈1/∂θ = −φ̈1/θ."""
+    """∂F/∂[x; θ]: the Jacobian with respect to [x; Θ1] of the model with Θ1 as its parameter
+    (rm.known_model(theta1=None)), its Θ1 column times SCALE, and a zero row for dθ/dt."""
     Z = np.atleast_2d(Z)
-    k, theta = len(Z), Z[:, N_X]
-    J = np.zeros((k, N_X + 1, N_X + 1))
-    J[:, :N_X, :N_X] = rm.rhs_jacobian(Z[:, :N_X], U, theta1=1.0)
-    J[:, 3, :N_X] = _ROW3[None, :] / (SCALE * theta[:, None])
-    J[:, 3, N_X] = -rm.rhs(Z[:, :N_X], U, theta1=SCALE * theta)[:, 3] / theta
+    J = np.zeros((len(Z), N_X + 1, N_X + 1))
+    J[:, :N_X, :] = rm._rhs_jacobian_of_theta1(Z[:, :N_X], U, SCALE * Z[:, N_X:])
+    J[:, :N_X, N_X] *= SCALE
     return J
 
 
