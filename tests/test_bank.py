@@ -128,7 +128,7 @@ def test_bad_input_is_refused_and_changes_nothing():
     bank, mhes = _bank(LEARNED, "prediction"), _separate(LEARNED, "prediction")
     bank.update(U_DATA[0], Y_DATA[0])
     _step_separate(mhes, U_DATA[0], Y_DATA[0])
-    before = copy.deepcopy(bank.__dict__["x"]), bank.t
+    before = bank.x.copy(), bank.t
     Y_inf = Y_DATA[1].copy()
     Y_inf[2, 0] = np.inf
     for U, Y, arg in [(U_DATA[1][:3], Y_DATA[1], "U"), (U_DATA[1], Y_DATA[1][:, :1], "Y"),

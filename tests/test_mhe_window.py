@@ -222,16 +222,18 @@ def test_update_is_prepare_then_solve_then_commit():
         priors, next_priors, estimates = [], [], []
         for t in range(6):
             u, y = rng.uniform(-1, 1, 1), rng.uniform(-1, 1, 2)
-            rep = w1.update(u, y)
+            w1.update(u, y)
             z0, LB, UB = w2.prepare(u, y)
             ref = _core.WindowSolver().solve(w2, z0, LB, UB)
             x_window, x_prior = w2.commit(ref[0])
-            np.testing.assert_array_equal(rep.x_window, x_window)
-            np.testing.assert_array_equal(rep.x_prior, x_prior)
-            assert (rep.cost, rep.status, rep.success, rep.nit, rep.nfev, rep.projected_gradient,
-                    rep.interior_iterations) == ref[1:8]
-            np.testing.assert_array_equal(rep.P, ref[8])
-            assert rep.error is None
+            np.testing.assert_array_equal(w1.x_window, x_window)
+            np.testing.assert_array_equal(w1.x_prior, x_prior)
+            cost, status, success, nit, nfev, pg, interior = ref[1:8]
+            assert (w1.optimal_cost, w1.success, w1.nit, w1.nfev, w1.projected_gradient) == (
+                cost, success, nit, nfev, pg)
+            assert w1.message == (f"{status} (projected gradient {pg:.2e}, {interior} interior "
+                                  "its)")
+            np.testing.assert_array_equal(w1.covariance, ref[8])
             # The prior of the first node, time s0: x̂(s0) from update s0 − 1 (prediction
             # form), or m_x(x̂(s0 − 1), u(s0 − 1)) from update s0 − 1 (filtering form).
             s0 = max(0, t - 3) if filtering else max(0, t - 2)

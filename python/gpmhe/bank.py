@@ -208,19 +208,21 @@ class EstimatorBank:
         self.solver = "gauss-newton"
         self.arrival_mean, self.arrival_weight = template.arrival_mean, template.arrival_weight
         self.x0, self.Q0, self.R0, self.x_bounds = x0, q0, r0, (lb, ub)
-        self._p0 = template.P
-        self._reset_attributes()
 
-    def _reset_attributes(self):
-        k = len(self)
-        self.t = 0
-        self.x, self.x_prior = self.x0.copy(), self.x0.copy()
-        self.x_window = self.x0[:, None, :].copy()
-        self.P = np.tile(self._p0, (k, 1, 1))
-        self.cost, self.success = np.zeros(k), np.ones(k, dtype=bool)
-        self.nit, self.nfev = np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.int64)
-        self.projected_gradient = np.zeros(k)
-        self._status, self._interior, self._error = [""] * k, np.zeros(k, dtype=np.int64), [None] * k
+    # ---- the estimates and what the last update reported: read from the core ---------------
+    # (The core records an update of every estimator in one step, or none.)
+    t = property(lambda self: self._core.t, doc="Number of updates since construction.")
+    x = property(lambda self: self._core.x, doc="The estimates (n, dim_x).")
+    x_prior = property(lambda self: self._core.x_prior, doc="The last arrival priors (n, dim_x).")
+    x_window = property(lambda self: self._core.x_window,
+                        doc="The last windows' optimal trajectories (n, M_t + 1, dim_x).")
+    P = property(lambda self: self._core.covariance, doc="The covariance estimates (n, dim_x, dim_x).")
+    cost = property(lambda self: self._core.optimal_cost, doc="The last windows' optimal costs (n,).")
+    success = property(lambda self: self._core.success, doc="Whether each solver converged (n,).")
+    nit = property(lambda self: self._core.nit, doc="Each solver's iterations (n,).")
+    nfev = property(lambda self: self._core.nfev, doc="Each update's window evaluations (n,).")
+    projected_gradient = property(lambda self: self._core.projected_gradient,
+                                  doc="Each solver's final projected gradient (n,).")
 
     def __len__(self):
         return len(self._core)
@@ -313,32 +315,13 @@ class EstimatorBank:
 
     @exclusive  # one update at a time per bank (gpmhe/_threads.py)
     def _step(self, U, Y, present):
-        r = self._core.update(U, Y, present)
-        self.x_window = r["x_window"]
-        self.x, self.x_prior = self.x_window[:, -1, :].copy(), r["x_prior"]
-        has_p = r["has_P"]
-        self.P = np.where(has_p[:, None, None], r["P"], self.P)
-        self.cost, self.success = r["cost"], r["success"]
-        self.nit, self.nfev = r["nit"].astype(np.int64), r["nfev"].astype(np.int64)
-        self.projected_gradient = r["projected_gradient"]
-        self._status, self._error = r["status"], r["error"]
-        self._interior = r["interior_iterations"].astype(np.int64)
-        self.t += 1
+        self._core.update(U, Y, present)
         failed = np.flatnonzero(~self.success)
         if failed.size:
             shown = ", ".join(map(str, failed[:20])) + (", ..." if failed.size > 20 else "")
             warnings.warn(f"EstimatorBank: the window solver did not converge at t={self.t - 1} "
                           f"for {failed.size} estimator(s): {shown}; each keeps the better of its "
                           f"last iterate and its warm start", RuntimeWarning, stacklevel=4)
-
-    def _message(self, i):
-        """Estimator i's `GPMHE.message`."""
-        if self.t == 0:
-            return ""
-        if self._error[i] is not None:
-            return f"solver raised: {self._error[i]}"
-        return (f"{self._status[i]} (projected gradient {self.projected_gradient[i]:.2e}, "
-                f"{self._interior[i]} interior its)")
 
     # ----------------------------------------------------------------------------------------
     def _gpmhe(self, i):
@@ -359,21 +342,10 @@ class EstimatorBank:
             raise IndexError(f"i: the bank has {k} estimators, got {i}")
         i %= k
         mhe = self._gpmhe(i)
-        mhe._core.__setstate__(self._core.member_state(i))
-        with mhe._writing():
-            mhe.t = self.t
-            mhe.x, mhe.x_prior = self.x[i].copy(), self.x_prior[i].copy()
-            mhe.x_window, mhe.P = self.x_window[i].copy(), self.P[i].copy()
-            mhe.cost, mhe.success = float(self.cost[i]), bool(self.success[i])
-            mhe.nit, mhe.nfev = int(self.nit[i]), int(self.nfev[i])
-            mhe.projected_gradient = float(self.projected_gradient[i])
-            mhe.message = self._message(i)
+        mhe._core.__setstate__(self._core.member_state(i))  # the history and the last report
         return mhe
 
     # ---- copies and pickles -------------------------------------------------------------------
-    _ATTRIBUTES = ("t", "x", "x_prior", "x_window", "P", "cost", "success", "nit", "nfev",
-                   "projected_gradient", "_status", "_interior", "_error")
-
     def __getstate__(self):
         """The settings, the attributes and every estimator's core state (pickling needs a
         picklable model, as for `GPMHE`)."""
@@ -384,15 +356,12 @@ class EstimatorBank:
                         R0=self.R0[:, :, None] * np.eye(self.dim_y) if self.dim_y else None,
                         x_bounds=(lb, ub), form=self.form, solver_options=self.solver_options)
         return dict(model=self.model, n=len(self), x0=self.x0, settings=settings,
-                    attributes={a: getattr(self, a) for a in self._ATTRIBUTES},
                     cores=[self._core.member_state(i) for i in range(len(self))])
 
     def __setstate__(self, state):
         self.__init__(state["model"], state["n"], state["x0"], **state["settings"])
         for i, core in enumerate(state["cores"]):
             self._core.set_member_state(i, core)
-        for a, value in state["attributes"].items():
-            setattr(self, a, value)
 
     def __deepcopy__(self, memo):
         import copy

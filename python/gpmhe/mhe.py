@@ -412,9 +412,10 @@ class GPMHE:
             rust_solver = self._rust_solver() if self.solver == "gauss-newton" else None
             lb, ub = self._core_bounds()
             core_model = model._augment(self._p_scale) if self.dim_p else model
-            q0, r0, p2_sqrt = self._core_weights()
+            w = self._core_weights()
             self._core = core_model._make_window(
-                self._eta, q0, r0, p2_sqrt, self.form == "filtering", horizon=self.horizon,
+                w["eta"], w["q0"], w["r0"], w["p2_sqrt"], self.form == "filtering",
+                horizon=self.horizon,
                 x0=self._core_x0(x0), lower=lb, upper=ub, solver=rust_solver,
                 arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight)
             self._core_model = core_model
@@ -505,13 +506,13 @@ class GPMHE:
         self._set_weights(eta=_check_eta(value))
 
     def _set_weights(self, **new):
-        """Replace validated weights in the core; on error nothing changes."""
-        old = dict(Q0=self._Q0, R0=self._R0, P2=self._P2, eta=self._eta)
+        """Replace validated weights and hand exactly those to the core (the others, and the
+        arrival weight unless P2 changes, stay as they are); on error nothing changes."""
+        old = {key: getattr(self, "_" + key) for key in new}
         for key, value in new.items():
             object.__setattr__(self, "_" + key, value)
         try:
-            q0, r0, p2_sqrt = self._core_weights()
-            self._core.set_weights(self._eta, q0, r0, p2_sqrt)
+            self._core.set_weights(**self._core_weights(new))
         except (ValueError, np.linalg.LinAlgError) as e:
             for key, value in old.items():
                 object.__setattr__(self, "_" + key, value)
@@ -541,17 +542,28 @@ class GPMHE:
         drift = 1e-4 * scale if p_drift is None else p_drift
         self.p_drift = np.broadcast_to(positive("p_drift", drift), (k,)).astype(np.float64)
 
-    def _core_weights(self):
-        """(q0, r0, S) for the core: Q0 and R0 (their diagonals when diagonal, else flattened),
-        S with P2 = SᵀS, all on the augmented state [x; p̃] when the model has parameters."""
+    def _core_weights(self, names=("eta", "Q0", "R0", "P2")):
+        """The core's weights among ``names``: ``eta``, ``q0`` and ``r0`` (Q0 and R0: their
+        diagonals when diagonal, else flattened), ``p2_sqrt`` (S with P2 = SᵀS), all on the
+        augmented state [x; p̃] when the model has parameters."""
         s = self._p_scale
-        Q0, P2 = self._Q0, self._P2
-        if self.dim_p:
-            Q0 = scipy.linalg.block_diag(Q0, np.diag((self.p_drift / s) ** 2))
-            P2 = scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(self.P_p0) * s[None, :])
         flat = lambda a: np.ascontiguousarray(np.diag(a) if _is_diagonal(a) else a.reshape(-1))  # noqa: E731
-        r0 = flat(self._R0) if self.dim_y else np.zeros(0)
-        return flat(Q0), r0, np.ascontiguousarray(np.linalg.cholesky(P2).T)
+        out = {}
+        if "eta" in names:
+            out["eta"] = self._eta
+        if "Q0" in names:
+            Q0 = self._Q0
+            if self.dim_p:
+                Q0 = scipy.linalg.block_diag(Q0, np.diag((self.p_drift / s) ** 2))
+            out["q0"] = flat(Q0)
+        if "R0" in names:
+            out["r0"] = flat(self._R0) if self.dim_y else np.zeros(0)
+        if "P2" in names:
+            P2 = self._P2
+            if self.dim_p:
+                P2 = scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(self.P_p0) * s[None, :])
+            out["p2_sqrt"] = np.ascontiguousarray(np.linalg.cholesky(P2).T)
+        return out
 
     def _core_bounds(self):
         lb, ub = self.x_bounds
@@ -610,39 +622,101 @@ class GPMHE:
             if np.any(p0 < self.p_bounds[0]) or np.any(p0 > self.p_bounds[1]):
                 raise ValueError("p0: must lie inside p_bounds")
         self._core.reset(self._core_x0(x0, p0))
-        with self._writing():
-            self.t = 0
-            self.x = x0.copy()
-            self.x_prior = x0.copy()
-            self.x_window = x0[None, :].copy()
-            self.P = np.linalg.inv(self._P2)
-            self.p = (self.p0 if p0 is None else p0).copy() if self.dim_p else np.zeros(0)
-            self.P_p = self.P_p0.copy()
-            self.cost, self.success, self.nit, self.message = 0.0, True, 0, ""
-            self.nfev, self.projected_gradient = 0, 0.0
-            self._input_pending = False
+
+    # ---- the estimate and what the last update reported: read from the core ------------------
+    # The core records an update in one step (or not at all), so these never disagree.
+    @property
+    def t(self):
+        """Number of updates since construction or `reset`."""
+        return self._core.t
+
+    @property
+    def x(self):
+        """The current estimate x̂(t+1) (prediction form) or x̂(t) (filtering form)."""
+        x = self._core.x
+        return x[:self.dim_x].copy() if self.dim_p else x
+
+    @property
+    def x_window(self):
+        """The last window's optimal trajectory (M_t + 1, dim_x), oldest first."""
+        w = self._core.x_window
+        return np.ascontiguousarray(w[:, :self.dim_x]) if self.dim_p else w
+
+    @property
+    def x_prior(self):
+        """The arrival prior x̂(t−M_t) of the last window."""
+        x = self._core.x_prior
+        return x[:self.dim_x].copy() if self.dim_p else x
+
+    @property
+    def P(self):  # noqa: N802 (the paper's symbol)
+        """Covariance estimate of ``x`` (dim_x, dim_x), see the class docstring."""
+        c = self._core.covariance
+        return np.ascontiguousarray(c[:self.dim_x, :self.dim_x]) if self.dim_p else c
+
+    @property
+    def p(self):
+        """The estimate of the parameters (dim_p,) (empty without parameters)."""
+        if not self.dim_p:
+            return np.zeros(0)
+        return self._core.x[self.dim_x:] * self._p_scale
+
+    @property
+    def P_p(self):  # noqa: N802
+        """The covariance of ``p`` (dim_p, dim_p)."""
+        n, s = self.dim_x, self._p_scale
+        if not self.dim_p:
+            return np.zeros((0, 0))
+        return s[:, None] * self._core.covariance[n:, n:] * s[None, :]
+
+    @property
+    def cost(self):
+        """Optimal cost J of the last window (0.0 before any update)."""
+        return self._core.optimal_cost
+
+    @property
+    def success(self):
+        """Whether the last window's solver reported convergence."""
+        return self._core.success
+
+    @property
+    def nit(self):
+        """Iterations of the last window's solver."""
+        return self._core.nit
+
+    @property
+    def nfev(self):
+        """Window evaluations of the last update ("gauss-newton"; 0 otherwise)."""
+        return self._core.nfev
+
+    @property
+    def projected_gradient(self):
+        """Final projected gradient of the last update ("gauss-newton"; 0 otherwise)."""
+        return self._core.projected_gradient
+
+    @property
+    def message(self):
+        """The solver's message for the last window."""
+        return self._core.message
 
     def _check_step(self, u, y):
+        """The validated (u, y, whether y holds a measured channel): u None stays None when
+        the core may stand in for it (no input, or the filtering form; the core refuses it
+        while an earlier update still waits for its input)."""
         m, p = self.dim_u, self.dim_y
-        if self._input_pending:
-            raise ValueError("u: the last update was given u=None; call set_input(u) with the "
-                             "input applied at that step before the next update")
-        pending = False
         if u is None:
             if m and self.form != "filtering":
                 raise ValueError(f"u: required (dim_u = {m}; only the filtering form accepts "
                                  "None, see set_input)")
-            u = _NO_INPUT if not m else self._placeholder_input()
-            pending = bool(m)
         else:
             u = finite_vector("u", u, m, flatten=True)
         if y is None:
-            return u, np.zeros(p), False, pending
+            return u, np.zeros(p), False
         y, present = _output("y", y, p)
-        if pending and present and self._output_uses_input(u):
+        if u is None and m and present and self._output_uses_input(self._core.last_input):
             raise ValueError("u: required, the model's output h depends on u (u=None is for "
                              "models whose h(x, u) does not use u)")
-        return u, y, present, pending
+        return u, y, present
 
     def _output_uses_input(self, u):
         """Whether the model's output mean h depends on u: probed once, at the current estimate
@@ -656,11 +730,6 @@ class GPMHE:
             known = bool(np.any(np.abs(y1 - y0) > 1e-12 * (1.0 + np.abs(y0))))
             object.__setattr__(self, "_h_uses_u", known)
         return known
-
-    def _placeholder_input(self):
-        """u(t−1) (zeros before the first update): the input at the newest node while u(t) is
-        not known, where only an output that depends on u would use it."""
-        return self._core.last_input
 
     def set_input(self, u):
         """Give u(t), the input applied after the last update, when that update had ``u=None``.
@@ -689,12 +758,8 @@ class GPMHE:
         >>> mhe.set_input(-0.5 * x_hat)         # the controller's u(0) = -0.5 x̂(0)
         >>> _ = mhe.update(None, [0.6])
         """
-        if not self._input_pending:
-            raise ValueError("u: no update is waiting for its input (set_input follows an "
-                             "update given u=None)")
         u = finite_vector("u", u, self.dim_u, flatten=True)
-        self._core.set_last_input(u)
-        self._input_pending = False
+        self._core.set_last_input(u)  # refused unless an update waits for its input
 
     def update(self, u, y):
         """Add the input and output of the next step, solve the window and update the estimate.
@@ -751,8 +816,7 @@ class GPMHE:
         >>> print(np.round(mhe.update([0.0], None), 3))  # x̂(1) = x̂(0) + u(0): no measurement
         [2.]
         """
-        u, y, present, pending = self._check_step(u, y)
-        self._step(u, y, present, pending)
+        self._step(*self._check_step(u, y))
         return self.x
 
     def batch_filter(self, ys, us=None):
@@ -808,55 +872,34 @@ class GPMHE:
                 raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
         xs = np.empty((len(steps), self.dim_x))
         Ps = np.empty((len(steps), self.dim_x, self.dim_x))
-        if any(step[3] for step in steps):
+        if self.dim_u and any(u is None for u, _, _ in steps):
             raise ValueError("us: batch_filter needs every input (u=None is for update and "
                              "set_input)")
-        for i, (u, y, present, _) in enumerate(steps):
-            self._step(u, y, present, False)
+        for i, step in enumerate(steps):
+            self._step(*step)
             xs[i], Ps[i] = self.x, self.P
         return xs, Ps
 
     # ----------------------------------------------------------------------------------------
     @exclusive  # one update at a time per estimator (gpmhe/_threads.py)
-    def _step(self, u, y, present, pending=False):
-        """One update with validated input: the Rust core does it in one call ("gauss-newton"),
-        or stages the window for a SciPy solver and records its solution. Nothing changes
-        before the core has recorded the step."""
+    def _step(self, u, y, present):
+        """One update with validated input, recorded by the core in one step with everything it
+        reports: the Rust solver in one call ("gauss-newton"), or a SciPy solver between the
+        core's ``prepare`` and ``commit``. Nothing changes unless the core records the step."""
         core = self._core
         y = y if present else None
         if self.solver == "gauss-newton":
-            rep = core.update(u, y)
-            if rep.error is None:
-                message = (f"{rep.status} (projected gradient {rep.projected_gradient:.2e}, "
-                           f"{rep.interior_iterations} interior its)")
-            else:
-                message = f"solver raised: {rep.error}"
-            x_window, x_prior, P = rep.x_window, rep.x_prior, rep.P
-            cost, success, nit = rep.cost, rep.success, rep.nit
-            stats = (float(rep.projected_gradient), int(rep.nfev))
-        else:
+            core.update(u, y)
+            if not core.success:  # (after the step is recorded: the warning may be an error)
+                self._warn(core.message, core.t - 1, stacklevel=5)  # 5: past `exclusive`
+            return
+        try:
             z0, lb, ub = core.prepare(u, y)
             z, cost, success, nit, message = self._solve(core, z0, lb, ub)
-            P = self._window_covariance(core, z)
-            x_window, x_prior = core.commit(z)
-            stats = (0.0, 0)
-        n, s = self.dim_x, self._p_scale
-        # The estimator's own attributes, written past the __setattr__ guard in one go.
-        new = dict(x_window=np.ascontiguousarray(x_window[:, :n]), x=x_window[-1, :n].copy(),
-                   x_prior=x_prior[:n].copy(), cost=float(cost), success=bool(success),
-                   nit=int(nit), message=str(message), t=self.t + 1, _input_pending=pending)
-        if P is not None:
-            new["P"] = P[:n, :n].copy()
-        if self.dim_p:
-            new["p"] = x_window[-1, n:] * s
-            if P is not None:
-                new["P_p"] = s[:, None] * P[n:, n:] * s[None, :]
-        if self.solver == "gauss-newton":
-            new["projected_gradient"], new["nfev"] = stats
-        self.__dict__.update(new)
-        if not success and self.solver == "gauss-newton":
-            # After the attributes follow the core's recorded step (the warning may be an error).
-            self._warn(message, self.t - 1, stacklevel=5)  # 5: past `exclusive`
+            core.commit(z, cost, success, nit, message, self._window_covariance(core, z))
+        except BaseException:
+            core.abandon()  # the model's cache as before prepare: as if never started
+            raise
 
     def _warn(self, message, t, stacklevel):
         """The RuntimeWarning of the window of update t whose solver did not converge
@@ -962,10 +1005,47 @@ class GPMHE:
     }
 
     # ---- checkpoints: save and load ---------------------------------------------------------
+    @staticmethod
+    def _read_outcome(f, n, k, scale):
+        """The core's record of the last update (core_outcome_*) in a file of format >= 3."""
+        na = n + k
+        return {"outcome_x_prior": f.floats("core_outcome_x_prior", (na,)),
+                "outcome_P": f.floats("core_outcome_P", (na, na)),
+                "outcome_cost": f.float("core_outcome_cost"),
+                "outcome_success": f.boolean("core_outcome_success"),
+                "outcome_nit": f.integer("core_outcome_nit"),
+                "outcome_nfev": f.integer("core_outcome_nfev"),
+                "outcome_projected_gradient": f.float("core_outcome_projected_gradient"),
+                "outcome_message": f.string("core_outcome_message"),
+                "outcome_input_pending": f.boolean("core_outcome_input_pending")}
+
+    @staticmethod
+    def _outcome_of_format2(f, t_core, n, k, scale):
+        """The core's record of the last update from the attributes a file of format 1 or 2
+        saved beside the core's state (P and P_p become the blocks of the augmented
+        covariance; their cross-covariance was not saved and is zero)."""
+        t = f.integer("t")
+        if t != t_core:
+            raise f.error("core_t", f"is {t_core} but entry 't' is {t}")
+        P = f.floats("P", (n, n))
+        x_prior = f.floats("x_prior", (n,))
+        if k:
+            P = scipy.linalg.block_diag(P, f.floats("P_p", (k, k)) / np.outer(scale, scale))
+            x_prior = np.concatenate([x_prior, f.floats("p", (k,)) / scale])
+        return {"outcome_x_prior": x_prior, "outcome_P": np.ascontiguousarray(P),
+                "outcome_cost": f.float("cost"), "outcome_success": f.boolean("success"),
+                "outcome_nit": f.integer("nit"), "outcome_nfev": f.integer("nfev"),
+                "outcome_projected_gradient": f.float("projected_gradient"),
+                "outcome_message": f.string("message"),
+                "outcome_input_pending": (f.boolean("input_pending") if f.version >= 2
+                                          else False)}
+
     # (Copies and pickles need no code here: the Rust core copies and pickles itself with its
     # whole state; its model's GPs are shared, not copied.)
 
-    _CHECKPOINT_VERSION = 2  # 2: arrival cost, full weights, parameters, pending input
+    # 2: arrival cost, full weights, parameters, pending input; 3: the estimate and the last
+    # update's report only in the core's state (core_outcome_*), not also as attributes.
+    _CHECKPOINT_VERSION = 3
 
     def save(self, path):
         """Write the estimator's whole state (settings, history, attributes) to an ``.npz`` file.
@@ -1021,17 +1101,14 @@ class GPMHE:
         k = self.dim_p
         parameters = {} if not k else dict(
             p0=self.p0, P_p0=self.P_p0, p_lower=self.p_bounds[0], p_upper=self.p_bounds[1],
-            p_drift=self.p_drift, p=self.p, P_p=self.P_p)
+            p_drift=self.p_drift)
         np.savez(
             path, kind="GPMHE", format_version=self._CHECKPOINT_VERSION,
             model_kind=type(self.model).__name__, dim_x=self.dim_x, dim_y=self.dim_y,
             dim_u=self.dim_u, dim_p=k, horizon=self.horizon, eta=self.eta, P2=self.P2,
             Q0=self.Q0, R0=self.R0, x_lower=lb, x_upper=ub, form=self.form, solver=self.solver,
             solver_options=options, arrival_mean=self.arrival_mean,
-            arrival_weight=self.arrival_weight, input_pending=self._input_pending, t=self.t,
-            x=self.x, P=self.P, x_prior=self.x_prior, x_window=self.x_window, cost=self.cost,
-            success=self.success, nit=self.nit, message=self.message, nfev=self.nfev,
-            projected_gradient=self.projected_gradient, **parameters,
+            arrival_weight=self.arrival_weight, **parameters,
             **{"core_" + key: value for key, value in core.items()})
 
     @classmethod
@@ -1085,7 +1162,8 @@ class GPMHE:
 
         with NpzReader(path, "GPMHE", cls._CHECKPOINT_VERSION) as f:
             f.allow_nonfinite = ("x_lower", "x_upper", "p_lower", "p_upper", "cost",
-                                 "projected_gradient")
+                                 "projected_gradient", "core_outcome_cost",
+                                 "core_outcome_projected_gradient")
             v2 = f.version >= 2
             kind = f.string("model_kind")
             if kind not in ("LearnedModel", "KnownModel"):
@@ -1122,7 +1200,6 @@ class GPMHE:
             except ValueError as e:
                 raise ValueError(f"path: {f.name}: the saved settings are invalid ({e})") from None
             na = n + k
-            t = f.integer("t")
             state = {"t": f.integer("core_t"), "window_t0": f.integer("core_window_t0"),
                      "present": f.array("core_present", "b", (None,))}
             for key, cols in (("u", m), ("y", p), ("priors", na), ("x_window", na)):
@@ -1133,21 +1210,10 @@ class GPMHE:
                 for key in ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y",
                             "dmean_y", "dvar_y"):
                     state["cache_" + key] = f.floats("core_cache_" + key, (None,))
-            if state["t"] != t:
-                raise f.error("core_t", f"is {state['t']} but entry 't' is {t}")
+            state.update(cls._read_outcome(f, n, k, mhe._p_scale) if f.version >= 3
+                         else cls._outcome_of_format2(f, state["t"], n, k, mhe._p_scale))
             try:
                 mhe._core.__setstate__(state)
             except ValueError as e:
                 raise f.state_error("core_", e) from None
-            with mhe._writing():
-                mhe.t = t
-                mhe.x, mhe.x_prior = f.floats("x", (n,)), f.floats("x_prior", (n,))
-                mhe.P, mhe.x_window = f.floats("P", (n, n)), f.floats("x_window", (None, n))
-                mhe.cost, mhe.success = f.float("cost"), f.boolean("success")
-                mhe.nit, mhe.message = f.integer("nit"), f.string("message")
-                mhe.nfev, mhe.projected_gradient = f.integer("nfev"), f.float("projected_gradient")
-                if k:
-                    mhe.p, mhe.P_p = f.floats("p", (k,)), f.floats("P_p", (k, k))
-                if v2:
-                    mhe._input_pending = f.boolean("input_pending")
         return mhe

@@ -320,7 +320,7 @@ impl<M: super::stage::StageModel + Clone + ModelState + Send + Sync> EstimatorBa
     /// One update of every estimator in parallel with its own model (see
     /// [`Self::par_update_with`]).
     pub fn par_update(&mut self, sample: BankSample<'_>) -> Result<Vec<UpdateReport>> {
-        self.par_update_with(sample, |est, model, u, y| est.update(model, u, y))
+        self.par_update_with(sample, |est, model, u, y| est.update(model, Some(u), y))
     }
 }
 
@@ -427,12 +427,15 @@ mod tests {
             let reports = if t % 2 == 0 {
                 bank.par_update(sample).unwrap()
             } else {
-                bank.update_each(sample, |e, m, u, y| e.update(m, u, y))
+                bank.update_each(sample, |e, m, u, y| e.update(m, Some(u), y))
                     .unwrap()
             };
             for (i, l) in lone.iter_mut().enumerate() {
                 let y_i = present[i].then(|| &y[i..i + 1]);
-                let r = l.estimator.update(&mut l.model, &u[i..i + 1], y_i).unwrap();
+                let r = l
+                    .estimator
+                    .update(&mut l.model, Some(&u[i..i + 1]), y_i)
+                    .unwrap();
                 assert_eq!(r.x_window, reports[i].x_window);
                 assert_eq!(r.covariance, reports[i].covariance);
                 assert_eq!(r.cost.to_bits(), reports[i].cost.to_bits());
@@ -468,7 +471,7 @@ mod tests {
         };
         assert!(bank.par_update(bad).is_err());
         assert!(bank
-            .update_each(bad, |e, m, u, y| e.update(m, u, y))
+            .update_each(bad, |e, m, u, y| e.update(m, Some(u), y))
             .is_err());
         let after: Vec<_> = bank
             .members()

@@ -12,6 +12,7 @@
 use super::arrival::{ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
 use super::lsq::WindowLsq;
+use super::outcome::Solved;
 use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
 use crate::error::{check_finite, check_len, Error, Result};
@@ -135,6 +136,7 @@ impl MovingHorizon {
         );
         let mut history = history;
         history.set_arrival_sqrt(problem.p2_sqrt().to_vec());
+        history.reset(x0, initial_covariance(&problem)?)?;
         Ok(Self {
             problem,
             eval: WindowEval::default(),
@@ -164,12 +166,29 @@ impl MovingHorizon {
         self.arrival = arrival;
     }
 
-    /// Replaces η, Q0, R0 and P2 (see [`WindowProblem::set_weights`]) from the next window on;
-    /// P2 also becomes the arrival weight of the next window (restarting the EKF recursion).
-    /// Drops any staged window. On error nothing changes.
-    pub fn set_weights(&mut self, eta: f64, q0: &[f64], r0: &[f64], p2_sqrt: &[f64]) -> Result<()> {
-        self.problem.set_weights(eta, q0, r0, p2_sqrt)?;
-        self.history.set_arrival_sqrt(p2_sqrt.to_vec());
+    /// Replaces the weights given (η, Q0, R0, S of P2 = SᵀS; see
+    /// [`WindowProblem::set_weights`]) from the next window on and keeps the others. A new P2
+    /// also becomes the arrival weight of the next window (restarting the EKF recursion); the
+    /// other weights leave the arrival weight as it is. Drops any staged window. On error
+    /// nothing changes.
+    pub fn set_weights(
+        &mut self,
+        eta: Option<f64>,
+        q0: Option<&[f64]>,
+        r0: Option<&[f64]>,
+        p2_sqrt: Option<&[f64]>,
+    ) -> Result<()> {
+        let p = &self.problem;
+        let (q0_now, r0_now, p2_now) = (p.q0().to_vec(), p.r0().to_vec(), p.p2_sqrt().to_vec());
+        self.problem.set_weights(
+            eta.unwrap_or(p.eta()),
+            q0.unwrap_or(&q0_now),
+            r0.unwrap_or(&r0_now),
+            p2_sqrt.unwrap_or(&p2_now),
+        )?;
+        if let Some(s) = p2_sqrt {
+            self.history.set_arrival_sqrt(s.to_vec());
+        }
         self.staged = None;
         self.has_window = false;
         self.evaluated_at.clear();
@@ -184,8 +203,11 @@ impl MovingHorizon {
         let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         check_len("u", u, m)?;
         check_finite("u", u)?;
-        if self.history.t() == 0 {
-            return Err(Error::invalid("u", "no update recorded yet"));
+        if !self.history.outcome().input_pending {
+            return Err(Error::invalid(
+                "u",
+                "no update is waiting for its input (set_input follows an update given u=None)",
+            ));
         }
         let mut prior = None;
         if self.problem.form() == Form::Filtering && self.arrival.mean == ArrivalMean::Estimate {
@@ -201,13 +223,14 @@ impl MovingHorizon {
         if let Some(prior) = prior {
             self.history.set_newest_prior(&prior);
         }
+        self.history.set_input_given();
         self.staged = None;
         Ok(())
     }
 
-    /// Forgets every step: t = 0, x̂(0) = x0, arrival weight P2.
+    /// Forgets every step: t = 0, x̂(0) = x0 with covariance P2⁻¹, arrival weight P2.
     pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
-        self.history.reset(x0)?;
+        self.history.reset(x0, initial_covariance(&self.problem)?)?;
         self.history
             .set_arrival_sqrt(self.problem.p2_sqrt().to_vec());
         self.staged = None;
@@ -259,12 +282,13 @@ impl MovingHorizon {
         Ok(())
     }
 
-    /// One whole update with (u(t), y(t)) (`y` None: not measured); see the module docs. On
-    /// error nothing is recorded and nothing stays staged.
+    /// One whole update with (u(t), y(t)) (`y` None: not measured; `u` None: not known yet,
+    /// see [`MovingHorizon::prepare`]); see the module docs. On error nothing is recorded and
+    /// nothing stays staged.
     pub fn update(
         &mut self,
         model: &mut dyn StageModel,
-        u: &[f64],
+        u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<UpdateReport> {
         let report = self.update_staged(model, u, y);
@@ -277,7 +301,7 @@ impl MovingHorizon {
     fn update_staged(
         &mut self,
         model: &mut dyn StageModel,
-        u: &[f64],
+        u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<UpdateReport> {
         let z0 = self.prepare(model, u, y)?;
@@ -306,7 +330,8 @@ impl MovingHorizon {
             }
             Err(e) => return Err(e),
         };
-        let (x_window, x_prior) = self.commit(model, z)?;
+        let solved = Solved::Rust(solve.clone());
+        let (x_window, x_prior) = self.commit(model, z, covariance.clone(), cost, &solved)?;
         Ok(UpdateReport {
             x_window,
             x_prior,
@@ -320,14 +345,18 @@ impl MovingHorizon {
     /// the previous window's nodes that overlap the new one, each further node predicted from
     /// the one before with the model, all clipped into the inner box (nodes already inside stay
     /// bit-identical, so the learned model reuses their GP values). The history is unchanged.
+    ///
+    /// `u` None (u(t) not known yet; filtering form only, or a model without inputs) stands in
+    /// u(t − 1) (zeros at t = 0), which only the output at the newest node reads; the update
+    /// then waits for u(t) ([`MovingHorizon::set_last_input`]) before the next one.
     pub fn prepare(
         &mut self,
         model: &mut dyn StageModel,
-        u: &[f64],
+        u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<Vec<f64>> {
         self.staged = None;
-        let data = self.history.next_window(u, y)?;
+        let data = self.next_window(u, y)?;
         self.problem
             .set_data(&data.u, &data.y, &data.present, &data.x_prior)?;
         let weight = match self.arrival.weight {
@@ -347,6 +376,35 @@ impl MovingHorizon {
         self.staged = Some(data);
         self.has_window = true;
         Ok(z0)
+    }
+
+    /// The next window's data, with the placeholder input when `u` is None (see `prepare`).
+    fn next_window(&self, u: Option<&[f64]>, y: Option<&[f64]>) -> Result<WindowData> {
+        let m = self.problem.dim_u();
+        if self.history.outcome().input_pending {
+            return Err(Error::invalid(
+                "u",
+                "the last update was given u=None; call set_input(u) with the input applied at \
+                 that step before the next update",
+            ));
+        }
+        match u {
+            Some(u) => self.history.next_window(u, y),
+            None if m == 0 => self.history.next_window(&[], y),
+            None if self.problem.form() == Form::Prediction => Err(Error::invalid(
+                "u",
+                format!(
+                    "required (dim_u = {m}; only the filtering form accepts None, see set_input)"
+                ),
+            )),
+            None => {
+                let zeros = vec![0.0; m];
+                let last = self.history.last_input().unwrap_or(&zeros);
+                let mut data = self.history.next_window(last, y)?;
+                data.input_pending = true;
+                Ok(data)
+            }
+        }
     }
 
     fn warm_start(&mut self, model: &mut dyn StageModel, data: &WindowData) -> Result<Vec<f64>> {
@@ -396,14 +454,19 @@ impl MovingHorizon {
         Ok(&self.eval)
     }
 
-    /// Records the staged window's solution z (nodes × n): the next arrival prior is the new
-    /// estimate (prediction form) or its one-step prediction m_x(x̄_t, u(t)) (filtering form);
-    /// when the next window starts one node later, the arrival cost moves with it (the smoothed
-    /// mean and the EKF weight, `arrival.rs`). Returns (x_window, x_prior of the window).
+    /// Records the staged window's solution z (nodes × n) with how it was solved (its cost,
+    /// the covariance estimate of its last node, None if not computable, and the solver's
+    /// report), all in one step: the next arrival prior is the new estimate (prediction form)
+    /// or its one-step prediction m_x(x̄_t, u(t)) (filtering form); when the next window starts
+    /// one node later, the arrival cost moves with it (the smoothed mean and the EKF weight,
+    /// `arrival.rs`). Returns (x_window, x_prior of the window). On error nothing changes.
     pub fn commit(
         &mut self,
         model: &mut dyn StageModel,
         z: Vec<f64>,
+        covariance: Option<Vec<f64>>,
+        cost: f64,
+        solved: &Solved,
     ) -> Result<(Vec<f64>, Vec<f64>)> {
         let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         let data = self
@@ -412,6 +475,10 @@ impl MovingHorizon {
             .ok_or_else(|| Error::invalid("z", "no window staged: call prepare first"))?;
         check_len("z", &z, data.nodes * n)?;
         check_finite("z", &z)?;
+        if let Some(c) = &covariance {
+            check_len("P", c, n * n)?;
+            check_finite("P", c)?;
+        }
         let last = &z[z.len() - n..];
         let next_prior = match self.problem.form() {
             Form::Prediction => last.to_vec(),
@@ -450,7 +517,14 @@ impl MovingHorizon {
             .take()
             .ok_or_else(|| Error::numerical("lost the window"))?;
         let (x_prior, s0) = (data.x_prior.clone(), data.s0);
-        self.history.push(data, z.clone(), next_prior);
+        let outcome = self.history.outcome().record(
+            x_prior.clone(),
+            covariance,
+            cost,
+            solved,
+            data.input_pending,
+        );
+        self.history.push(data, z.clone(), next_prior, outcome);
         if slides && self.arrival.mean == ArrivalMean::Smoothed && z.len() >= 2 * n {
             self.history.set_prior(s0 + 1, &z[n..2 * n]);
         }
@@ -458,6 +532,11 @@ impl MovingHorizon {
             self.history.set_arrival_sqrt(next);
         }
         Ok((z, x_prior))
+    }
+
+    /// Drops the staged window, if any (its solve was abandoned); the history is unchanged.
+    pub fn drop_staged(&mut self) {
+        self.staged = None;
     }
 
     /// Sets the window data directly (for diagnostics and tests: such a window cannot be
@@ -505,6 +584,22 @@ impl MovingHorizon {
         self.evaluated_at.extend_from_slice(z);
         Ok(report)
     }
+}
+
+/// P2⁻¹ = S⁻¹S⁻ᵀ (n × n, row-major, symmetric) for the window's P2 = SᵀS: the covariance of
+/// x̂(0) before any update.
+fn initial_covariance(problem: &WindowProblem) -> Result<Vec<f64>> {
+    let n = problem.dim_x();
+    let s = nalgebra::DMatrix::from_row_slice(n, n, problem.p2_sqrt());
+    let inv = s
+        .try_inverse()
+        .ok_or_else(|| Error::invalid("P2", "must be positive definite"))?;
+    let p = &inv * inv.transpose();
+    let sym = (0..n * n)
+        .map(|k| 0.5 * (p[(k / n, k % n)] + p[(k % n, k / n)]))
+        .collect::<Vec<_>>();
+    check_finite("P2", &sym).map_err(|_| Error::invalid("P2", "its inverse is not finite"))?;
+    Ok(sym)
 }
 
 #[cfg(test)]
@@ -564,7 +659,7 @@ mod tests {
             let (mut x, mut last_err) = (2.0, f64::INFINITY);
             for t in 0..8 {
                 let u = [0.1 * t as f64];
-                let rep = est.update(&mut model, &u, Some(&[x])).unwrap();
+                let rep = est.update(&mut model, Some(&u), Some(&[x])).unwrap();
                 assert!(rep.solve.as_ref().is_ok_and(|s| s.status.is_success()));
                 x = 0.9 * x + u[0];
                 let estimate = rep.x_window[rep.x_window.len() - 1];
@@ -603,7 +698,7 @@ mod tests {
         for t in 0..10 {
             let u = [0.1 * t as f64];
             let before = model.calls;
-            let rep = est.update(&mut model, &u, Some(&[x])).unwrap();
+            let rep = est.update(&mut model, Some(&u), Some(&[x])).unwrap();
             x = 0.9 * x + u[0];
             if t >= 5 {
                 let nfev = rep.solve.as_ref().map(|s| s.nfev).unwrap();
@@ -620,22 +715,107 @@ mod tests {
             fail_at: usize::MAX,
         };
         for t in 0..4 {
-            est.update(&mut model, &[0.0], Some(&[t as f64])).unwrap();
+            est.update(&mut model, Some(&[0.0]), Some(&[t as f64]))
+                .unwrap();
         }
         let before = (est.history().x_window().0.to_vec(), est.history().t());
         model.fail_at = model.calls + 2; // fails inside the solve
-        let err = est.update(&mut model, &[0.0], Some(&[1.0])).unwrap_err();
+        let err = est
+            .update(&mut model, Some(&[0.0]), Some(&[1.0]))
+            .unwrap_err();
         assert!(err.to_string().starts_with("model:"));
         assert_eq!(
             (est.history().x_window().0.to_vec(), est.history().t()),
             before
         );
-        assert!(est.commit(&mut model, vec![0.0; 4]).is_err()); // nothing left staged
-                                                                // Bad input is refused before anything is staged.
+        let solved = Solved::Other {
+            success: true,
+            nit: 0,
+            message: String::new(),
+        };
+        assert!(est
+            .commit(&mut model, vec![0.0; 4], None, 0.0, &solved)
+            .is_err()); // nothing left staged
+                        // Bad input is refused before anything is staged.
         model.fail_at = usize::MAX;
-        assert!(est.update(&mut model, &[0.0, 1.0], None).is_err());
+        assert!(est.update(&mut model, Some(&[0.0, 1.0]), None).is_err());
         assert_eq!(est.history().t(), 4);
-        est.update(&mut model, &[0.0], None).unwrap();
+        est.update(&mut model, Some(&[0.0]), None).unwrap();
         assert_eq!(est.history().t(), 5);
+    }
+
+    /// Only a new P2 restarts the EKF arrival weight; η, Q0 and R0 leave it as it is.
+    #[test]
+    fn weights_other_than_p2_keep_the_arrival_weight() {
+        let mut est = estimator(Form::Prediction);
+        est.set_arrival(Arrival {
+            mean: ArrivalMean::Smoothed,
+            weight: ArrivalWeight::Ekf,
+        });
+        let mut model = Scalar {
+            calls: 0,
+            fail_at: usize::MAX,
+        };
+        for t in 0..6 {
+            est.update(&mut model, Some(&[0.0]), Some(&[t as f64]))
+                .unwrap();
+        }
+        let weight = est.history().arrival_sqrt().to_vec();
+        assert_ne!(weight, est.problem().p2_sqrt());
+        est.set_weights(Some(0.5), Some(&[0.2]), Some(&[0.3]), None)
+            .unwrap();
+        assert_eq!(est.history().arrival_sqrt(), weight);
+        assert_eq!((est.problem().eta(), est.problem().q0()), (0.5, &[0.2][..]));
+        // A refused weight changes nothing.
+        assert!(est.set_weights(None, Some(&[-1.0]), None, None).is_err());
+        assert_eq!(est.problem().q0(), &[0.2]);
+        est.set_weights(None, None, None, Some(&[2.0])).unwrap();
+        assert_eq!(est.history().arrival_sqrt(), &[2.0]);
+    }
+
+    /// The outcome is recorded with the step, and an update that fails leaves it as it was.
+    #[test]
+    fn the_outcome_is_recorded_with_the_step_or_not_at_all() {
+        let mut est = estimator(Form::Prediction);
+        assert_eq!(est.history().outcome().covariance, vec![1.0]); // P2⁻¹
+        let mut model = Scalar {
+            calls: 0,
+            fail_at: usize::MAX,
+        };
+        let rep = est.update(&mut model, Some(&[0.0]), Some(&[1.0])).unwrap();
+        let out = est.history().outcome().clone();
+        assert_eq!(out.cost, rep.cost);
+        assert_eq!(Some(out.covariance.clone()), rep.covariance);
+        assert!(out.success && out.message.starts_with("gradient-tolerance"));
+        model.fail_at = model.calls + 1;
+        assert!(est.update(&mut model, Some(&[0.0]), Some(&[2.0])).is_err());
+        assert_eq!(est.history().outcome(), &out);
+        assert_eq!(est.history().t(), 1);
+    }
+
+    /// u = None: refused in the prediction form; in the filtering form the update runs with a
+    /// placeholder and the next one waits until the input is given.
+    #[test]
+    fn an_input_not_known_yet_must_be_given_before_the_next_update() {
+        let mut model = Scalar {
+            calls: 0,
+            fail_at: usize::MAX,
+        };
+        let mut pred = estimator(Form::Prediction);
+        let err = pred.update(&mut model, None, Some(&[1.0])).unwrap_err();
+        assert!(err.to_string().starts_with("u: required"));
+        let mut est = estimator(Form::Filtering);
+        assert!(est.set_last_input(&mut model, &[0.5]).is_err());
+        est.update(&mut model, None, Some(&[1.0])).unwrap();
+        assert!(est.history().outcome().input_pending);
+        let err = est
+            .update(&mut model, Some(&[0.0]), Some(&[1.0]))
+            .unwrap_err();
+        assert!(err.to_string().contains("set_input"));
+        est.set_last_input(&mut model, &[0.5]).unwrap();
+        assert!(!est.history().outcome().input_pending);
+        assert_eq!(est.history().last_input(), Some(&[0.5][..]));
+        est.update(&mut model, Some(&[0.0]), Some(&[1.0])).unwrap();
+        assert_eq!(est.history().t(), 2);
     }
 }

@@ -9,6 +9,7 @@
 
 use std::collections::VecDeque;
 
+use super::outcome::Outcome;
 use super::problem::Form;
 use crate::error::{check_finite, check_len, Error, Result};
 
@@ -27,6 +28,8 @@ pub struct WindowData {
     pub nodes: usize,
     /// The new step (u(t), y(t), whether y(t) was measured), recorded by [`History::push`].
     step: (Vec<f64>, Vec<f64>, bool),
+    /// Whether u(t) is a placeholder the caller will replace (`set_last_input`).
+    pub input_pending: bool,
 }
 
 /// See the module documentation.
@@ -48,10 +51,13 @@ pub struct History {
     /// S (n × n, row-major) of the arrival weight SᵀS of the next window's first node (set by
     /// the estimator: P2's, or its EKF update, see `arrival.rs`).
     arrival_sqrt: Vec<f64>,
+    /// What the last update reported (`outcome.rs`).
+    outcome: Outcome,
 }
 
 impl History {
-    /// An empty history for horizon M ≥ 1 and dimensions (n, m, p), at x̂(0) = x0.
+    /// An empty history for horizon M ≥ 1 and dimensions (n, m, p), at x̂(0) = x0 with the
+    /// identity as its covariance (see [`History::reset`]).
     pub fn new(
         horizon: usize,
         form: Form,
@@ -61,6 +67,9 @@ impl History {
         if horizon == 0 {
             return Err(Error::invalid("horizon", "must be at least 1"));
         }
+        let identity: Vec<f64> = (0..dims.0 * dims.0)
+            .map(|k| if k % (dims.0 + 1) == 0 { 1.0 } else { 0.0 })
+            .collect();
         let mut h = Self {
             horizon,
             form,
@@ -72,18 +81,19 @@ impl History {
             priors: VecDeque::with_capacity(horizon + 2),
             x_window: Vec::new(),
             window_t0: 0,
-            arrival_sqrt: (0..dims.0 * dims.0)
-                .map(|k| if k % (dims.0 + 1) == 0 { 1.0 } else { 0.0 })
-                .collect(),
+            arrival_sqrt: identity.clone(),
+            outcome: Outcome::initial(x0, identity.clone()),
         };
-        h.reset(x0)?;
+        h.reset(x0, identity)?;
         Ok(h)
     }
 
-    /// Forgets every step: t = 0, x̂(0) = x0.
-    pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
+    /// Forgets every step: t = 0, x̂(0) = x0 with covariance `covariance` (n × n).
+    pub fn reset(&mut self, x0: &[f64], covariance: Vec<f64>) -> Result<()> {
         check_len("x0", x0, self.dims.0)?;
         check_finite("x0", x0)?;
+        check_len("covariance", &covariance, self.dims.0 * self.dims.0)?;
+        self.outcome = Outcome::initial(x0, covariance);
         self.t = 0;
         self.u.clear();
         self.y.clear();
@@ -118,6 +128,11 @@ impl History {
         self.arrival_sqrt = s;
     }
 
+    /// What the last update reported (the initial outcome before any).
+    pub fn outcome(&self) -> &Outcome {
+        &self.outcome
+    }
+
     /// The time of the first node of the window of update `t` (s0 = max(0, end − M)).
     pub fn window_start(&self, t: usize) -> usize {
         let end = match self.form {
@@ -143,6 +158,11 @@ impl History {
             let at = self.u.len() - m;
             self.u[at..].copy_from_slice(u);
         }
+    }
+
+    /// Marks the last update's input as given (after [`History::set_last_input`]).
+    pub fn set_input_given(&mut self) {
+        self.outcome.input_pending = false;
     }
 
     /// The input of the last recorded step (t − 1), or None before the first.
@@ -185,6 +205,7 @@ impl History {
             s0,
             nodes,
             step: (u.to_vec(), y_t.clone(), y.is_some()),
+            input_pending: false,
         };
         data.u.extend_from_slice(u);
         data.y.extend_from_slice(&y_t);
@@ -198,9 +219,15 @@ impl History {
         Ok(data)
     }
 
-    /// Records a solved step: its data, the optimal window `x_window` and the arrival prior of
-    /// the next time.
-    pub fn push(&mut self, data: WindowData, x_window: Vec<f64>, next_prior: Vec<f64>) {
+    /// Records a solved step: its data, the optimal window `x_window`, the arrival prior of
+    /// the next time and what the update reports.
+    pub fn push(
+        &mut self,
+        data: WindowData,
+        x_window: Vec<f64>,
+        next_prior: Vec<f64>,
+        outcome: Outcome,
+    ) {
         let (_, m, p) = self.dims;
         let (u, y, present) = data.step;
         let keep = self.horizon + 1;
@@ -219,6 +246,7 @@ impl History {
         }
         self.x_window = x_window;
         self.window_t0 = data.s0;
+        self.outcome = outcome;
         self.t += 1;
     }
 }
@@ -238,6 +266,8 @@ pub struct HistoryState {
     pub window_t0: usize,
     /// S of the next arrival weight (n × n).
     pub arrival_sqrt: Vec<f64>,
+    /// What the last update reported.
+    pub outcome: Outcome,
 }
 
 impl History {
@@ -252,6 +282,7 @@ impl History {
             x_window: self.x_window.clone(),
             window_t0: self.window_t0,
             arrival_sqrt: self.arrival_sqrt.clone(),
+            outcome: self.outcome.clone(),
         }
     }
 
@@ -295,6 +326,7 @@ impl History {
         check_finite("x_window", &s.x_window)?;
         check_len("arrival_sqrt", &s.arrival_sqrt, n * n)?;
         check_finite("arrival_sqrt", &s.arrival_sqrt)?;
+        s.outcome.check(n)?;
         // Outputs that were not measured are stored as zeros; measured channels are finite and
         // channels not measured NaN.
         if s.y.iter().any(|v| v.is_infinite()) {
@@ -308,6 +340,7 @@ impl History {
         self.x_window = s.x_window;
         self.window_t0 = s.window_t0;
         self.arrival_sqrt = s.arrival_sqrt;
+        self.outcome = s.outcome;
         Ok(())
     }
 }
@@ -332,7 +365,7 @@ mod tests {
             seen.push((w.s0, w.nodes, w.x_prior[0], w.y.clone(), w.present.clone()));
             let x = vec![100.0 + t as f64; w.nodes];
             let last = x[w.nodes - 1];
-            h.push(w, x, vec![last]);
+            h.push(w, x, vec![last], h.outcome().clone());
         }
         // t = 0: nodes {0, 1}, prior x0; t = 1: {0, 1, 2}; t ≥ 2: {t−1, t, t+1}.
         assert_eq!(seen[0], (0, 2, 10.0, vec![0.0, 0.0], vec![true, false]));
@@ -365,7 +398,7 @@ mod tests {
                 assert_eq!(w.y.last(), Some(&0.0));
             }
             let nodes = w.nodes;
-            h.push(w, vec![0.0; nodes], vec![t as f64]);
+            h.push(w, vec![0.0; nodes], vec![t as f64], h.outcome().clone());
         }
     }
 
@@ -383,7 +416,7 @@ mod tests {
                 let step = |h: &mut History| {
                     let w = h.next_window(&[1.0], Some(&y)).unwrap();
                     let x = vec![t as f64 * 0.1; w.nodes];
-                    h.push(w, x, vec![t as f64]);
+                    h.push(w, x, vec![t as f64], h.outcome().clone());
                 };
                 step(&mut a);
                 step(&mut b);

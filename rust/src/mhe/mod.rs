@@ -4,7 +4,8 @@
 //! * [`stage`]: what a model provides at a batch of points ([`StageModel`]), and the learned
 //!   model [`GpStageModel`];
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]);
-//! * [`history`]: the last M + 1 steps, the arrival priors, the previous window;
+//! * [`history`]: the last M + 1 steps, the arrival priors, the previous window and what the
+//!   last update reported ([`outcome`]);
 //! * [`lsq`]: the window as the solver's least-squares problem ([`WindowLsq`]);
 //! * [`estimator`]: [`MovingHorizon`], one update = window, warm start, solve, record;
 //! * [`bank`]: [`EstimatorBank`], n independent estimators updated together (in parallel).
@@ -14,6 +15,7 @@ pub mod bank;
 pub mod estimator;
 pub mod history;
 pub mod lsq;
+pub mod outcome;
 pub mod problem;
 pub mod stage;
 pub mod weights;
@@ -23,6 +25,7 @@ pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings, 
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
 pub use lsq::WindowLsq;
+pub use outcome::{Outcome, Solved};
 pub use problem::{Form, WindowEval, WindowProblem};
 pub use stage::{GpStageModel, StageEval, StageModel, GP_CACHE_PARTS};
 pub use weights::Covariance;

@@ -5,7 +5,9 @@
 //! (`gpmhe.KnownModel`) runs them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/bank.py) validates
 //! the input and holds the public attributes.
 
-use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods,
+};
 use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -14,7 +16,7 @@ use super::convert::slice2;
 use super::error::{detach_interruptible, interruptible};
 use super::mhe::{CallbackModel, Model, PyMovingHorizon};
 use crate::mhe::{
-    bank_threads, BankSample, EstimatorBank, GpStageModel, MemberSettings, UpdateReport,
+    bank_threads, BankSample, EstimatorBank, GpStageModel, MemberSettings, MovingHorizon,
 };
 
 /// The estimators: on the learned GPs (each with its own model clone, the GPs shared), or on a
@@ -61,80 +63,54 @@ impl PyEstimatorBank {
                 PyMovingHorizon {
                     core: m.estimator.clone(),
                     model: Model::Gp(Box::new(m.model.clone())),
+                    staged_cache: None,
                 }
             }
             Inner::Callback(b) => PyMovingHorizon {
                 core: b.member(i).ok_or_else(out_of_range)?.estimator.clone(),
                 model: self.model.clone_ref(py),
+                staged_cache: None,
             },
         })
     }
 
-    /// The reports as a dict of arrays (see `update`).
-    fn reports<'py>(
+    /// Every estimator's value of `f` stacked (k × the length of one), as an array of shape
+    /// `[k] + shape`.
+    fn stacked<'py>(
+        &self,
         py: Python<'py>,
-        reports: Vec<UpdateReport>,
-        n: usize,
-    ) -> PyResult<Bound<'py, PyDict>> {
-        let k = reports.len();
-        let nodes = reports.first().map_or(0, |r| r.x_window.len() / n);
-        let mut x_window = Vec::with_capacity(k * nodes * n);
-        let mut x_prior = Vec::with_capacity(k * n);
-        let mut p = vec![f64::NAN; k * n * n];
-        let mut has_p = vec![false; k];
-        let (mut cost, mut success, mut nit, mut nfev) = (
-            vec![0.0; k],
-            vec![false; k],
-            vec![0usize; k],
-            vec![0usize; k],
-        );
-        let (mut pg, mut interior) = (vec![0.0; k], vec![0usize; k]);
-        let mut status: Vec<Option<&'static str>> = vec![None; k];
-        let mut error: Vec<Option<String>> = vec![None; k];
-        for (i, r) in reports.into_iter().enumerate() {
-            if r.x_window.len() != nodes * n {
-                return Err(PyValueError::new_err(
-                    "internal: windows of different lengths",
-                ));
-            }
-            x_window.extend_from_slice(&r.x_window);
-            x_prior.extend_from_slice(&r.x_prior);
-            if let Some(c) = &r.covariance {
-                p[i * n * n..(i + 1) * n * n].copy_from_slice(c);
-                has_p[i] = true;
-            }
-            cost[i] = r.cost;
-            match r.solve {
-                Ok(s) => {
-                    status[i] = Some(s.status.as_str());
-                    success[i] = s.status.is_success();
-                    (nit[i], nfev[i], pg[i], interior[i]) =
-                        (s.nit, s.nfev, s.projected_gradient, s.interior_iterations);
-                }
-                // As `MovingHorizon.update`'s report of a solver failure.
-                Err(e) => {
-                    (nfev[i], pg[i]) = (1, f64::NAN);
-                    error[i] = Some(e.to_string());
-                }
-            }
+        shape: &[usize],
+        f: impl Fn(&MovingHorizon) -> Vec<f64>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let data: Vec<f64> = match &self.inner {
+            Inner::Gp(b) => b.members().iter().flat_map(|m| f(&m.estimator)).collect(),
+            Inner::Callback(b) => b.members().iter().flat_map(|m| f(&m.estimator)).collect(),
+        };
+        let mut dims = vec![self.len()];
+        dims.extend_from_slice(shape);
+        PyArray1::from_vec(py, data).reshape(dims)
+    }
+
+    /// Every estimator's value of `f`, in order.
+    fn each<T>(&self, f: impl Fn(&MovingHorizon) -> T) -> Vec<T> {
+        match &self.inner {
+            Inner::Gp(b) => b.members().iter().map(|m| f(&m.estimator)).collect(),
+            Inner::Callback(b) => b.members().iter().map(|m| f(&m.estimator)).collect(),
         }
-        let d = PyDict::new(py);
-        d.set_item(
-            "x_window",
-            PyArray1::from_vec(py, x_window).reshape([k, nodes, n])?,
-        )?;
-        d.set_item("x_prior", PyArray1::from_vec(py, x_prior).reshape([k, n])?)?;
-        d.set_item("P", PyArray1::from_vec(py, p).reshape([k, n, n])?)?;
-        d.set_item("has_P", PyArray1::from_vec(py, has_p))?;
-        d.set_item("cost", PyArray1::from_vec(py, cost))?;
-        d.set_item("success", PyArray1::from_vec(py, success))?;
-        d.set_item("nit", PyArray1::from_vec(py, nit))?;
-        d.set_item("nfev", PyArray1::from_vec(py, nfev))?;
-        d.set_item("projected_gradient", PyArray1::from_vec(py, pg))?;
-        d.set_item("interior_iterations", PyArray1::from_vec(py, interior))?;
-        d.set_item("status", status)?;
-        d.set_item("error", error)?;
-        Ok(d)
+    }
+
+    /// The state dimension n and the number of nodes of the last windows.
+    fn window_shape(&self) -> (usize, usize) {
+        let n = self.dims().0;
+        let rows = self.each(|e| e.history().x_window().0.len() / n);
+        (n, rows.first().copied().unwrap_or(1))
+    }
+
+    fn dims(&self) -> (usize, usize, usize) {
+        match &self.inner {
+            Inner::Gp(b) => b.dims(),
+            Inner::Callback(b) => b.dims(),
+        }
     }
 }
 
@@ -199,26 +175,25 @@ impl PyEstimatorBank {
     }
 
     /// One update of every estimator: row i of `u` (k, m) and `y` (k, p) for estimator i,
-    /// `present[i]` False when its y is missing (its row of `y` is ignored). Returns a dict of
-    /// arrays over the estimators: `x_window` (k, nodes, n), `x_prior` (k, n), `P` (k, n, n)
-    /// with `has_P` (k,) (False: H singular, that P is NaN), `cost`, `success`, `nit`, `nfev`,
-    /// `projected_gradient`, `interior_iterations` (k,), and lists `status` (None after a
-    /// solver failure) and `error` (its message, else None). On error no estimator changes.
+    /// `present[i]` False when its y is missing (its row of `y` is ignored). What each
+    /// estimator reports is read from the getters below. On error no estimator changes.
     fn update<'py>(
         &mut self,
         py: Python<'py>,
         u: PyReadonlyArray2<'py, f64>,
         y: PyReadonlyArray2<'py, f64>,
         present: PyReadonlyArray1<'py, bool>,
-    ) -> PyResult<Bound<'py, PyDict>> {
+    ) -> PyResult<()> {
         let (u, _, _) = slice2("U", &u)?;
         let (y, _, _) = slice2("Y", &y)?;
         let present = present
             .as_slice()
             .map_err(|_| PyValueError::new_err("present: must be a contiguous bool array"))?;
         let sample = BankSample { u, y, present };
-        let reports = match (&mut self.inner, &self.model) {
-            (Inner::Gp(bank), _) => detach_interruptible(py, || bank.par_update(sample))?,
+        match (&mut self.inner, &self.model) {
+            (Inner::Gp(bank), _) => {
+                detach_interruptible(py, || bank.par_update(sample))?;
+            }
             (
                 Inner::Callback(bank),
                 Model::Callback {
@@ -237,7 +212,7 @@ impl PyEstimatorBank {
                             dims: *dims,
                             err: None,
                         };
-                        let r = est.update(&mut cb, u, y);
+                        let r = est.update(&mut cb, Some(u), y);
                         if r.is_err() {
                             raised_by_model = cb.err.take();
                         }
@@ -245,7 +220,7 @@ impl PyEstimatorBank {
                     })
                 });
                 match run {
-                    (Ok(v), _) => v,
+                    (Ok(_), _) => {}
                     (Err(_), Some(raised)) => return Err(raised),
                     (Err(e), None) => return Err(raised_by_model.unwrap_or_else(|| e.into())),
                 }
@@ -254,11 +229,75 @@ impl PyEstimatorBank {
                 return Err(PyValueError::new_err("internal: bank and model disagree"))
             }
         };
-        let n = match &self.inner {
-            Inner::Gp(b) => b.dims().0,
-            Inner::Callback(b) => b.dims().0,
-        };
-        Self::reports(py, reports, n)
+        Ok(())
+    }
+
+    // ---- what the last update reported, one row per estimator --------------------------------
+    /// Updates since construction (every estimator has had the same).
+    #[getter]
+    fn t(&self) -> usize {
+        self.each(|e| e.history().t()).first().copied().unwrap_or(0)
+    }
+
+    /// The last optimal windows (k, nodes, n).
+    #[getter]
+    fn x_window<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let (n, nodes) = self.window_shape();
+        self.stacked(py, &[nodes, n], |e| e.history().x_window().0.to_vec())
+    }
+
+    /// The estimates, the last rows of the windows (k, n).
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let n = self.dims().0;
+        self.stacked(py, &[n], |e| {
+            let w = e.history().x_window().0;
+            w[w.len() - n..].to_vec()
+        })
+    }
+
+    #[getter]
+    fn x_prior<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let n = self.dims().0;
+        self.stacked(py, &[n], |e| e.history().outcome().x_prior.clone())
+    }
+
+    /// The covariance estimates (k, n, n).
+    #[getter]
+    fn covariance<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let n = self.dims().0;
+        self.stacked(py, &[n, n], |e| e.history().outcome().covariance.clone())
+    }
+
+    #[getter]
+    fn optimal_cost<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.each(|e| e.history().outcome().cost))
+    }
+
+    #[getter]
+    fn success<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
+        PyArray1::from_vec(py, self.each(|e| e.history().outcome().success))
+    }
+
+    #[getter]
+    fn nit<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        PyArray1::from_vec(py, self.each(|e| e.history().outcome().nit as i64))
+    }
+
+    #[getter]
+    fn nfev<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        PyArray1::from_vec(py, self.each(|e| e.history().outcome().nfev as i64))
+    }
+
+    #[getter]
+    fn projected_gradient<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        PyArray1::from_vec(py, self.each(|e| e.history().outcome().projected_gradient))
+    }
+
+    /// The solvers' messages (`GPMHE.message`), one per estimator.
+    #[getter]
+    fn messages(&self) -> Vec<String> {
+        self.each(|e| e.history().outcome().message.clone())
     }
 
     /// Estimator i as a standalone `MovingHorizon` (an independent copy that continues exactly

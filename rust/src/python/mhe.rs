@@ -17,8 +17,8 @@ use super::error::{detach_interruptible, interruptible};
 use super::sparse::{extract_model, model_object};
 use crate::error::{check_finite, check_len, Error};
 use crate::mhe::{
-    Arrival, ArrivalMean, ArrivalWeight, Form, GpStageModel, HistoryState, MovingHorizon,
-    StageEval, StageModel, UpdateReport, WindowProblem, GP_CACHE_PARTS,
+    Arrival, ArrivalMean, ArrivalWeight, Form, GpStageModel, HistoryState, MovingHorizon, Outcome,
+    Solved, StageEval, StageModel, WindowProblem, GP_CACHE_PARTS,
 };
 use crate::solver::{BoxLsqSolver, InteriorMode, SolverOptions};
 
@@ -331,6 +331,8 @@ impl PyStageModel {
 pub(super) struct PyMovingHorizon {
     pub(super) core: MovingHorizon,
     pub(super) model: Model,
+    /// The learned model's evaluation cache before `prepare` staged a window (for `abandon`).
+    pub(super) staged_cache: Option<[Vec<f64>; 9]>,
 }
 
 impl PyMovingHorizon {
@@ -343,7 +345,17 @@ impl PyMovingHorizon {
     ) -> PyResult<T> {
         let core = &mut self.core;
         match &mut self.model {
-            Model::Gp(model) => detach_interruptible(py, || f(core, &mut **model)),
+            Model::Gp(model) => {
+                // An error (an interrupt among them) leaves the evaluation cache as it was: the
+                // cache decides which values later updates reuse, bit for bit.
+                let saved = model.cache();
+                let r = detach_interruptible(py, || f(core, &mut **model));
+                if r.is_err() {
+                    // The model's own cache always fits it.
+                    let _ = model.set_cache(saved);
+                }
+                r
+            }
             Model::Callback {
                 stage_eval,
                 predict,
@@ -445,21 +457,28 @@ impl PyMovingHorizon {
         )?;
         core.set_arrival(arrival);
         let model = model.model.clone_ref(py);
-        Ok(Self { core, model })
+        Ok(Self {
+            core,
+            model,
+            staged_cache: None,
+        })
     }
 
-    /// Replaces η, Q0, R0 (diagonals or flattened matrices) and S of P2 from the next update
-    /// on; P2 also becomes the next arrival weight. On error nothing changes.
+    /// Replaces the weights given (η, Q0 and R0 as diagonals or flattened matrices, S of P2)
+    /// from the next update on and keeps the others; a new P2 also becomes the next arrival
+    /// weight. On error nothing changes.
+    #[pyo3(signature = (eta=None, q0=None, r0=None, p2_sqrt=None))]
     fn set_weights(
         &mut self,
-        eta: f64,
-        q0: PyReadonlyArray1<'_, f64>,
-        r0: PyReadonlyArray1<'_, f64>,
-        p2_sqrt: PyReadonlyArray2<'_, f64>,
+        eta: Option<f64>,
+        q0: Option<PyReadonlyArray1<'_, f64>>,
+        r0: Option<PyReadonlyArray1<'_, f64>>,
+        p2_sqrt: Option<PyReadonlyArray2<'_, f64>>,
     ) -> PyResult<()> {
-        let (p2, _, _) = slice2("P2", &p2_sqrt)?;
-        let (q0, r0) = (slice1("Q0", &q0)?, slice1("R0", &r0)?);
-        Ok(self.core.set_weights(eta, q0, r0, p2)?)
+        let p2 = p2_sqrt.as_ref().map(|a| slice2("P2", a)).transpose()?;
+        let q0 = q0.as_ref().map(|a| slice1("Q0", a)).transpose()?;
+        let r0 = r0.as_ref().map(|a| slice1("R0", a)).transpose()?;
+        Ok(self.core.set_weights(eta, q0, r0, p2.map(|(s, _, _)| s))?)
     }
 
     /// Replaces the input of the last update (see `MovingHorizon::set_last_input`).
@@ -491,23 +510,25 @@ impl PyMovingHorizon {
 
     /// Forgets every step: t = 0, x̂(0) = x0.
     fn reset(&mut self, x0: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
-        Ok(self.core.reset(slice1("x0", &x0)?)?)
+        self.core.reset(slice1("x0", &x0)?)?;
+        self.staged_cache = None;
+        Ok(())
     }
 
-    /// One whole update with u(t) and y(t) (None: not measured); returns an `UpdateReport`.
+    /// One whole update with u(t) (None: not known yet, see `MovingHorizon::prepare` in the
+    /// core) and y(t) (None: not measured); what it reports is read from the getters below.
     /// On error the estimator is unchanged.
     #[pyo3(signature = (u, y=None))]
     fn update(
         &mut self,
         py: Python<'_>,
-        u: PyReadonlyArray1<'_, f64>,
+        u: Option<PyReadonlyArray1<'_, f64>>,
         y: Option<PyReadonlyArray1<'_, f64>>,
-    ) -> PyResult<PyUpdateReport> {
-        let u = slice1("u", &u)?;
+    ) -> PyResult<()> {
+        let u = u.as_ref().map(|u| slice1("u", u)).transpose()?;
         let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
-        let n = self.core.problem().dim_x();
-        let report = self.run(py, |core, model| core.update(model, u, y))?;
-        PyUpdateReport::new(py, report, n)
+        self.run(py, |core, model| core.update(model, u, y))?;
+        Ok(())
     }
 
     /// Stages the next window with u(t), y(t) without recording it; returns (z0, lower,
@@ -517,11 +538,16 @@ impl PyMovingHorizon {
     fn prepare<'py>(
         &mut self,
         py: Python<'py>,
-        u: PyReadonlyArray1<'py, f64>,
+        u: Option<PyReadonlyArray1<'py, f64>>,
         y: Option<PyReadonlyArray1<'py, f64>>,
     ) -> PyResult<(Arr1<'py>, Arr1<'py>, Arr1<'py>)> {
-        let u = slice1("u", &u)?;
+        let u = u.as_ref().map(|u| slice1("u", u)).transpose()?;
         let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
+        if let Model::Gp(gp) = &self.model {
+            if self.staged_cache.is_none() {
+                self.staged_cache = Some(gp.cache());
+            }
+        }
         let z0 = self.run(py, |core, model| core.prepare(model, u, y))?;
         let (lo, hi) = self.core.bounds();
         Ok((
@@ -531,20 +557,55 @@ impl PyMovingHorizon {
         ))
     }
 
-    /// Records the staged window's solution z; returns (x_window (nodes, n), x_prior).
+    /// Records the staged window's solution z with how another solver found it: its `cost`
+    /// (None: J(z) evaluated here), `success`, `nit`, `message` and the covariance `P` (n, n)
+    /// of the last node (None: not computable, the previous one is kept). Returns (x_window
+    /// (nodes, n), x_prior). On error nothing changes.
+    #[pyo3(signature = (z, cost=None, success=true, nit=0, message=String::new(), P=None))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
     fn commit<'py>(
         &mut self,
         py: Python<'py>,
         z: PyReadonlyArray1<'py, f64>,
+        cost: Option<f64>,
+        success: bool,
+        nit: usize,
+        message: String,
+        P: Option<PyReadonlyArray2<'py, f64>>,
     ) -> PyResult<(Arr2<'py>, Arr1<'py>)> {
         let z = slice1("z", &z)?.to_vec();
+        let cov = P.as_ref().map(|a| slice2("P", a)).transpose()?;
+        let cov = cov.map(|(c, _, _)| c.to_vec());
+        let solved = Solved::Other {
+            success,
+            nit,
+            message,
+        };
         let n = self.core.problem().dim_x();
-        let (x_window, x_prior) = self.run(py, |core, model| core.commit(model, z))?;
+        let (x_window, x_prior) = self.run(py, |core, model| {
+            let cost = match cost {
+                Some(c) => c,
+                None => core.evaluate(model, &z, false)?.cost(),
+            };
+            core.commit(model, z, cov, cost, &solved)
+        })?;
+        self.staged_cache = None;
         let rows = x_window.len() / n;
         Ok((
             array2(py, x_window, rows, n)?,
             PyArray1::from_vec(py, x_prior),
         ))
+    }
+
+    /// Drops the staged window (after `prepare`, when its solve was abandoned, e.g. by an
+    /// interrupt) and puts the learned model's evaluation cache back as it was before
+    /// `prepare`, so the next update runs as if this one had never started.
+    fn abandon(&mut self) {
+        self.core.drop_staged();
+        if let (Some(saved), Model::Gp(gp)) = (self.staged_cache.take(), &mut self.model) {
+            // The model's own cache always fits it.
+            let _ = gp.set_cache(saved);
+        }
     }
 
     /// Sets a window directly (tests, diagnostics; it cannot be committed): `u` (nodes, m),
@@ -585,6 +646,73 @@ impl PyMovingHorizon {
     #[getter]
     fn t(&self) -> usize {
         self.core.history().t()
+    }
+
+    // ---- what the last update reported (`crate::mhe::Outcome`) --------------------------------
+    /// The last optimal window (nodes, n), oldest first (x̂(0) as one row before any update).
+    #[getter]
+    fn x_window<'py>(&self, py: Python<'py>) -> PyResult<Arr2<'py>> {
+        let n = self.core.problem().dim_x();
+        let (w, _) = self.core.history().x_window();
+        array2(py, w.to_vec(), w.len() / n, n)
+    }
+
+    /// The estimate: the last row of `x_window` (n,).
+    #[getter]
+    fn x<'py>(&self, py: Python<'py>) -> Arr1<'py> {
+        let n = self.core.problem().dim_x();
+        let (w, _) = self.core.history().x_window();
+        PyArray1::from_slice(py, &w[w.len() - n..])
+    }
+
+    /// The arrival prior of the last window's first node (n,).
+    #[getter]
+    fn x_prior<'py>(&self, py: Python<'py>) -> Arr1<'py> {
+        PyArray1::from_slice(py, &self.core.history().outcome().x_prior)
+    }
+
+    /// The covariance estimate of the newest node (n, n).
+    #[getter]
+    fn covariance<'py>(&self, py: Python<'py>) -> PyResult<Arr2<'py>> {
+        let n = self.core.problem().dim_x();
+        array2(py, self.core.history().outcome().covariance.clone(), n, n)
+    }
+
+    /// The optimal cost J of the last window (0 before any update).
+    #[getter]
+    fn optimal_cost(&self) -> f64 {
+        self.core.history().outcome().cost
+    }
+
+    #[getter]
+    fn success(&self) -> bool {
+        self.core.history().outcome().success
+    }
+
+    #[getter]
+    fn nit(&self) -> usize {
+        self.core.history().outcome().nit
+    }
+
+    #[getter]
+    fn nfev(&self) -> usize {
+        self.core.history().outcome().nfev
+    }
+
+    #[getter]
+    fn projected_gradient(&self) -> f64 {
+        self.core.history().outcome().projected_gradient
+    }
+
+    #[getter]
+    fn message(&self) -> String {
+        self.core.history().outcome().message.clone()
+    }
+
+    /// Whether the last update was given no input and waits for `set_last_input`.
+    #[getter]
+    fn input_pending(&self) -> bool {
+        self.core.history().outcome().input_pending
     }
 
     #[getter]
@@ -685,6 +813,7 @@ impl PyMovingHorizon {
         Self {
             core: self.core.clone(),
             model: self.model.clone_ref(py),
+            staged_cache: self.staged_cache.clone(),
         }
     }
 
@@ -747,6 +876,7 @@ impl PyMovingHorizon {
         let nodes = s.x_window.len() / n;
         d.set_item("x_window", array2(py, s.x_window, nodes, n)?)?;
         d.set_item("arrival_sqrt", array2(py, s.arrival_sqrt, n, n)?)?;
+        outcome_items(py, &d, s.outcome, n)?;
         if let Model::Gp(gp) = &self.model {
             for (name, part) in GP_CACHE_PARTS.iter().zip(gp.cache()) {
                 d.set_item(format!("cache_{name}"), PyArray1::from_vec(py, part))?;
@@ -780,6 +910,7 @@ impl PyMovingHorizon {
                 true => state_rows(&state, "arrival_sqrt", n)?,
                 false => p.p2_sqrt().to_vec(),
             },
+            outcome: read_outcome(&state, self.core.history().outcome(), n)?,
         };
         // The learned model's cache of the last evaluation (see `GpStageModel::cache`).
         let gp = match &self.model {
@@ -799,6 +930,7 @@ impl PyMovingHorizon {
         if let Some(gp) = gp {
             self.model = Model::Gp(gp);
         }
+        self.staged_cache = None;
         Ok(())
     }
 }
@@ -839,56 +971,52 @@ fn arrival_names(a: Arrival) -> (&'static str, &'static str) {
     (mean, weight)
 }
 
-/// What one `MovingHorizon.update` did: `x_window` (nodes, n), `x_prior` (n,), `P` (n, n) or
-/// None, `cost`, and the solver's `status`, `success`, `nit`, `nfev`, `projected_gradient`,
-/// `interior_iterations`; `error` is the message of a solver failure (the window then keeps
-/// its warm start, `status` is None and `success` False).
-#[pyclass(name = "UpdateReport", module = "gpmhe._core", frozen, get_all)]
-pub(super) struct PyUpdateReport {
-    x_window: Py<PyArray2<f64>>,
-    x_prior: Py<PyArray1<f64>>,
-    #[pyo3(name = "P")]
-    p: Option<Py<PyArray2<f64>>>,
-    cost: f64,
-    status: Option<&'static str>,
-    success: bool,
-    nit: usize,
-    nfev: usize,
-    projected_gradient: f64,
-    interior_iterations: usize,
-    error: Option<String>,
+/// Writes `outcome` into a state dict as `outcome_x_prior`, `outcome_P`, `outcome_cost`,
+/// `outcome_success`, `outcome_nit`, `outcome_nfev`, `outcome_projected_gradient`,
+/// `outcome_message` and `outcome_input_pending`.
+fn outcome_items(py: Python<'_>, d: &Bound<'_, PyDict>, o: Outcome, n: usize) -> PyResult<()> {
+    d.set_item("outcome_x_prior", PyArray1::from_vec(py, o.x_prior))?;
+    d.set_item("outcome_P", array2(py, o.covariance, n, n)?)?;
+    d.set_item("outcome_cost", o.cost)?;
+    d.set_item("outcome_success", o.success)?;
+    d.set_item("outcome_nit", o.nit)?;
+    d.set_item("outcome_nfev", o.nfev)?;
+    d.set_item("outcome_projected_gradient", o.projected_gradient)?;
+    d.set_item("outcome_message", o.message)?;
+    d.set_item("outcome_input_pending", o.input_pending)?;
+    Ok(())
 }
 
-impl PyUpdateReport {
-    fn new(py: Python<'_>, r: UpdateReport, n: usize) -> PyResult<Self> {
-        let rows = r.x_window.len() / n;
-        let p = r.covariance.map(|c| array2(py, c, n, n)).transpose()?;
-        let (status, success, nit, nfev, pg, interior, error) = match r.solve {
-            Ok(s) => (
-                Some(s.status.as_str()),
-                s.status.is_success(),
-                s.nit,
-                s.nfev,
-                s.projected_gradient,
-                s.interior_iterations,
-                None,
-            ),
-            Err(e) => (None, false, 0, 1, f64::NAN, 0, Some(e.to_string())),
-        };
-        Ok(Self {
-            x_window: array2(py, r.x_window, rows, n)?.unbind(),
-            x_prior: PyArray1::from_vec(py, r.x_prior).unbind(),
-            p: p.map(Bound::unbind),
-            cost: r.cost,
-            status,
-            success,
-            nit,
-            nfev,
-            projected_gradient: pg,
-            interior_iterations: interior,
-            error,
-        })
+/// The outcome in a state dict (see `outcome_items`); a state without one (saved before
+/// estimators recorded it) keeps `current`. An entry of the wrong type is a ValueError naming
+/// it; the values are checked by `HistoryState`'s restore.
+fn read_outcome(state: &Bound<'_, PyDict>, current: &Outcome, n: usize) -> PyResult<Outcome> {
+    if !state.contains("outcome_x_prior")? {
+        return Ok(current.clone());
     }
+    let item = |key: &str| state_item(state, key);
+    let typed = |key: &str, what: &str| PyValueError::new_err(format!("{key}: must be {what}"));
+    Ok(Outcome {
+        x_prior: state_rows_1d(state, "outcome_x_prior")?,
+        covariance: state_rows(state, "outcome_P", n)?,
+        cost: item("outcome_cost")?
+            .extract()
+            .map_err(|_| typed("outcome_cost", "a number"))?,
+        success: item("outcome_success")?
+            .extract()
+            .map_err(|_| typed("outcome_success", "a bool"))?,
+        nit: state_usize(state, "outcome_nit")?,
+        nfev: state_usize(state, "outcome_nfev")?,
+        projected_gradient: item("outcome_projected_gradient")?
+            .extract()
+            .map_err(|_| typed("outcome_projected_gradient", "a number"))?,
+        message: item("outcome_message")?
+            .extract()
+            .map_err(|_| typed("outcome_message", "a string"))?,
+        input_pending: item("outcome_input_pending")?
+            .extract()
+            .map_err(|_| typed("outcome_input_pending", "a bool"))?,
+    })
 }
 
 /// Solver settings and work buffers: given to `MovingHorizon` as its settings, or used directly

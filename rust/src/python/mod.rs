@@ -26,7 +26,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // MHE window
     m.add_class::<mhe::PyStageModel>()?;
     m.add_class::<mhe::PyMovingHorizon>()?;
-    m.add_class::<mhe::PyUpdateReport>()?;
     m.add_class::<bank::PyEstimatorBank>()?;
     // Window solver
     m.add_class::<mhe::PyWindowSolver>()?;
