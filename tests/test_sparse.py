@@ -162,10 +162,20 @@ def test_prior_mean_and_map_fit_match_the_exact_gp_with_inducing_points_at_the_d
     exact = MultiOutputGP(**opts).fit(D, Y)
     sparse = SparseMultiOutputGP(inducing=D, **opts).fit(D, Y)
     np.testing.assert_allclose(sparse.mean_coefficients, exact.mean_coefficients, rtol=1e-12)
-    np.testing.assert_allclose(sparse.theta, exact.theta, atol=1e-4)
+    # The same objective at the same θ, to rounding ...
+    for theta in (exact.theta, sparse.theta):
+        np.testing.assert_allclose(sparse.log_marginal_likelihood(theta),
+                                   exact.log_marginal_likelihood(theta), rtol=1e-10)
+    # ... maximised to the same optimum: equal within L-BFGS-B's stopping accuracy (here
+    # 1e-6 nats; the second output's posterior is flat along a length-scale of 2.6, so θ agrees
+    # only to about 1e-3 there, and the predictions to about 1e-4).
+    best = [(d.restarts.max(), e.restarts.max())
+            for d, e in zip(sparse.diagnostics(), exact.diagnostics())]
+    np.testing.assert_allclose(*zip(*best), atol=1e-6)
+    np.testing.assert_allclose(sparse.theta, exact.theta, atol=1e-3)
     Dt = np.random.default_rng(1).uniform(-2.5, 2.5, (7, 2))
     for a, b in zip(sparse.predict_with_gradients(Dt), exact.predict_with_gradients(Dt)):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * np.max(np.abs(b)))
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4 * np.max(np.abs(b)))
     # The prediction adds m(d) = b + w.d: far from the data the mean is the line.
     far = np.array([[50.0, -40.0]])
     line = sparse.mean_coefficients[:, 0] + far @ sparse.mean_coefficients[:, 1:].T
