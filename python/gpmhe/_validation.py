@@ -6,6 +6,11 @@ Every helper takes the argument's name first and the value second, returns the v
 the argument's name ("Q0: must be symmetric"). The modules call these where a public function or
 constructor receives its arguments, once; the Rust core checks again what it reads (a second line
 of defence that names the same arguments).
+
+One rule for numbers (`real_array`, under every numeric helper): real numbers only (Python or
+numpy ints and floats, and arrays of them). Strings (numeric ones too), bools, complex values and
+other objects are refused rather than converted, and so are values of magnitude > `MAX_ABS`;
+NaN and inf only where a helper says what they mean.
 """
 
 from __future__ import annotations
@@ -22,7 +27,9 @@ __all__ = [
     "MAX_COUNT",
     "MagnitudeError",
     "within_limits",
+    "real_array",
     "float_array",
+    "box",
     "finite_vector",
     "positive",
     "positive_scalar",
@@ -56,6 +63,61 @@ def _not_numbers(name: str, value: Any) -> str:
     return f"{name}: must be a number or an array of numbers (all rows of one length), got {text}"
 
 
+#: numpy's kinds of real numbers: floats, signed and unsigned integers (bool is kind "b").
+_REAL_KINDS = "fiu"
+
+
+def real_array(name: str, value: Any, *, copy: bool = False) -> np.ndarray:
+    """``value`` as a float64 array if it holds real numbers only (see the module docs); a new
+    array with ``copy``. Values are not checked for NaN, inf or magnitude here."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ValueError(_not_numbers(name, value)) from None
+    if a.dtype.kind not in _REAL_KINDS:
+        if a.dtype.kind == "O":  # e.g. numpy scalars in a list with Python numbers
+            try:
+                a = np.asarray(value, dtype=np.float64) if all(
+                    _is_real(v) for v in a.ravel().tolist()) else None
+            except (TypeError, ValueError, OverflowError):
+                a = None
+            if a is None:
+                raise ValueError(_not_numbers(name, value)) from None
+        else:
+            what = {"b": "bools", "c": "complex values", "U": "strings", "S": "bytes"}.get(
+                a.dtype.kind, f"values of type {a.dtype}")
+            raise ValueError(f"{name}: must be real numbers, got {what} "
+                             f"({_short(value)}; convert them first if they are numbers)")
+    if isinstance(value, (list, tuple)) and _has_bool(value):  # numpy makes [True, 0.5] floats
+        raise ValueError(f"{name}: must be real numbers, got bools ({_short(value)})")
+    if a.dtype != np.float64:
+        try:
+            a = a.astype(np.float64)
+        except OverflowError:
+            raise MagnitudeError(f"{name}: contains a value of magnitude > {MAX_ABS:g}") from None
+    elif copy:
+        a = a.copy()
+    return a
+
+
+def _has_bool(value: Any) -> bool:
+    """Whether a nested list or tuple holds a bool (or a bool array)."""
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    if isinstance(value, (list, tuple)):
+        return any(_has_bool(v) for v in value)
+    return isinstance(value, np.ndarray) and value.dtype.kind == "b"
+
+
+def _is_real(v: Any) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def within_limits(a: np.ndarray) -> bool:
     """Whether every value of the float64 array ``a`` is of magnitude <= MAX_ABS (NaN is not):
     a Python loop for the few values of a per-step input (cheaper than numpy's reductions
@@ -81,10 +143,7 @@ def float_array(name: str, value: Any, ndim: Optional[int] = None, *, copy: bool
     With ``copy`` the result never shares memory with ``value`` (for values an object keeps);
     with ``missing`` NaN entries are allowed (they mark missing samples; inf is not).
     """
-    try:
-        a = np.array(value, dtype=np.float64, order="C") if copy else np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(_not_numbers(name, value)) from None
+    a = real_array(name, value, copy=copy)
     if ndim is not None and a.ndim != ndim:
         raise ValueError(f"{name}: expected a {ndim}-D array, got shape {a.shape}")
     if missing and np.any(np.isinf(a)):
@@ -98,10 +157,10 @@ def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np
     values is accepted (a row or column vector, say) and the result may share memory with
     ``value`` (for values passed on at once, as an estimator's per-step input)."""
     if flatten:
-        try:
-            a = np.asarray(value, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise ValueError(_not_numbers(name, value)) from None
+        if type(value) is np.ndarray and value.dtype == np.float64:  # the per-step fast path
+            a = value.reshape(-1)
+        else:
+            a = real_array(name, value).reshape(-1)
         if a.shape == (n,) and within_limits(a):
             return a
         a = float_array(name, a)  # the NaN/inf message
@@ -112,13 +171,45 @@ def finite_vector(name: str, value: Any, n: int, *, flatten: bool = False) -> np
     return a
 
 
+def box(name: str, bounds: Any, n: int, rows: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) float64 arrays of shape (n,) — or (rows, n), each side given once for all
+    rows as (n,) or per row as (rows, n) — from None (unbounded) or a pair whose sides may be None
+    (unbounded) or hold ±inf entries; finite entries of magnitude <= MAX_ABS, no NaN, and
+    lower < upper (errors name the row)."""
+    sides = (None, None) if bounds is None else bounds
+    if isinstance(sides, (str, bytes, dict)):
+        raise ValueError(f"{name}: must be a pair (lower, upper)")
+    try:
+        lower, upper = sides
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a pair (lower, upper)") from None
+    shape = (n,) if rows is None else (rows, n)
+    out = []
+    for side, fill in ((lower, -np.inf), (upper, np.inf)):
+        a = np.full(shape, fill) if side is None else real_array(name, side)
+        if rows is not None and a.shape == (n,):
+            a = np.tile(a, (rows, 1))
+        if a.shape != shape:
+            alt = f"({n},)" if rows is None else f"({n},) or ({rows}, {n})"
+            raise ValueError(f"{name}: lower and upper must have shape {alt} (or be None), "
+                             f"got {a.shape}")
+        if np.any(np.isnan(a)):
+            raise ValueError(f"{name}: contains NaN (use -inf or inf, or None, for no bound)")
+        if not within_limits(a[np.isfinite(a)]):
+            raise MagnitudeError(f"{name}: contains a finite value of magnitude > {MAX_ABS:g} "
+                                 "(use -inf or inf for no bound)")
+        out.append(np.ascontiguousarray(a))
+    bad = np.any(out[0] >= out[1], axis=-1)
+    if np.any(bad):
+        where = "" if rows is None else f" (estimator {int(np.flatnonzero(bad)[0])})"
+        raise ValueError(f"{name}: lower must be < upper{where}")
+    return out[0], out[1]
+
+
 def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:
     """A float64 array (of any shape, a scalar gives shape ()) of finite values > 0 (>= 0 with
     ``allow_zero``)."""
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a positive number or array of them") from None
+    a = real_array(name, value)
     if not np.all(np.isfinite(a)) or np.any(a < 0 if allow_zero else a <= 0) or np.any(a > MAX_ABS):
         raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
     return a
@@ -126,12 +217,10 @@ def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:
 
 def positive_scalar(name: str, value: Any, *, allow_zero: bool = False) -> float:
     """A finite number > 0 (>= 0 with ``allow_zero``) as a Python float; arrays are refused."""
-    if isinstance(value, np.ndarray) and value.ndim != 0:
-        raise ValueError(f"{name}: must be a number, got an array of shape {value.shape}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number, got {value!r}") from None
+    a = real_array(name, value)
+    if a.ndim != 0:
+        raise ValueError(f"{name}: must be a number, got an array of shape {a.shape}")
+    v = float(a)
     if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0) and v <= MAX_ABS):
         raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
     return v
@@ -154,10 +243,10 @@ def integer(name: str, value: Any, low: int = 0, high: int = MAX_COUNT) -> int:
 
 def in_open_interval(name: str, value: Any, low: float, high: float) -> float:
     """A number in the open interval (low, high) as a Python float."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a number in ({low:g}, {high:g}), got {value!r}") from None
+    a = real_array(name, value)
+    if a.ndim != 0:
+        raise ValueError(f"{name}: must be a number in ({low:g}, {high:g}), got {value!r}")
+    v = float(a)
     if not (math.isfinite(v) and low < v < high):
         raise ValueError(f"{name}: must be in ({low:g}, {high:g}), got {value!r}")
     return v
@@ -224,10 +313,7 @@ def points(name: str, value: Any, nd: int, *, one_point: bool = False) -> np.nda
     with ``one_point`` a 1-D value is one point."""
     a = value
     if not (type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous):
-        try:
-            a = np.ascontiguousarray(a, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(_not_numbers(name, value)) from None
+        a = np.ascontiguousarray(real_array(name, a))
     if one_point and a.ndim == 1:
         a = a.reshape(1, -1)
     if a.ndim != 2 or a.shape[1] != nd:

@@ -16,7 +16,8 @@ import numpy as np
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import MAX_ABS, float_array, integer, positive_diagonal, within_limits
+from gpmhe._validation import (MAX_ABS, box, float_array, integer, positive_diagonal, real_array,
+                               within_limits)
 from gpmhe.mhe import GPMHE
 
 __all__ = ["EstimatorBank"]
@@ -44,12 +45,8 @@ def _per_estimator(name, value, k, d):
 
 
 def _rows(name, value, k, d):
-    """A (d,) vector for all estimators or (k, d) rows, as a new (k, d) float64 array (inf
-    allowed where ``name`` is a bound)."""
-    try:
-        a = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be an array of numbers") from None
+    """A (d,) vector for all estimators or (k, d) rows, as a new (k, d) float64 array."""
+    a = real_array(name, value, copy=True)
     if a.shape == (d,):
         a = np.tile(a, (k, 1))
     elif a.shape != (k, d):
@@ -178,20 +175,7 @@ class EstimatorBank:
         opts = dict(gpmhe_options)
         q0 = _per_estimator("Q0", opts.pop("Q0", None), k, d)
         r0 = _per_estimator("R0", opts.pop("R0", None), k, p) if p else np.zeros((k, 0))
-        bounds = opts.pop("x_bounds", None)
-        if bounds is None:
-            lb, ub = np.full((k, d), -np.inf), np.full((k, d), np.inf)
-        else:
-            try:
-                lb, ub = bounds
-            except (TypeError, ValueError):
-                raise ValueError("x_bounds: must be a pair (lower, upper)") from None
-            lb, ub = _rows("x_bounds", lb, k, d), _rows("x_bounds", ub, k, d)
-            if np.any(np.isnan(lb)) or np.any(np.isnan(ub)):
-                raise ValueError("x_bounds: contains NaN")
-            bad = np.flatnonzero(np.any(lb >= ub, axis=1))
-            if bad.size:
-                raise ValueError(f"x_bounds: lower must be < upper (estimator {bad[0]})")
+        lb, ub = box("x_bounds", opts.pop("x_bounds", None), d, rows=k)
         x0 = _rows("x0", float_array("x0", x0), k, d)
         bad = np.flatnonzero(np.any((x0 < lb) | (x0 > ub), axis=1))
         if bad.size:
@@ -245,10 +229,7 @@ class EstimatorBank:
                 raise ValueError(f"U: expected shape ({k}, {m}), got {U.shape}")
         if Y is None:
             return U, np.zeros((k, p)), np.zeros(k, dtype=bool)
-        try:
-            Y = np.array(Y, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError("Y: must be an array of numbers (NaN for missing values)") from None
+        Y = real_array("Y", Y, copy=True)
         if Y.shape != (k, p):
             raise ValueError(f"Y: expected shape ({k}, {p}), got {Y.shape}")
         missing = np.isnan(Y)

@@ -21,6 +21,7 @@ from gpmhe import _core
 from gpmhe._threads import exclusive
 from gpmhe._validation import (
     MAX_ABS,
+    box,
     finite_vector,
     integer,
     one_of,
@@ -86,28 +87,6 @@ def _covariance(name, value, n):
 
 def _is_diagonal(a):
     return bool(np.all(a == np.diag(np.diag(a))))
-
-
-def _bounds(name, bounds, n):
-    """(lower, upper) arrays of shape (n,) from None or a pair whose sides may be None
-    (unbounded) or hold ±inf entries; lower < upper."""
-    sides = (None, None) if bounds is None else bounds
-    try:
-        lower, upper = sides
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be a pair (lower, upper)") from None
-    out = []
-    for side, fill in ((lower, -np.inf), (upper, np.inf)):
-        try:
-            a = np.full(n, fill) if side is None else np.asarray(side, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name}: lower and upper must be arrays of numbers or None") from None
-        if a.shape != (n,) or np.any(np.isnan(a)):
-            raise ValueError(f"{name}: lower and upper must have shape ({n},) without NaN (or be None)")
-        out.append(a.copy())
-    if np.any(out[0] >= out[1]):
-        raise ValueError(f"{name}: lower must be < upper")
-    return out[0], out[1]
 
 
 def _output(name, y, p):
@@ -406,7 +385,7 @@ class GPMHE:
             self._Q0, self._R0 = _covariance("Q0", Q0, n), _covariance("R0", R0, p)
             self._P2 = (np.linalg.inv(_covariance("P0", P0, n)) if P0 is not None
                         else symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True))
-            self.x_bounds = _bounds("x_bounds", x_bounds, n)
+            self.x_bounds = box("x_bounds", x_bounds, n)
             self._parameters(p0, P_p0, p_bounds, p_drift)
             x0 = self._check_x0(x0)
             rust_solver = self._rust_solver() if self.solver == "gauss-newton" else None
@@ -531,7 +510,7 @@ class GPMHE:
         if p0 is None:
             raise ValueError(f"p0: required, the model has {k} parameter(s) (dim_p = {k})")
         self.p0 = finite_vector("p0", p0, k, flatten=True).copy()
-        self.p_bounds = _bounds("p_bounds", p_bounds, k)
+        self.p_bounds = box("p_bounds", p_bounds, k)
         if np.any(self.p0 < self.p_bounds[0]) or np.any(self.p0 > self.p_bounds[1]):
             raise ValueError("p0: must lie inside p_bounds")
         scale = np.abs(self.p0)
