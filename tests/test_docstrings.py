@@ -97,7 +97,7 @@ def test_module_doctests_pass(modname, doctest_results):
 
 def test_api_list_is_complete():
     # A guard against the list silently shrinking (e.g. a renamed module).
-    assert "gpmhe.mhe.GPMHE.update" in PUBLIC_API
+    assert "gpmhe.mhe.estimator.GPMHE.update" in PUBLIC_API
     assert "gpmhe.baselines.GPEKF" in PUBLIC_API
     assert "gpmhe.systems.second_order.Run" in PUBLIC_API
     assert len(PUBLIC_API) > 60

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from gpmhe import GPMHE, KnownModel
+from gpmhe import GPMHE, KnownModel, _core
 from gpmhe.systems import batch_reactor as br
 
 from conftest import f3, f3_jac, f3_jac_v, f3_v, h3, h3_jac, h3_jac_v, h3_v, reactor_known_model
@@ -68,7 +68,7 @@ def test_window_cost_and_gradient_match(system, form):
     for vectorized in (False, True):
         model = make(vectorized)
         p = model.dim_y
-        win = model._make_window(0.9, np.array([1e-2, 2e-2]), np.full(p, 3e-2),
+        win = _core.MovingHorizon(model._stage_model(), 0.9, np.array([1e-2, 2e-2]), np.full(p, 3e-2),
                                  np.array([[1.2, 0.3], [0.0, 1.0]]), form == "filtering")
         wins.append(win)
     u = rng.uniform(-1, 1, (nodes, m))

@@ -5,7 +5,7 @@ other on single windows (with and without active bounds)."""
 import numpy as np
 import pytest
 
-from gpmhe import GPMHE, KnownModel
+from gpmhe import GPMHE, KnownModel, _core
 from gpmhe.systems import batch_reactor as br
 
 from conftest import f3, h3, synthetic_learned_model
@@ -52,7 +52,7 @@ def test_window_matches_numpy_and_finite_differences(form, kind):
     P2 = np.array([[2.0, 0.3], [0.3, 1.0]])
     q0, r0, eta = np.array([1e-2, 2e-2]), np.array([3e-2, 1e-2]), 0.9
     S = np.ascontiguousarray(np.linalg.cholesky(P2).T)
-    win = model._make_window(eta, q0, r0, S, form == "filtering")
+    win = _core.MovingHorizon(model._stage_model(), eta, q0, r0, S, form == "filtering")
     u = rng.uniform(-1, 1, (nodes, 1))
     y = rng.uniform(-1, 1, (nodes, 2))
     present = [True, False, True, True, True, True]
@@ -85,7 +85,7 @@ def test_window_matches_numpy_and_finite_differences(form, kind):
 
 def test_window_rejects_bad_data_and_keeps_the_previous_window():
     model = known3()
-    win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False)
+    win = _core.MovingHorizon(model._stage_model(), 0.9, np.ones(2), np.ones(2), np.eye(2), False)
     win.set_data(np.zeros((3, 1)), np.zeros((3, 2)), [True] * 3, np.zeros(2))
     with pytest.raises(ValueError, match="x_prior"):
         win.set_data(np.zeros((4, 1)), np.zeros((4, 2)), [True] * 4, np.array([0.0, np.nan]))
@@ -93,9 +93,9 @@ def test_window_rejects_bad_data_and_keeps_the_previous_window():
     with pytest.raises(ValueError, match="z"):
         win.cost(np.zeros(5))
     with pytest.raises(ValueError, match="Q0"):
-        model._make_window(0.9, np.array([1.0, -1.0]), np.ones(2), np.eye(2), False)
+        _core.MovingHorizon(model._stage_model(), 0.9, np.array([1.0, -1.0]), np.ones(2), np.eye(2), False)
     with pytest.raises(ValueError, match="eta"):
-        model._make_window(1.5, np.ones(2), np.ones(2), np.eye(2), False)
+        _core.MovingHorizon(model._stage_model(), 1.5, np.ones(2), np.ones(2), np.eye(2), False)
     with pytest.raises(ValueError, match="y"):
         win.set_data(np.zeros((3, 1)), np.full((3, 2), np.inf), [True] * 3, np.zeros(2))
     assert win.n_nodes == 3
@@ -106,7 +106,7 @@ def test_callback_errors_propagate():
         raise ZeroDivisionError("boom")
 
     model = KnownModel(bad_f, h3, dim_x=2, dim_y=2, dim_u=1)
-    win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False)
+    win = _core.MovingHorizon(model._stage_model(), 0.9, np.ones(2), np.ones(2), np.eye(2), False)
     win.set_data(np.zeros((2, 1)), np.zeros((2, 2)), [True] * 2, np.zeros(2))
     with pytest.raises(ZeroDivisionError):
         win.cost(np.zeros(4))
@@ -130,7 +130,7 @@ def test_prepare_warm_start_shifts_predicts_and_clips(kind, form):
         win = _core.MovingHorizon(_core.StageModel.callback(model.stage_eval, 2, 1, 2), 0.9,
                                   np.ones(2), np.ones(2), np.eye(2), filtering, **settings)
     else:
-        win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), filtering, **settings)
+        win = _core.MovingHorizon(model._stage_model(), 0.9, np.ones(2), np.ones(2), np.eye(2), filtering, **settings)
     inner = (lo + 1e-6 * (hi - lo), hi - 1e-6 * (hi - lo))
     rng = np.random.default_rng(5)
     prev, prev_s0, inputs = np.zeros((1, 2)), 0, []
@@ -170,7 +170,7 @@ def test_prepare_rejects_bad_arguments_naming_them():
     (its history and window) as it was."""
     from gpmhe import _core
     model = known3()
-    win = model._make_window(0.9, np.ones(2), np.ones(2), np.eye(2), False, horizon=4,
+    win = _core.MovingHorizon(model._stage_model(), 0.9, np.ones(2), np.ones(2), np.eye(2), False, horizon=4,
                              x0=np.zeros(2))
     win.set_data(np.zeros((3, 1)), np.zeros((3, 2)), [True] * 3, np.zeros(2))
     for u, y, name in ((np.zeros(2), np.zeros(2), "u"), (np.zeros(1), np.zeros(3), "y"),
@@ -215,9 +215,9 @@ def test_update_is_prepare_then_solve_then_commit():
     lo, hi = np.full(2, -1.5), np.full(2, 1.5)
     for filtering in (False, True):
         settings = dict(horizon=3, x0=np.zeros(2), lower=lo, upper=hi)
-        w1 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering,
+        w1 = _core.MovingHorizon(model._stage_model(), 0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering,
                                 solver=_core.WindowSolver(), **settings)
-        w2 = model._make_window(0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering,
+        w2 = _core.MovingHorizon(model._stage_model(), 0.9, np.full(2, 0.1), np.full(2, 0.1), np.eye(2), filtering,
                                 **settings)
         priors, next_priors, estimates = [], [], []
         for t in range(6):
@@ -261,11 +261,11 @@ def test_solvers_reach_the_same_cost_on_single_windows(reactor_model, bounds):
     z0 = np.clip(est.x_window.reshape(-1) + 0.05 * rng.standard_normal(2 * nodes),
                  np.tile(lb, nodes) + 1e-3, np.tile(ub, nodes) - 1e-3)
     LB, UB = np.tile(lb, nodes), np.tile(ub, nodes)
-    with est._writing():  # the private solver paths read solver_options at each call
-        est.solver_options = dict(ftol=1e-15, xtol=1e-15, gtol=1e-12, max_nfev=2000)
-        z_ls, _, ok_ls, _ = est._solve_least_squares(win, z0, LB, UB)
-        est.solver_options = dict(gtol=1e-10, xtol=1e-12, maxiter=3000, dtol=0.0)  # to gtol
-        z_tc, _, _, _ = est._solve_trust_constr(win, z0, LB, UB)
+    from gpmhe.mhe import solvers
+    z_ls, _, ok_ls, _, _ = solvers.solve(
+        "least-squares", dict(ftol=1e-15, xtol=1e-15, gtol=1e-12, max_nfev=2000), win, z0, LB, UB)
+    z_tc, _, _, _, _ = solvers.solve(  # to gtol
+        "trust-constr", dict(gtol=1e-10, xtol=1e-12, maxiter=3000, dtol=0.0), win, z0, LB, UB)
     assert ok_ls
     c_ls, c_tc = win.cost(z_ls), win.cost(z_tc)
     # least-squares reaches a KKT point: projected-gradient residual small relative to the

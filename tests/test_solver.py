@@ -35,7 +35,7 @@ def reactor_window(model, rng, nodes, upper):
     x, y = br.simulate(br.X_TRUE0, nodes + 5, rng)
     s = int(rng.integers(0, 5))
     lb, ub = br.X_BOUNDS[0], np.asarray(upper, dtype=float)
-    win = model._make_window(0.91, np.full(2, 1e-3), np.full(1, 1e-2), np.eye(2), False)
+    win = _core.MovingHorizon(model._stage_model(), 0.91, np.full(2, 1e-3), np.full(1, 1e-2), np.eye(2), False)
     present = [True] * (nodes - 1) + [False]
     prior = np.clip(x[s] + 0.3 * rng.standard_normal(2), lb, ub)
     win.set_data(np.zeros((nodes, 0)), np.ascontiguousarray(y[s:s + nodes]), present, prior)
@@ -51,7 +51,7 @@ def synthetic_window(model, rng, nodes, box):
     for i in range(nodes - 1):
         x[i + 1] = f3(x[i], u[i]) + 0.05 * rng.standard_normal(2)
     y = np.array([h3(x[i], u[i]) for i in range(nodes)]) + 0.05 * rng.standard_normal((nodes, 2))
-    win = model._make_window(0.9, np.full(2, 1e-2), np.full(2, 1e-2), np.eye(2), True)
+    win = _core.MovingHorizon(model._stage_model(), 0.9, np.full(2, 1e-2), np.full(2, 1e-2), np.eye(2), True)
     present = [bool(i % 4 != 2) for i in range(nodes)]  # some y=None steps
     win.set_data(u, y, present, x[0] + 0.2 * rng.standard_normal(2))
     LB, UB = np.full(2 * nodes, -box), np.full(2 * nodes, box)
@@ -171,7 +171,7 @@ def test_trust_constr_reaches_the_rust_optimum_in_nearly_every_window(reactor_gp
     dtol to gain at the point returned."""
     import copy
 
-    from gpmhe.mhe import _gn_decrement
+    from gpmhe.mhe.solvers import gn_decrement as _gn_decrement
 
     dtol = 1e-4  # the documented default (GPMHE docstring, the solver page)
     reference = _core.WindowSolver(dtol=0.0, max_iter=500)
@@ -295,7 +295,7 @@ def test_model_exception_propagates():
     def bad_f(x, u):
         raise ZeroDivisionError("boom")
     model = KnownModel(bad_f, br.h, 2, 1)
-    win = model._make_window(0.9, np.ones(2), np.ones(1), np.eye(2), False)
+    win = _core.MovingHorizon(model._stage_model(), 0.9, np.ones(2), np.ones(1), np.eye(2), False)
     win.set_data(np.zeros((3, 0)), np.zeros((3, 1)), [True] * 3, np.ones(2))
     with pytest.raises(ZeroDivisionError):
         _core.WindowSolver().solve(win, np.ones(6), np.zeros(6), np.full(6, 5.0))

@@ -25,8 +25,7 @@ from gpmhe._core import NumericalError
 from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
 from gpmhe.diagnostics import FitDiagnostics, FitWarning
 from gpmhe.sparse import SparseGaussianProcess, SparseMultiOutputGP
-from gpmhe.mhe import GPMHE
-from gpmhe.bank import EstimatorBank
+from gpmhe.mhe import GPMHE, EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.discretization import DiscreteDynamics, discretize
 from gpmhe.rgp import RGPEKF, RecursiveGP

@@ -322,6 +322,42 @@ class StageModel:
     def __deepcopy__(self, _memo: Any) -> StageModel: ...
     def __reduce__(self) -> tuple[Any, ...]: ...
 
+class ArrivalMean:
+    """The arrival prior's mean: `Estimate` (the estimator's own earlier estimate) or `Smoothed`
+    (the previous window's estimate of the new first node)."""
+
+    Estimate: ArrivalMean
+    Smoothed: ArrivalMean
+    @staticmethod
+    def from_name(name: str) -> ArrivalMean:
+        """From "estimate" or "smoothed" (ValueError naming arrival_mean otherwise)."""
+        ...
+    @property
+    def name(self) -> str: ...
+    def __reduce__(self) -> tuple[Any, ...]: ...
+    def __eq__(self, value: object, /) -> bool: ...
+    def __ne__(self, value: object, /) -> bool: ...
+    def __int__(self) -> int: ...
+    def __repr__(self) -> str: ...
+
+class ArrivalWeight:
+    """The arrival weight: `Constant` (P2) or `Ekf` (updated by an EKF step over the node that
+    leaves the window)."""
+
+    Constant: ArrivalWeight
+    Ekf: ArrivalWeight
+    @staticmethod
+    def from_name(name: str) -> ArrivalWeight:
+        """From "constant" or "ekf" (ValueError naming arrival_weight otherwise)."""
+        ...
+    @property
+    def name(self) -> str: ...
+    def __reduce__(self) -> tuple[Any, ...]: ...
+    def __eq__(self, value: object, /) -> bool: ...
+    def __ne__(self, value: object, /) -> bool: ...
+    def __int__(self) -> int: ...
+    def __repr__(self) -> str: ...
+
 class MovingHorizon:
     """The moving-horizon estimator's core (rust/src/mhe/): built once with the model, the
     window weights and form, the horizon, x̂(0), the state box and the solver settings; owns the
@@ -341,13 +377,13 @@ class MovingHorizon:
         lower: _F | None = None,
         upper: _F | None = None,
         solver: WindowSolver | None = None,
-        arrival_mean: str = "estimate",
-        arrival_weight: str = "constant",
+        arrival_mean: ArrivalMean = ...,
+        arrival_weight: ArrivalWeight = ...,
     ) -> None:
         """`q0`, `r0`: Q0, R0 as diagonals or flattened matrices; `p2_sqrt`: S with P2 = SᵀS;
         `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros if None); `lower`, `upper`: the
-        state box (±inf if None); `solver`: the solver settings (defaults if None);
-        `arrival_mean` ("estimate", "smoothed"), `arrival_weight` ("constant", "ekf")."""
+        state box (±inf if None); `solver`: the solver settings (defaults if None); the arrival
+        cost (defaults: the paper's, `ArrivalMean.Estimate`, `ArrivalWeight.Constant`)."""
         ...
     def reset(self, x0: _F) -> None:
         """Forget every step: t = 0, x̂(0) = x0 with covariance P2⁻¹."""

@@ -656,17 +656,18 @@ class KnownModel(_SharedOnCopy):
         """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
         return np.ascontiguousarray(self.predict(x, u), dtype=np.float64)
 
-    def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
-        """The Rust estimator core on this model (see `gpmhe._core.MovingHorizon`); a CasADi
-        model's callbacks skip the checks of the points, which the core passes valid."""
+    def _stage_model(self):
+        """What the Rust core evaluates (a `gpmhe._core.StageModel`): this model's Python
+        functions, called back; a CasADi model's callbacks skip the checks of the points, which
+        the core passes valid."""
         if self.dim_p:
             raise ValueError("model: has parameters; the estimator runs its augmented model")
         if self._casadi is not None:
             stage, predict = self._casadi.stage_callback, self._casadi.predict_callback
         else:
             stage, predict = self.stage_eval, self._predict_f64
-        model = _core.StageModel.callback(stage, self.dim_x, self.dim_u, self.dim_y, predict=predict)
-        return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
+        return _core.StageModel.callback(stage, self.dim_x, self.dim_u, self.dim_y,
+                                         predict=predict)
 
 
 def check_picklable(owner, callables):
@@ -1124,16 +1125,14 @@ class LearnedModel(_SharedOnCopy):
         """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
         return np.ascontiguousarray(self.predict(x, u), dtype=np.float64)
 
-    def _make_window(self, eta, q0, r0, p2_sqrt, filtering, **settings):
-        """The Rust estimator core on the GPs (see `gpmhe._core.MovingHorizon`); with a nominal
-        model on `stage_eval`, called back from Rust."""
+    def _stage_model(self):
+        """What the Rust core evaluates (a `gpmhe._core.StageModel`): the GPs themselves; with a
+        nominal model, `stage_eval`, called back."""
         if self.nominal is not None:
-            model = _core.StageModel.callback(self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
-                                              predict=self._predict_f64)
-        else:
-            h = None if self.h_gp is None else self.h_gp._core_model
-            model = _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u, self.f_residual)
-        return _core.MovingHorizon(model, eta, q0, r0, p2_sqrt, filtering, **settings)
+            return _core.StageModel.callback(self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
+                                             predict=self._predict_f64)
+        h = None if self.h_gp is None else self.h_gp._core_model
+        return _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u, self.f_residual)
 
     def save(self, path):
         """Save both GPs and the settings to one ``.npz`` file (no pickle).

@@ -26,6 +26,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // MHE window
     m.add_class::<mhe::PyStageModel>()?;
     m.add_class::<mhe::PyMovingHorizon>()?;
+    m.add_class::<mhe::PyArrivalMean>()?;
+    m.add_class::<mhe::PyArrivalWeight>()?;
     m.add_class::<bank::PyEstimatorBank>()?;
     // Window solver
     m.add_class::<mhe::PyWindowSolver>()?;

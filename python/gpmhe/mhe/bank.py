@@ -18,7 +18,7 @@ from gpmhe import _core
 from gpmhe._threads import exclusive
 from gpmhe._validation import (MAX_ABS, box, float_array, integer, positive_diagonal, real_array,
                                within_limits)
-from gpmhe.mhe import GPMHE
+from gpmhe.mhe.estimator import GPMHE
 
 __all__ = ["EstimatorBank"]
 
@@ -161,9 +161,11 @@ class EstimatorBank:
         for key in gpmhe_options:
             if key not in _SETTINGS:
                 raise ValueError(f"{key}: not a setting of GPMHE (expected one of {', '.join(_SETTINGS)})")
-        for attr in ("dim_x", "dim_y", "dim_u", "_make_window"):
-            if not hasattr(model, attr):
-                raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
+        from gpmhe.models import KnownModel, LearnedModel
+
+        if not isinstance(model, (KnownModel, LearnedModel)):
+            raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel, got "
+                             f"{type(model).__name__}")
         if getattr(model, "dim_p", 0):
             raise ValueError("model: a model with parameters (dim_p > 0) runs in GPMHE, not in "
                              "a bank")

@@ -1,92 +1,27 @@
 """GPMHE: the GP-based moving horizon estimator of Wolff, Lopez & Müller, in filterpy's style.
 
-This module validates the settings and every step's input, holds the public attributes and runs
-SciPy's solvers. The estimator itself is one Rust object (`gpmhe._core.MovingHorizon`, built once
-with the model, horizon, weights, form, state box and solver settings): it owns the sliding
-history and the warm start, and with the default solver one ``update(u, y)`` is one Rust call
-(window, warm start, solve, covariance, next arrival prior). SciPy's solvers evaluate the same
-Rust window between ``prepare`` and ``commit``. See *Architecture* in the documentation.
+The estimator is one Rust object (`gpmhe._core.MovingHorizon`, built once from the model's stage
+model and the settings): it owns the sliding history, the warm start and everything the last
+update reported, and with the default solver one ``update(u, y)`` is one Rust call (window, warm
+start, solve, covariance, next arrival prior, record). This class validates every step's input
+and reads its attributes from the core; its settings are one `MHESettings` value
+(``settings.py``), SciPy's solvers are in ``solvers.py`` and checkpoints in ``checkpoint.py``.
+See *Architecture* in the documentation.
 """
 
 from __future__ import annotations
 
-import inspect
 import warnings
 
 import numpy as np
-import scipy.linalg
-from scipy.optimize import Bounds, least_squares, lsq_linear, minimize
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import (
-    MAX_ABS,
-    box,
-    finite_vector,
-    integer,
-    one_of,
-    options,
-    positive,
-    positive_scalar,
-    symmetric_matrix,
-    within_limits,
-)
+from gpmhe._validation import MAX_ABS, finite_vector
+from gpmhe.mhe import checkpoint, solvers
+from gpmhe.mhe.settings import WEIGHTS, MHESettings
 
 __all__ = ["GPMHE"]
-
-#: The largest horizon accepted (the history keeps M + 2 steps).
-_MAX_HORIZON = 1_000_000
-
-#: The options each solver accepts (see `gpmhe._validation.options`): gpmhe's own for the Rust
-#: solver; for SciPy's, the keywords of `scipy.optimize.least_squares` and of `minimize`'s
-#: "trust-constr" options except those gpmhe sets itself (the problem, its bounds and method),
-#: plus gpmhe's decrement stop ``dtol`` for "trust-constr".
-_SOLVER_OPTIONS = {
-    "gauss-newton": dict(max_iter="count", gtol="tol", xtol="tol", ftol="tol", dtol="tol",
-                         interior=("auto", "always", "never"), interior_zone="tol",
-                         mu_init="positive", mu_final="positive"),
-    "trust-constr": dict(dtol="tol", xtol="tol", gtol="tol", barrier_tol="tol",
-                         sparse_jacobian=None, maxiter="count", verbose=(0, 1, 2, 3),
-                         finite_diff_rel_step=None, initial_constr_penalty="positive",
-                         initial_tr_radius="positive",
-                         initial_barrier_parameter="positive", initial_barrier_tolerance="positive",
-                         factorization_method=None, disp=(True, False)),
-    "least-squares": {
-        **{k: None for k in inspect.signature(least_squares).parameters
-           if k not in ("fun", "x0", "jac", "bounds", "method", "args", "kwargs")},
-        **dict(ftol="tol", xtol="tol", gtol="tol", max_nfev="count?", verbose=(0, 1, 2),
-               f_scale="positive"),
-    },
-}
-
-#: The "trust-constr" decrement stop (see `GPMHE._solve_trust_constr`): tested once SciPy's
-#: barrier parameter is at most this (two reductions from its initial 0.1), at the iterate and
-#: after up to _TC_GN_STEPS projected Gauss-Newton steps from it.
-_TC_DECREMENT_BARRIER = 1e-2
-_TC_GN_STEPS = 3
-
-_NO_INPUT = np.zeros(0)  # u when dim_u = 0 (shared, read-only)
-_NO_INPUT.flags.writeable = False
-
-
-def _check_eta(eta):
-    eta = positive_scalar("eta", eta, allow_zero=True)
-    if eta > 1.0:
-        raise ValueError(f"eta: must be in [0, 1], got {eta!r}")
-    return eta
-
-
-def _covariance(name, value, n):
-    """A symmetric positive definite covariance (n, n) from None (the identity), a scalar, the
-    diagonal or the matrix."""
-    if n == 0:
-        return np.zeros((0, 0))
-    return symmetric_matrix(name, 1.0 if value is None else value, n, definite=True,
-                            vector_is_diagonal=True)
-
-
-def _is_diagonal(a):
-    return bool(np.all(a == np.diag(np.diag(a))))
 
 
 def _output(name, y, p):
@@ -120,24 +55,6 @@ def _rows(name, value):
         return list(value)
     except TypeError:
         raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
-
-
-def _gn_decrement(window, z, lb, ub):
-    """The Gauss-Newton decrement at z in the box [lb, ub]: (decrement, step, cost).
-
-    J = ‖r‖² with r the window's residuals and J_r their Jacobian; the Gauss-Newton model
-    ‖r + J_r Δ‖² of J(z + Δ), minimised over the steps that stay in the box (a bounded linear
-    least-squares problem), predicts the decrease ``decrement`` = ‖r‖² − ‖r + J_r Δ‖² by the
-    step Δ = ``step``. Without active bounds the decrement is ½ ∇Jᵀ H⁻¹ ∇J (H = 2 J_rᵀ J_r);
-    it is 0 exactly at first-order (KKT) points of the box-constrained problem. If r or J_r is
-    not finite: (inf, None, inf).
-    """
-    r, jac = window.residuals(z), window.jacobian(z)
-    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
-        return np.inf, None, np.inf
-    cost = float(r @ r)
-    step = lsq_linear(jac, -r, bounds=(lb - z, ub - z), method="bvls").x
-    return max(cost - float(np.sum((r + jac @ step) ** 2)), 0.0), step, cost
 
 
 class GPMHE:
@@ -365,50 +282,47 @@ class GPMHE:
                  x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None,
                  P0=None, arrival_mean="smoothed", arrival_weight="ekf", p0=None, P_p0=None,
                  p_bounds=None, p_drift=None):
-        with self._writing():
-            for attr in ("dim_x", "dim_y", "dim_u", "predict", "_make_window"):
-                if not hasattr(model, attr):
-                    raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel")
-            n, p = model.dim_x, model.dim_y
-            self.model, self.dim_x, self.dim_y, self.dim_u = model, n, p, model.dim_u
-            self.dim_p = int(getattr(model, "dim_p", 0))
-            self.horizon = integer("horizon", horizon, low=1, high=_MAX_HORIZON)
-            self.form = one_of("form", form, ("prediction", "filtering"))
-            self.solver = one_of("solver", solver, tuple(self._SOLVERS))
-            self.solver_options = dict(options("solver_options", solver_options,
-                                               _SOLVER_OPTIONS[self.solver]) or {})
-            self.arrival_mean = one_of("arrival_mean", arrival_mean, ("estimate", "smoothed"))
-            self.arrival_weight = one_of("arrival_weight", arrival_weight, ("constant", "ekf"))
-            if P2 is not None and P0 is not None:
-                raise ValueError("P2, P0: give the arrival weight P2 or its covariance P0, not both")
-            self._eta = _check_eta(eta)
-            self._Q0, self._R0 = _covariance("Q0", Q0, n), _covariance("R0", R0, p)
-            self._P2 = (np.linalg.inv(_covariance("P0", P0, n)) if P0 is not None
-                        else symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True))
-            self.x_bounds = box("x_bounds", x_bounds, n)
-            self._parameters(p0, P_p0, p_bounds, p_drift)
-            x0 = self._check_x0(x0)
-            rust_solver = self._rust_solver() if self.solver == "gauss-newton" else None
-            lb, ub = self._core_bounds()
-            core_model = model._augment(self._p_scale) if self.dim_p else model
-            w = self._core_weights()
-            self._core = core_model._make_window(
-                w["eta"], w["q0"], w["r0"], w["p2_sqrt"], self.form == "filtering",
-                horizon=self.horizon,
-                x0=self._core_x0(x0), lower=lb, upper=ub, solver=rust_solver,
-                arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight)
-            self._core_model = core_model
-        self.reset(x0)
+        from gpmhe.models import KnownModel, LearnedModel
 
-    # ---- settings: weights that take effect, parameters, the attribute guard ---------------
+        if not isinstance(model, (KnownModel, LearnedModel)):
+            raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel, got "
+                             f"{type(model).__name__}")
+        dims = (model.dim_x, model.dim_y, model.dim_u, int(getattr(model, "dim_p", 0)))
+        settings = MHESettings.build(
+            dims, horizon=horizon, eta=eta, P2=P2, Q0=Q0, R0=R0, x_bounds=x_bounds, form=form,
+            solver=solver, solver_options=solver_options, P0=P0, arrival_mean=arrival_mean,
+            arrival_weight=arrival_weight, p0=p0, P_p0=P_p0, p_bounds=p_bounds, p_drift=p_drift)
+        self._init(model, settings, x0)
+
+    @classmethod
+    def _from_settings(cls, model, settings, x0):
+        """An estimator with validated ``settings`` (checkpoints, the bank's members)."""
+        est = cls.__new__(cls)
+        est._init(model, settings, x0)
+        return est
+
+    def _init(self, model, settings, x0):
+        x0, _ = settings.check_state(x0)
+        # The model the core runs: on [x; p̃] when the model has parameters.
+        core_model = model._augment(settings.p_scale) if settings.dims[3] else model
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "_settings", settings)
+        object.__setattr__(self, "_core_model", core_model)
+        object.__setattr__(self, "_core", _core.MovingHorizon(
+            core_model._stage_model(), x0=settings.core_state(x0), **settings.core_arguments()))
+
+    # ---- settings: one MHESettings value; the weights are settable -------------------------
     #: The attributes a user may set (each takes effect from the next update).
-    _SETTABLE = frozenset({"Q0", "R0", "P2", "P0", "eta"})
+    _SETTABLE = frozenset(WEIGHTS + ("P0",))
     #: Names users of other estimators try, and what to use instead.
     _DID_YOU_MEAN = {"R": "R0", "Q": "Q0", "P": "P0 (the arrival covariance)", "x0": "reset(x0)",
                      "M": "horizon (fixed: build a new GPMHE)", "N": "horizon (fixed)"}
 
     def __setattr__(self, name, value):
-        if name in self._SETTABLE or name.startswith("_") or self.__dict__.get("_unlocked"):
+        if name in self._SETTABLE:
+            self._set_weights(**{name: value})
+            return
+        if name.startswith("_"):  # the class's own (and tests') private attributes
             object.__setattr__(self, name, value)
             return
         hint = self._DID_YOU_MEAN.get(name)
@@ -421,147 +335,69 @@ class GPMHE:
                              f"{', '.join(sorted(self._SETTABLE))} (the other settings are fixed "
                              "at construction, the estimate changes only through update and reset)")
 
-    class _Unlock:
-        def __init__(self, owner):
-            self.owner = owner
-
-        def __enter__(self):
-            self.before = self.owner.__dict__.get("_unlocked", False)
-            object.__setattr__(self.owner, "_unlocked", True)
-
-        def __exit__(self, *exc):
-            object.__setattr__(self.owner, "_unlocked", self.before)
-
-    def _writing(self):
-        """A context in which the estimator's own code sets its read-only attributes."""
-        return self._Unlock(self)
+    def _set_weights(self, **changes):
+        """A new settings value with ``changes``; exactly the changed weights go to the core
+        (the others, and the arrival weight unless P2 changes, stay as they are). On error
+        nothing changes."""
+        settings, changed = self._settings.replace(**changes)
+        try:
+            self._core.set_weights(**settings.core_weights(changed))
+        except np.linalg.LinAlgError as e:
+            raise ValueError(f"{', '.join(changed)}: {e}") from None
+        object.__setattr__(self, "_settings", settings)
 
     @property
     def Q0(self):  # noqa: N802 (the paper's symbol)
         """Process-noise covariance Q0 (dim_x, dim_x); setting it takes effect from the next
-        update (a scalar, the diagonal or the matrix, as in the constructor)."""
-        return self._Q0.copy()
-
-    @Q0.setter
-    def Q0(self, value):  # noqa: N802
-        self._set_weights(Q0=_covariance("Q0", value, self.dim_x))
+        update (a scalar, the diagonal or the matrix, as in the constructor) and changes nothing
+        else."""
+        return self._settings.Q0.copy()
 
     @property
     def R0(self):  # noqa: N802
         """Output-noise covariance R0 (dim_y, dim_y); settable as ``Q0``."""
-        return self._R0.copy()
-
-    @R0.setter
-    def R0(self, value):  # noqa: N802
-        self._set_weights(R0=_covariance("R0", value, self.dim_y))
+        return self._settings.R0.copy()
 
     @property
     def P2(self):  # noqa: N802
         """Arrival weight P2 (dim_x, dim_x), the inverse of the arrival covariance ``P0``;
         setting it (or ``P0``) takes effect from the next update and restarts an "ekf" arrival
         weight from it."""
-        return self._P2.copy()
-
-    @P2.setter
-    def P2(self, value):  # noqa: N802
-        self._set_weights(P2=symmetric_matrix("P2", value, self.dim_x, definite=True))
+        return self._settings.P2.copy()
 
     @property
     def P0(self):  # noqa: N802
         """Arrival covariance P0 = P2⁻¹ (dim_x, dim_x); settable (sets P2)."""
-        return np.linalg.inv(self._P2)
-
-    @P0.setter
-    def P0(self, value):  # noqa: N802
-        self._set_weights(P2=np.linalg.inv(_covariance("P0", value, self.dim_x)))
+        return np.linalg.inv(self._settings.P2)
 
     @property
     def eta(self):
         """Discount factor η in [0, 1]; settable."""
-        return self._eta
+        return self._settings.eta
 
-    @eta.setter
-    def eta(self, value):
-        self._set_weights(eta=_check_eta(value))
-
-    def _set_weights(self, **new):
-        """Replace validated weights and hand exactly those to the core (the others, and the
-        arrival weight unless P2 changes, stay as they are); on error nothing changes."""
-        old = {key: getattr(self, "_" + key) for key in new}
-        for key, value in new.items():
-            object.__setattr__(self, "_" + key, value)
-        try:
-            self._core.set_weights(**self._core_weights(new))
-        except (ValueError, np.linalg.LinAlgError) as e:
-            for key, value in old.items():
-                object.__setattr__(self, "_" + key, value)
-            raise ValueError(str(e)) from None
-
-    def _parameters(self, p0, P_p0, p_bounds, p_drift):
-        """Validate the parameter settings (a model with dim_p > 0 needs p0)."""
-        k = self.dim_p
-        if not k:
-            for name, v in (("p0", p0), ("P_p0", P_p0), ("p_bounds", p_bounds), ("p_drift", p_drift)):
-                if v is not None:
-                    raise ValueError(f"{name}: the model has no parameters (dim_p = 0)")
-            self.p_bounds, self._p_scale = None, np.ones(0)
-            self.P_p0, self.p_drift = np.zeros((0, 0)), np.zeros(0)
-            return
-        if p0 is None:
-            raise ValueError(f"p0: required, the model has {k} parameter(s) (dim_p = {k})")
-        self.p0 = finite_vector("p0", p0, k, flatten=True).copy()
-        self.p_bounds = box("p_bounds", p_bounds, k)
-        if np.any(self.p0 < self.p_bounds[0]) or np.any(self.p0 > self.p_bounds[1]):
-            raise ValueError("p0: must lie inside p_bounds")
-        scale = np.abs(self.p0)
-        span = self.p_bounds[1] - self.p_bounds[0]
-        scale = np.where(scale > 0, scale, np.where(np.isfinite(span), span, 1.0))
-        self._p_scale = scale
-        self.P_p0 = _covariance("P_p0", np.diag(scale ** 2) if P_p0 is None else P_p0, k)
-        drift = 1e-4 * scale if p_drift is None else p_drift
-        self.p_drift = np.broadcast_to(positive("p_drift", drift), (k,)).astype(np.float64)
-
-    def _core_weights(self, names=("eta", "Q0", "R0", "P2")):
-        """The core's weights among ``names``: ``eta``, ``q0`` and ``r0`` (Q0 and R0: their
-        diagonals when diagonal, else flattened), ``p2_sqrt`` (S with P2 = SᵀS), all on the
-        augmented state [x; p̃] when the model has parameters."""
-        s = self._p_scale
-        flat = lambda a: np.ascontiguousarray(np.diag(a) if _is_diagonal(a) else a.reshape(-1))  # noqa: E731
-        out = {}
-        if "eta" in names:
-            out["eta"] = self._eta
-        if "Q0" in names:
-            Q0 = self._Q0
-            if self.dim_p:
-                Q0 = scipy.linalg.block_diag(Q0, np.diag((self.p_drift / s) ** 2))
-            out["q0"] = flat(Q0)
-        if "R0" in names:
-            out["r0"] = flat(self._R0) if self.dim_y else np.zeros(0)
-        if "P2" in names:
-            P2 = self._P2
-            if self.dim_p:
-                P2 = scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(self.P_p0) * s[None, :])
-            out["p2_sqrt"] = np.ascontiguousarray(np.linalg.cholesky(P2).T)
-        return out
-
-    def _core_bounds(self):
-        lb, ub = self.x_bounds
-        if self.dim_p:
-            plb, pub = self.p_bounds
-            lb, ub = np.concatenate([lb, plb / self._p_scale]), np.concatenate([ub, pub / self._p_scale])
-        return lb, ub
-
-    def _check_x0(self, x0):
-        x0 = finite_vector("x0", x0, self.dim_x, flatten=True).copy()
-        lb, ub = self.x_bounds
-        if np.any(x0 < lb) or np.any(x0 > ub):
-            raise ValueError("x0: must lie inside x_bounds")
-        return x0
-
-    def _core_x0(self, x0, p=None):
-        if not self.dim_p:
-            return x0
-        return np.concatenate([x0, (self.p0 if p is None else p) / self._p_scale])
+    dim_x = property(lambda self: self._settings.dims[0], doc="The model's state dimension n.")
+    dim_y = property(lambda self: self._settings.dims[1], doc="The model's output dimension p.")
+    dim_u = property(lambda self: self._settings.dims[2], doc="The model's input dimension m.")
+    dim_p = property(lambda self: self._settings.dims[3], doc="The number of parameters.")
+    horizon = property(lambda self: self._settings.horizon, doc="The window length M.")
+    form = property(lambda self: self._settings.form, doc='"prediction" or "filtering".')
+    solver = property(lambda self: self._settings.solver, doc="The window solver.")
+    solver_options = property(lambda self: dict(self._settings.solver_options),
+                              doc="The solver options given (a copy).")
+    arrival_mean = property(lambda self: self._settings.arrival_mean,
+                            doc='The arrival mean, "smoothed" or "estimate".')
+    arrival_weight = property(lambda self: self._settings.arrival_weight,
+                              doc='The arrival weight, "ekf" or "constant".')
+    x_bounds = property(lambda self: tuple(b.copy() for b in self._settings.x_bounds),
+                        doc="The state box (lower, upper), ±inf where unbounded.")
+    p0 = property(lambda self: self._settings.p0.copy(), doc="The parameters' initial guess.")
+    P_p0 = property(lambda self: self._settings.P_p0.copy(),  # noqa: N815
+                    doc="The parameters' prior covariance.")
+    p_bounds = property(lambda self: None if self._settings.p_bounds is None
+                        else tuple(b.copy() for b in self._settings.p_bounds),
+                        doc="The parameters' bounds (lower, upper), or None.")
+    p_drift = property(lambda self: self._settings.p_drift.copy(),
+                       doc="The parameters' random-walk standard deviation per step.")
 
     def reset(self, x0, p0=None):
         """Forget the history and restart from the estimate x̂(0) = x0.
@@ -593,14 +429,8 @@ class GPMHE:
         >>> mhe.t, mhe.x
         (0, array([2.]))
         """
-        x0 = self._check_x0(x0)
-        if p0 is not None:
-            if not self.dim_p:
-                raise ValueError("p0: the model has no parameters (dim_p = 0)")
-            p0 = finite_vector("p0", p0, self.dim_p, flatten=True).copy()
-            if np.any(p0 < self.p_bounds[0]) or np.any(p0 > self.p_bounds[1]):
-                raise ValueError("p0: must lie inside p_bounds")
-        self._core.reset(self._core_x0(x0, p0))
+        x0, p0 = self._settings.check_state(x0, p0)
+        self._core.reset(self._settings.core_state(x0, p0))
 
     # ---- the estimate and what the last update reported: read from the core ------------------
     # The core records an update in one step (or not at all), so these never disagree.
@@ -638,12 +468,12 @@ class GPMHE:
         """The estimate of the parameters (dim_p,) (empty without parameters)."""
         if not self.dim_p:
             return np.zeros(0)
-        return self._core.x[self.dim_x:] * self._p_scale
+        return self._core.x[self.dim_x:] * self._settings.p_scale
 
     @property
     def P_p(self):  # noqa: N802
         """The covariance of ``p`` (dim_p, dim_p)."""
-        n, s = self.dim_x, self._p_scale
+        n, s = self.dim_x, self._settings.p_scale
         if not self.dim_p:
             return np.zeros((0, 0))
         return s[:, None] * self._core.covariance[n:, n:] * s[None, :]
@@ -702,7 +532,7 @@ class GPMHE:
         and u, against u shifted in every entry (a model is a function of (x, u))."""
         known = self.__dict__.get("_h_uses_u")
         if known is None:
-            x = self._core_x0(self.x, self.p) if self.dim_p else self.x
+            x = self._settings.core_state(self.x, self.p)
             shifted = u + 1e-3 * (1.0 + np.abs(u))
             d = np.vstack([np.concatenate([x, u]), np.concatenate([x, shifted])])
             y0, y1 = self._core_model.stage_eval(d)[4]
@@ -874,8 +704,12 @@ class GPMHE:
             return
         try:
             z0, lb, ub = core.prepare(u, y)
-            z, cost, success, nit, message = self._solve(core, z0, lb, ub)
-            core.commit(z, cost, success, nit, message, self._window_covariance(core, z))
+            z, cost, success, nit, message = solvers.solve(
+                self.solver, self._settings.solver_options, core, z0, lb, ub)
+            if not success:  # (before the record: as an error it leaves nothing changed)
+                self._warn(message, core.t, stacklevel=5)
+            P = solvers.window_covariance(core, z, self.dim_x + self.dim_p)
+            core.commit(z, cost, success, nit, message, P)
         except BaseException:
             core.abandon()  # the model's cache as before prepare: as if never started
             raise
@@ -887,145 +721,7 @@ class GPMHE:
                       f"{message}; keeping the better of its last iterate and the warm start",
                       RuntimeWarning, stacklevel=stacklevel)
 
-    def _window_covariance(self, window, z):
-        """The last block of 4 H⁻¹ at z for the SciPy paths (the Rust solve returns the same
-        block from its block-tridiagonal factorisation); None if H is singular."""
-        n = self.dim_x + self.dim_p
-        H = window.gn_hessian(z)
-        try:
-            Hinv_last = np.linalg.solve(H, np.eye(len(z))[:, -n:])[-n:]
-            P = 4.0 * 0.5 * (Hinv_last + Hinv_last.T)
-        except np.linalg.LinAlgError:
-            return None
-        return P if np.all(np.isfinite(P)) else None
-
-    # ---- solvers: one method per solver, dispatched through _SOLVERS ------------------------
-    def _solve(self, window, z0, lb, ub):
-        """The SciPy paths: solve from z0, keep the better of the result and z0."""
-        cost0 = window.cost(z0)
-        try:
-            z, nit, ok, message = getattr(self, self._SOLVERS[self.solver])(window, z0, lb, ub)
-            z = np.clip(np.asarray(z, dtype=np.float64), lb, ub)
-            cost = window.cost(z) if np.all(np.isfinite(z)) else np.inf
-        except (ValueError, ArithmeticError, np.linalg.LinAlgError, RuntimeError) as e:
-            z, nit, ok, message, cost = z0, 0, False, f"solver raised: {e}", np.inf
-        if not np.isfinite(cost) or (cost0 is not None and cost > cost0):
-            cost0 = window.cost(z0) if cost0 is None else cost0
-            if ok:
-                message = f"solver returned a point costlier than its start ({message})"
-            z, cost, ok = z0.copy(), cost0, False
-        if not ok:  # (before the core records the step: as an error, it leaves nothing changed)
-            self._warn(message, self.t, stacklevel=6)  # 6: past `exclusive`
-        return z, float(cost), bool(ok), int(nit), str(message)
-
-    def _solve_trust_constr(self, window, z0, lb, ub):
-        """SciPy's interior-point method, stopped by the Gauss-Newton decrement (see
-        `_gn_decrement` and the user guide, *The SciPy reference solvers*)."""
-        options = dict(gtol=1e-6, xtol=1e-8, maxiter=200, initial_barrier_parameter=0.1)
-        options.update(self.solver_options)
-        dtol = options.pop("dtol", 1e-4)
-        stop = {}
-
-        def decrement_stop(xk, state):
-            # SciPy's (xk, state) callback of "trust-constr" (every SciPy >= 1.10): True stops
-            # the solve with status 3. Not while the barrier steers the iterates away from the
-            # bounds (and from the bound-pinned local minima there). Without finite bounds SciPy
-            # runs its SQP method, which has no barrier.
-            if not getattr(state, "barrier_parameter", 0.0) <= _TC_DECREMENT_BARRIER:
-                return False
-            z = np.clip(xk, lb, ub)
-            decrement, step, cost = _gn_decrement(window, z, lb, ub)
-            # SciPy's barrier method creeps along flat directions close to a bound; a few
-            # projected Gauss-Newton steps from its iterate (each must lower J) finish there.
-            for k in range(_TC_GN_STEPS + 1):
-                if decrement <= dtol:
-                    stop.update(z=z, decrement=decrement, steps=k)
-                    return True
-                if k == _TC_GN_STEPS or step is None:
-                    return False
-                z_new = np.clip(z + step, lb, ub)
-                decrement_new, step_new, cost_new = _gn_decrement(window, z_new, lb, ub)
-                if not cost_new < cost:
-                    return False
-                z, decrement, step, cost = z_new, decrement_new, step_new, cost_new
-            return False
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "delta_grad == 0.0" chatter
-            res = minimize(window.cost_grad, z0, jac=True, hess=window.gn_hessian,
-                           method="trust-constr", bounds=Bounds(lb, ub), options=options,
-                           callback=decrement_stop if dtol > 0 else None)
-        if stop:  # SciPy's status 3, stopped by the callback: this success
-            barrier = getattr(res, "barrier_parameter", None)
-            message = (f"decrement-tolerance (Gauss-Newton decrement {stop['decrement']:.2e} "
-                       f"after {stop['steps']} Gauss-Newton steps"
-                       + ("" if barrier is None else f", barrier parameter {barrier:.1e}") + ")")
-            return stop["z"], res.nit, True, message
-        return res.x, res.nit, res.status in (1, 2), res.message
-
-    def _solve_least_squares(self, window, z0, lb, ub):
-        options = dict(ftol=1e-10, xtol=1e-10, gtol=1e-10, max_nfev=200)
-        options.update(self.solver_options)
-        res = least_squares(window.residuals, z0, jac=window.jacobian, bounds=(lb, ub),
-                            method="trf", **options)
-        return res.x, res.nfev, res.status > 0, res.message
-
-    def _rust_solver(self):
-        """The Rust solver settings, validating solver_options."""
-        try:
-            return _core.WindowSolver(**self.solver_options)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"solver_options: {e}") from None
-
-    _SOLVERS = {
-        "gauss-newton": None,  # the Rust core's own solver: `_core.MovingHorizon.update`
-        "trust-constr": "_solve_trust_constr",
-        "least-squares": "_solve_least_squares",
-    }
-
     # ---- checkpoints: save and load ---------------------------------------------------------
-    @staticmethod
-    def _read_outcome(f, n, k, scale):
-        """The core's record of the last update (core_outcome_*) in a file of format >= 3."""
-        na = n + k
-        return {"outcome_x_prior": f.floats("core_outcome_x_prior", (na,)),
-                "outcome_P": f.floats("core_outcome_P", (na, na)),
-                "outcome_cost": f.float("core_outcome_cost"),
-                "outcome_success": f.boolean("core_outcome_success"),
-                "outcome_nit": f.integer("core_outcome_nit"),
-                "outcome_nfev": f.integer("core_outcome_nfev"),
-                "outcome_projected_gradient": f.float("core_outcome_projected_gradient"),
-                "outcome_message": f.string("core_outcome_message"),
-                "outcome_input_pending": f.boolean("core_outcome_input_pending")}
-
-    @staticmethod
-    def _outcome_of_format2(f, t_core, n, k, scale):
-        """The core's record of the last update from the attributes a file of format 1 or 2
-        saved beside the core's state (P and P_p become the blocks of the augmented
-        covariance; their cross-covariance was not saved and is zero)."""
-        t = f.integer("t")
-        if t != t_core:
-            raise f.error("core_t", f"is {t_core} but entry 't' is {t}")
-        P = f.floats("P", (n, n))
-        x_prior = f.floats("x_prior", (n,))
-        if k:
-            P = scipy.linalg.block_diag(P, f.floats("P_p", (k, k)) / np.outer(scale, scale))
-            x_prior = np.concatenate([x_prior, f.floats("p", (k,)) / scale])
-        return {"outcome_x_prior": x_prior, "outcome_P": np.ascontiguousarray(P),
-                "outcome_cost": f.float("cost"), "outcome_success": f.boolean("success"),
-                "outcome_nit": f.integer("nit"), "outcome_nfev": f.integer("nfev"),
-                "outcome_projected_gradient": f.float("projected_gradient"),
-                "outcome_message": f.string("message"),
-                "outcome_input_pending": (f.boolean("input_pending") if f.version >= 2
-                                          else False)}
-
-    # (Copies and pickles need no code here: the Rust core copies and pickles itself with its
-    # whole state; its model's GPs are shared, not copied.)
-
-    # 2: arrival cost, full weights, parameters, pending input; 3: the estimate and the last
-    # update's report only in the core's state (core_outcome_*), not also as attributes.
-    _CHECKPOINT_VERSION = 3
-
     def save(self, path):
         """Write the estimator's whole state (settings, history, attributes) to an ``.npz`` file.
 
@@ -1069,26 +765,7 @@ class GPMHE:
         >>> bool(np.array_equal(a, b))
         True
         """
-        import json
-
-        try:
-            options = json.dumps(self.solver_options)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"solver_options: cannot be saved ({e})") from None
-        core = self._core.__getstate__()
-        lb, ub = self.x_bounds
-        k = self.dim_p
-        parameters = {} if not k else dict(
-            p0=self.p0, P_p0=self.P_p0, p_lower=self.p_bounds[0], p_upper=self.p_bounds[1],
-            p_drift=self.p_drift)
-        np.savez(
-            path, kind="GPMHE", format_version=self._CHECKPOINT_VERSION,
-            model_kind=type(self.model).__name__, dim_x=self.dim_x, dim_y=self.dim_y,
-            dim_u=self.dim_u, dim_p=k, horizon=self.horizon, eta=self.eta, P2=self.P2,
-            Q0=self.Q0, R0=self.R0, x_lower=lb, x_upper=ub, form=self.form, solver=self.solver,
-            solver_options=options, arrival_mean=self.arrival_mean,
-            arrival_weight=self.arrival_weight, **parameters,
-            **{"core_" + key: value for key, value in core.items()})
+        checkpoint.save(self, path)
 
     @classmethod
     def load(cls, path, model):
@@ -1135,64 +812,4 @@ class GPMHE:
         >>> loaded.t, bool(np.array_equal(loaded.x, mhe.x))
         (1, True)
         """
-        import json
-
-        from gpmhe._npz import NpzReader
-
-        with NpzReader(path, "GPMHE", cls._CHECKPOINT_VERSION) as f:
-            f.allow_nonfinite = ("x_lower", "x_upper", "p_lower", "p_upper", "cost",
-                                 "projected_gradient", "core_outcome_cost",
-                                 "core_outcome_projected_gradient")
-            v2 = f.version >= 2
-            kind = f.string("model_kind")
-            if kind not in ("LearnedModel", "KnownModel"):
-                raise f.error("model_kind", f"must be 'LearnedModel' or 'KnownModel', got {kind!r}")
-            if type(model).__name__ != kind:
-                raise ValueError(f"model: the file {f.name} was saved with a {kind} (entry "
-                                 f"'model_kind'), got {type(model).__name__}")
-            n, p, m = (f.integer(key) for key in ("dim_x", "dim_y", "dim_u"))
-            k = f.integer("dim_p") if v2 else 0
-            if (getattr(model, "dim_x", None), getattr(model, "dim_y", None),
-                    getattr(model, "dim_u", None), getattr(model, "dim_p", 0)) != (n, p, m, k):
-                raise ValueError(f"model: the file {f.name} was saved with dim_x={n}, "
-                                 f"dim_y={p}, dim_u={m}, dim_p={k}")
-            settings = dict(
-                horizon=f.integer("horizon", low=1), eta=f.float("eta"),
-                P2=f.floats("P2", (n, n)), Q0=f.floats("Q0", (n, n)),
-                R0=f.floats("R0", (p, p)) if p else None, form=f.string("form"),
-                solver=f.string("solver"))
-            if v2:
-                settings.update(arrival_mean=f.string("arrival_mean"),
-                                arrival_weight=f.string("arrival_weight"))
-            if k:
-                settings.update(p0=f.floats("p0", (k,)), P_p0=f.floats("P_p0", (k, k)),
-                                p_bounds=(f.floats("p_lower", (k,)), f.floats("p_upper", (k,))),
-                                p_drift=f.floats("p_drift", (k,)))
-            lb, ub = f.floats("x_lower", (n,)), f.floats("x_upper", (n,))
-            try:
-                options = json.loads(f.string("solver_options"))
-            except ValueError as e:
-                raise f.error("solver_options", f"is not valid ({e})") from None
-            try:
-                mhe = cls(model, x0=np.clip(np.zeros(n), lb, ub), x_bounds=(lb, ub),
-                          solver_options=options, **settings)
-            except ValueError as e:
-                raise ValueError(f"path: {f.name}: the saved settings are invalid ({e})") from None
-            na = n + k
-            state = {"t": f.integer("core_t"), "window_t0": f.integer("core_window_t0"),
-                     "present": f.array("core_present", "b", (None,))}
-            for key, cols in (("u", m), ("y", p), ("priors", na), ("x_window", na)):
-                state[key] = f.floats("core_" + key, (None, cols))
-            if v2:
-                state["arrival_sqrt"] = f.floats("core_arrival_sqrt", (na, na))
-            if kind == "LearnedModel":
-                for key in ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y",
-                            "dmean_y", "dvar_y"):
-                    state["cache_" + key] = f.floats("core_cache_" + key, (None,))
-            state.update(cls._read_outcome(f, n, k, mhe._p_scale) if f.version >= 3
-                         else cls._outcome_of_format2(f, state["t"], n, k, mhe._p_scale))
-            try:
-                mhe._core.__setstate__(state)
-            except ValueError as e:
-                raise f.state_error("core_", e) from None
-        return mhe
+        return checkpoint.load(cls, path, model)

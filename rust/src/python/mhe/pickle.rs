@@ -1,0 +1,183 @@
+//! Copies, pickles and checkpoints of a `MovingHorizon`: its whole state as a dict of plain
+//! values (numbers, strings, float64 and bool arrays) and back, every entry checked on the way
+//! in (a ValueError names it).
+
+use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use super::stage_model::Model;
+use crate::mhe::{GpStageModel, HistoryState, MovingHorizon, Outcome, GP_CACHE_PARTS};
+use crate::python::convert::array2;
+
+/// The float64 array `state[key]` with `cols` columns (2-D), as a flat row-major vector; a
+/// ValueError naming the entry otherwise.
+fn state_rows(state: &Bound<'_, PyDict>, key: &str, cols: usize) -> PyResult<Vec<f64>> {
+    let a = state_item(state, key)?;
+    let a = a
+        .cast::<PyArrayDyn<f64>>()
+        .map_err(|_| PyValueError::new_err(format!("{key}: must be a float64 array")))?;
+    if a.ndim() != 2 || a.shape()[1] != cols {
+        return Err(PyValueError::new_err(format!(
+            "{key}: must have shape (rows, {cols}), got {:?}",
+            a.shape()
+        )));
+    }
+    Ok(a.readonly().as_array().iter().copied().collect())
+}
+
+/// The 1-D float64 array `state[key]` as a vector; a ValueError naming the entry otherwise.
+fn state_rows_1d(state: &Bound<'_, PyDict>, key: &str) -> PyResult<Vec<f64>> {
+    let a = state_item(state, key)?;
+    let a = a
+        .cast::<PyArrayDyn<f64>>()
+        .map_err(|_| PyValueError::new_err(format!("{key}: must be a float64 array")))?;
+    if a.ndim() != 1 {
+        return Err(PyValueError::new_err(format!("{key}: must be 1-D")));
+    }
+    Ok(a.readonly().as_array().iter().copied().collect())
+}
+
+fn state_item<'py>(state: &Bound<'py, PyDict>, key: &str) -> PyResult<Bound<'py, PyAny>> {
+    state
+        .get_item(key)?
+        .ok_or_else(|| PyValueError::new_err(format!("{key}: missing from the state")))
+}
+
+fn state_usize(state: &Bound<'_, PyDict>, key: &str) -> PyResult<usize> {
+    state_item(state, key)?
+        .extract::<usize>()
+        .map_err(|_| PyValueError::new_err(format!("{key}: must be a non-negative integer")))
+}
+
+/// The estimator's state as a dict of plain values: the history (`t`, `window_t0` (ints), `u`
+/// (rows, m), `y` (rows, p), `present` (rows,) bool, `priors` (k, n), `x_window` (nodes, n),
+/// `arrival_sqrt` (n, n)), the last update's report (`outcome_*`, see `outcome_items`) and, for
+/// the learned model, its evaluation cache (`cache_*`).
+pub(super) fn get_state<'py>(
+    py: Python<'py>,
+    core: &MovingHorizon,
+    model: &Model,
+) -> PyResult<Bound<'py, PyDict>> {
+    let s = core.history_state();
+    let p = core.problem();
+    let (n, m, dy) = (p.dim_x(), p.dim_u(), p.dim_y());
+    let rows = s.present.len();
+    let d = PyDict::new(py);
+    d.set_item("t", s.t)?;
+    d.set_item("window_t0", s.window_t0)?;
+    d.set_item("u", array2(py, s.u, rows, m)?)?;
+    d.set_item("y", array2(py, s.y, rows, dy)?)?;
+    d.set_item("present", PyArray1::from_vec(py, s.present))?;
+    let k = s.priors.len() / n;
+    d.set_item("priors", array2(py, s.priors, k, n)?)?;
+    let nodes = s.x_window.len() / n;
+    d.set_item("x_window", array2(py, s.x_window, nodes, n)?)?;
+    d.set_item("arrival_sqrt", array2(py, s.arrival_sqrt, n, n)?)?;
+    outcome_items(py, &d, s.outcome, n)?;
+    if let Model::Gp(gp) = model {
+        for (name, part) in GP_CACHE_PARTS.iter().zip(gp.cache()) {
+            d.set_item(format!("cache_{name}"), PyArray1::from_vec(py, part))?;
+        }
+    }
+    Ok(d)
+}
+
+/// Restores `get_state`'s dict into `core`; returns the learned model with the restored cache
+/// (None for a callback model). Every entry is checked (a ValueError names it); on error
+/// nothing changes.
+pub(super) fn set_state(
+    state: &Bound<'_, PyDict>,
+    core: &mut MovingHorizon,
+    model: &Model,
+) -> PyResult<Option<GpStageModel>> {
+    let p = core.problem();
+    let (n, m, dy) = (p.dim_x(), p.dim_u(), p.dim_y());
+    let present = state_item(state, "present")?;
+    let present = present
+        .cast::<PyArrayDyn<bool>>()
+        .map_err(|_| PyValueError::new_err("present: must be a bool array"))?;
+    if present.ndim() != 1 {
+        return Err(PyValueError::new_err("present: must be 1-D"));
+    }
+    let s = HistoryState {
+        t: state_usize(state, "t")?,
+        u: state_rows(state, "u", m)?,
+        y: state_rows(state, "y", dy)?,
+        present: present.readonly().as_array().iter().copied().collect(),
+        priors: state_rows(state, "priors", n)?,
+        x_window: state_rows(state, "x_window", n)?,
+        window_t0: state_usize(state, "window_t0")?,
+        // States saved before the arrival weight was recorded ran with P2.
+        arrival_sqrt: match state.contains("arrival_sqrt")? {
+            true => state_rows(state, "arrival_sqrt", n)?,
+            false => p.p2_sqrt().to_vec(),
+        },
+        outcome: read_outcome(state, core.history().outcome(), n)?,
+    };
+    // The learned model's cache of the last evaluation (see `GpStageModel::cache`).
+    let gp = match model {
+        Model::Gp(gp) => {
+            let mut parts: [Vec<f64>; 9] = Default::default();
+            for (part, name) in parts.iter_mut().zip(GP_CACHE_PARTS) {
+                *part = state_rows_1d(state, &format!("cache_{name}"))?;
+            }
+            let mut gp = (**gp).clone();
+            gp.set_cache(parts)
+                .map_err(|e| PyValueError::new_err(format!("cache_{e}")))?;
+            Some(gp)
+        }
+        Model::Callback { .. } => None,
+    };
+    core.set_history_state(s)?;
+    Ok(gp)
+}
+
+/// Writes `outcome` into a state dict as `outcome_x_prior`, `outcome_P`, `outcome_cost`,
+/// `outcome_success`, `outcome_nit`, `outcome_nfev`, `outcome_projected_gradient`,
+/// `outcome_message` and `outcome_input_pending`.
+fn outcome_items(py: Python<'_>, d: &Bound<'_, PyDict>, o: Outcome, n: usize) -> PyResult<()> {
+    d.set_item("outcome_x_prior", PyArray1::from_vec(py, o.x_prior))?;
+    d.set_item("outcome_P", array2(py, o.covariance, n, n)?)?;
+    d.set_item("outcome_cost", o.cost)?;
+    d.set_item("outcome_success", o.success)?;
+    d.set_item("outcome_nit", o.nit)?;
+    d.set_item("outcome_nfev", o.nfev)?;
+    d.set_item("outcome_projected_gradient", o.projected_gradient)?;
+    d.set_item("outcome_message", o.message)?;
+    d.set_item("outcome_input_pending", o.input_pending)?;
+    Ok(())
+}
+
+/// The outcome in a state dict (see `outcome_items`); a state without one (saved before
+/// estimators recorded it) keeps `current`. An entry of the wrong type is a ValueError naming
+/// it; the values are checked by `HistoryState`'s restore.
+fn read_outcome(state: &Bound<'_, PyDict>, current: &Outcome, n: usize) -> PyResult<Outcome> {
+    if !state.contains("outcome_x_prior")? {
+        return Ok(current.clone());
+    }
+    let item = |key: &str| state_item(state, key);
+    let typed = |key: &str, what: &str| PyValueError::new_err(format!("{key}: must be {what}"));
+    Ok(Outcome {
+        x_prior: state_rows_1d(state, "outcome_x_prior")?,
+        covariance: state_rows(state, "outcome_P", n)?,
+        cost: item("outcome_cost")?
+            .extract()
+            .map_err(|_| typed("outcome_cost", "a number"))?,
+        success: item("outcome_success")?
+            .extract()
+            .map_err(|_| typed("outcome_success", "a bool"))?,
+        nit: state_usize(state, "outcome_nit")?,
+        nfev: state_usize(state, "outcome_nfev")?,
+        projected_gradient: item("outcome_projected_gradient")?
+            .extract()
+            .map_err(|_| typed("outcome_projected_gradient", "a number"))?,
+        message: item("outcome_message")?
+            .extract()
+            .map_err(|_| typed("outcome_message", "a string"))?,
+        input_pending: item("outcome_input_pending")?
+            .extract()
+            .map_err(|_| typed("outcome_input_pending", "a bool"))?,
+    })
+}
