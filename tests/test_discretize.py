@@ -226,7 +226,7 @@ def test_from_ode_numpy_argument_errors():
 def test_missing_casadi_raises_import_error(monkeypatch):
     ca = pytest.importorskip("casadi")
     F = vdp_casadi()
-    monkeypatch.setattr("gpmhe.discretization.is_casadi_function", lambda obj: isinstance(obj, ca.Function))
+    monkeypatch.setattr("gpmhe.models.discretization.is_casadi_function", lambda obj: isinstance(obj, ca.Function))
     monkeypatch.setitem(__import__("sys").modules, "casadi", None)
     with pytest.raises(ImportError, match=r"discretize with a CasADi rhs needs CasADi .*pip install casadi"):
         discretize(F, 0.1)

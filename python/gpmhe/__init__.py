@@ -27,7 +27,7 @@ from gpmhe.diagnostics import FitDiagnostics, FitWarning
 from gpmhe.sparse import SparseGaussianProcess, SparseMultiOutputGP
 from gpmhe.mhe import GPMHE, EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
-from gpmhe.discretization import DiscreteDynamics, discretize
+from gpmhe.models.discretization import DiscreteDynamics, discretize
 from gpmhe.rgp import RGPEKF, RecursiveGP
 from gpmhe.study import monte_carlo
 

@@ -210,7 +210,7 @@ def casadi_functions():
     >>> bool(np.allclose(np.array(F(x, u)).ravel(), cp.rhs(x, u), rtol=1e-14))
     True
     """
-    from gpmhe._casadi import import_casadi
+    from gpmhe.models.casadi import import_casadi
 
     ca = import_casadi("gpmhe.systems.cart_pole.casadi_functions")
     x, u = ca.SX.sym("x", DIM_X), ca.SX.sym("u", DIM_U)
@@ -256,7 +256,7 @@ def known_model(backend="casadi", jacobian="exact", substeps=SUBSTEPS, jit=False
     >>> bool(np.allclose(exact.stage_eval(d)[2], fd.stage_eval(d)[2], atol=1e-7))
     True
     """
-    from gpmhe.discretization import discretize
+    from gpmhe.models.discretization import discretize
     from gpmhe.models import KnownModel
 
     if backend == "casadi":
@@ -311,7 +311,7 @@ def simulate(steps, rng, x0=X0, sigma_w=SIGMA_W, sigma_v=SIGMA_V, substeps=SUBST
     >>> bool(np.abs(u).max() <= cp.F_MAX)
     True
     """
-    from gpmhe.discretization import discretize
+    from gpmhe.models.discretization import discretize
 
     rng = np.random.default_rng(rng)
     f = discretize(rhs, T, substeps=substeps)

@@ -264,7 +264,7 @@ def casadi_functions(theta1=THETA1):
     >>> bool(np.allclose(np.array(F(x, u, 1e-4)).ravel(), rm.rhs(x, u, theta1=1e-4)))
     True
     """
-    from gpmhe._casadi import import_casadi
+    from gpmhe.models.casadi import import_casadi
 
     ca = import_casadi("gpmhe.systems.rotating_masses.casadi_functions")
     x, u = ca.SX.sym("x", DIM_X), ca.SX.sym("u", DIM_U)
@@ -404,7 +404,7 @@ def simulate(steps=STEPS, rng=None, x0=X0, theta1=THETA1, sigma_v=SIGMA_V, subst
     >>> x.shape, u.shape, y.shape
     ((51, 8), (51, 2), (51, 3))
     """
-    from gpmhe.discretization import discretize
+    from gpmhe.models.discretization import discretize
 
     rng = np.random.default_rng(rng)
     u = random_inputs(steps, rng)

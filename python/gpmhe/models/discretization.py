@@ -133,7 +133,7 @@ def discretize(rhs, dt, substeps=1, method="rk4", rhs_jacobian=None, fd_step=1e-
 
 def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter):
     """The discrete map of a CasADi rhs(x[, u]) as a CasADi Function with rhs's inputs."""
-    from gpmhe._casadi import _vec_call, import_casadi, signature
+    from gpmhe.models.casadi import _vec_call, import_casadi, signature
 
     ca = import_casadi("discretize with a CasADi rhs")
     n, m, n_out = signature(ca, "rhs", rhs)

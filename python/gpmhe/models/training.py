@@ -125,7 +125,7 @@ class Zero:
 
 def nominal_model(f_nominal, h_nominal, n, p, m, options):
     """The KnownModel of the nominal f0, h0 (zero where None), or None when both are None."""
-    from gpmhe.models import KnownModel
+    from gpmhe.models.known import KnownModel
 
     if f_nominal is None and h_nominal is None:
         if options:
