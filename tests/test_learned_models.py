@@ -15,7 +15,7 @@ import scipy.optimize
 
 from conftest import reactor_known_model
 from gpmhe import GPMHE, GaussianProcess, LearnedModel, MultiOutputGP, _core
-from gpmhe.diagnostics import FitWarning
+from gpmhe.gp.diagnostics import FitWarning
 from gpmhe.systems import batch_reactor as br
 
 RNG = np.random.default_rng(3)

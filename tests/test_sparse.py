@@ -190,7 +190,7 @@ def test_leave_one_out_errors_match_a_dense_computation(method):
     """diagnostics() of a sparse GP: the closed-form LOO of the model y ~ N(0, Qff + Lambda),
     computed block by block in O(N m^2), against a dense inverse of that covariance (and against
     the exact GP's LOO when Z = D)."""
-    from gpmhe.diagnostics import sparse_loo
+    from gpmhe.gp.diagnostics import sparse_loo
 
     D, y, theta, Z = problem(60, 2, 8, m=12)
     Kuu, _ = kern(Z, Z, theta)

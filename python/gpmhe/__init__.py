@@ -22,9 +22,8 @@ See the user guide, starting with *Notation*.
 """
 
 from gpmhe._core import NumericalError
-from gpmhe.gp import ConvergenceWarning, GaussianProcess, MultiOutputGP, NotFittedError
-from gpmhe.diagnostics import FitDiagnostics, FitWarning
-from gpmhe.sparse import SparseGaussianProcess, SparseMultiOutputGP
+from gpmhe.gp import (ConvergenceWarning, FitDiagnostics, FitWarning, GaussianProcess,
+                      MultiOutputGP, NotFittedError, SparseGaussianProcess, SparseMultiOutputGP)
 from gpmhe.mhe import GPMHE, EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.models.discretization import DiscreteDynamics, discretize

@@ -134,7 +134,7 @@ def select_inducing(
 
 # ===== RGP =====
 # Recursive GP and RGP-dKF kernels (rust/src/rgp/); the public classes are gpmhe.RecursiveGP and
-# gpmhe.RGPEKF in gpmhe/rgp.py. Arrays are float64, C-contiguous.
+# gpmhe.RGPEKF in gpmhe/rgp/ekf.py. Arrays are float64, C-contiguous.
 
 class RecursiveGPCore:
     def __init__(

@@ -203,7 +203,7 @@ class LearnedModel(SharedOnCopy):
             Use at most this many regression points per GP (evenly spaced over the data);
             exact GPs cost O(N³) to fit and O(N²) per window point.
         warn : bool, default True
-            Warn (`gpmhe.diagnostics.FitWarning`) when a fitted GP sits at a bound, has
+            Warn (`gpmhe.FitWarning`) when a fitted GP sits at a bound, has
             collapsed or is miscalibrated (see `diagnostics`).
         **gp_options
             Passed to both `MultiOutputGP` constructors (e.g. ``n_restarts``, ``random_state``,
@@ -257,7 +257,7 @@ class LearnedModel(SharedOnCopy):
         ('SparseMultiOutputGP', [6, 6])
         """
         from gpmhe.gp import MultiOutputGP
-        from gpmhe.sparse import SparseMultiOutputGP
+        from gpmhe.gp import SparseMultiOutputGP
 
         if _SPARSE_OPTIONS & set(gp_options):
             MultiOutputGP = SparseMultiOutputGP  # noqa: N806 (the class both GPs are built with)
@@ -386,7 +386,7 @@ class LearnedModel(SharedOnCopy):
     # ---- diagnostics -------------------------------------------------------------------------
     def diagnostics(self):
         """Fit diagnostics of every GP: ``{"f": [...], "h": [...]}``, one
-        `gpmhe.diagnostics.FitDiagnostics` per state and per output (see
+        `gpmhe.FitDiagnostics` per state and per output (see
         `MultiOutputGP.diagnostics`).
 
         Returns
@@ -422,7 +422,7 @@ class LearnedModel(SharedOnCopy):
         >>> print(model.summary().splitlines()[0])
         f-GPs (mean="linear", N=90)
         """
-        from gpmhe.diagnostics import summary_table
+        from gpmhe.gp.diagnostics import summary_table
 
         parts = [summary_table(f'f-GPs (mean="{self.f_gp.mean}", N={self.f_gp._D.shape[0]})',
                                self.f_gp.diagnostics(), [f"x{i + 1}" for i in range(self.dim_x)])]
@@ -434,7 +434,7 @@ class LearnedModel(SharedOnCopy):
     def _warn_problems(self):
         import warnings
 
-        from gpmhe.diagnostics import FitWarning
+        from gpmhe.gp.diagnostics import FitWarning
 
         found = [f"{kind}-GP {i + 1}: {problem}" for kind, diags in self.diagnostics().items()
                  for i, dg in enumerate(diags) for problem in dg.warnings]
@@ -548,7 +548,7 @@ class LearnedModel(SharedOnCopy):
         import io
 
         from gpmhe.gp import MultiOutputGP
-        from gpmhe.sparse import SparseMultiOutputGP
+        from gpmhe.gp import SparseMultiOutputGP
 
         # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
         # Files of gpmhe <= 0.1 have no format version.

@@ -15,7 +15,7 @@ LEARNED_DEFAULTS = dict(mean="linear", normalize=True, hyperprior="default")
 
 #: Its settings with a nominal model (f_nominal or h_nominal): the nominal model is the prior
 #: mean, and the residual is assumed small next to the noise and smooth over the operating range
-#: (`gpmhe._priors`, ``RESIDUAL_HYPERPRIOR``).
+#: (`gpmhe.gp.priors`, ``RESIDUAL_HYPERPRIOR``).
 RESIDUAL_DEFAULTS = dict(mean="zero", normalize=True, hyperprior="residual")
 
 

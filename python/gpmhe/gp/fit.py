@@ -1,0 +1,125 @@
+"""Fitting the exact GP's hyperparameters: the log marginal likelihood (with an optional
+hyperprior) maximised with SciPy's L-BFGS-B from the start and random restarts inside the bounds,
+and the test of whether a run converged."""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, Callable, Optional, Tuple
+
+import numpy as np
+import scipy.optimize
+
+from gpmhe import _core
+from gpmhe.gp import priors as _priors
+from gpmhe._core import NumericalError
+
+from gpmhe.gp.errors import ConvergenceWarning
+
+__all__: list = []
+
+def _exact_lml(D: np.ndarray, y: np.ndarray) -> Callable[[np.ndarray], Tuple[float, np.ndarray]]:
+    """The exact GP's log marginal likelihood and its gradient as a function of theta.
+
+    D and y must be validated (``training_set``): they are handed to the core as they are.
+    """
+
+    def lml(theta: np.ndarray) -> Tuple[float, np.ndarray]:
+        value, grad = _core.log_marginal_likelihood(D, y, np.ascontiguousarray(theta), True)
+        return float(value), np.asarray(grad)
+
+    return lml
+
+
+def _posterior(
+    lml: Callable[[np.ndarray], Tuple[float, np.ndarray]],
+    shift: np.ndarray,
+    prior: Optional[Tuple[np.ndarray, np.ndarray]],
+) -> Callable[[np.ndarray], Tuple[float, np.ndarray]]:
+    """The fit's objective in the optimiser's units t = theta − shift: lml(t + shift) plus the
+    log-prior of t (`gpmhe.gp.priors.log_prior`)."""
+
+    def objective(t: np.ndarray) -> Tuple[float, np.ndarray]:
+        value, grad = lml(t + shift)
+        lp, lp_grad = _priors.log_prior(prior, t)
+        return value + lp, grad + lp_grad
+
+    return objective
+
+
+def _maximise(
+    objective: Callable[[np.ndarray], Tuple[float, np.ndarray]],
+    theta0: np.ndarray,
+    log_bounds: np.ndarray,
+    n_restarts: int,
+    rng: np.random.Generator,
+    maxiter: int,
+) -> Tuple[np.ndarray, float, np.ndarray]:
+    """Best (theta, value, values of all runs) of L-BFGS-B runs maximising ``objective`` from
+    theta0 and n_restarts uniform random starts inside the log-bounds.
+
+    ``objective(theta)`` returns (value, gradient) of the quantity to maximise (a log marginal
+    likelihood or a training bound, plus a log-prior). Raises NumericalError if no run produced a
+    finite value.
+    """
+
+    def negated(theta: np.ndarray) -> Tuple[float, np.ndarray]:
+        try:
+            value, grad = objective(theta)
+        except NumericalError:
+            # Outside the numerically usable region: report it as infinitely bad so the line
+            # search backs off.
+            return np.inf, np.zeros_like(theta)
+        except ValueError as err:
+            # The data are valid, so the only input the core can refuse here is a trial theta
+            # beyond what float64 represents (exp(theta) or sigma^2 overflowing): as bad as a
+            # numerical failure. Any other ValueError is a genuine input error and surfaces.
+            if str(err).startswith("theta"):
+                return np.inf, np.zeros_like(theta)
+            raise
+        return -value, -grad
+
+    starts = [np.clip(theta0, log_bounds[:, 0], log_bounds[:, 1])]
+    starts += [rng.uniform(log_bounds[:, 0], log_bounds[:, 1]) for _ in range(n_restarts)]
+    best: Optional[Tuple[np.ndarray, float, bool]] = None
+    values = []
+    for t0 in starts:
+        res = scipy.optimize.minimize(
+            negated,
+            t0,
+            jac=True,
+            method="L-BFGS-B",
+            bounds=log_bounds,
+            # Tighter than SciPy's defaults: the LML is flat near its optimum.
+            options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9},
+        )
+        values.append(-float(res.fun))
+        if np.isfinite(res.fun) and (best is None or -res.fun > best[1]):
+            best = (np.asarray(res.x, dtype=np.float64), float(-res.fun), _converged(res, log_bounds))
+    if best is None:
+        raise NumericalError(
+            "fit: no optimiser run reached a finite log marginal likelihood; "
+            "check the data scaling and the bounds"
+        )
+    if not best[2]:
+        warnings.warn(
+            "fit: L-BFGS-B stopped before convergence (iteration limit, or a failed line search "
+            "with a large projected gradient); the best hyperparameters found are used",
+            ConvergenceWarning,
+            stacklevel=4,  # _maximise <- _ExactGP._fit <- fit <- the caller of fit
+        )
+    return best[0], best[1], np.array(values)
+
+
+def _converged(res: Any, log_bounds: np.ndarray) -> bool:
+    """Whether an L-BFGS-B result is an optimum. A failed line search (status 2) counts as
+    converged when the projected gradient is tiny relative to the LML: on ill-conditioned data the
+    LML is only accurate to ~1e-9 relative and the line search cannot make further progress."""
+    if res.status == 0:
+        return True
+    if res.status != 2 or res.jac is None:
+        return False
+    x, g = np.asarray(res.x), np.asarray(res.jac)
+    at_bound = ((x <= log_bounds[:, 0]) & (g > 0)) | ((x >= log_bounds[:, 1]) & (g < 0))
+    projected = np.where(at_bound, 0.0, g)
+    return bool(np.max(np.abs(projected)) <= 1e-3 * max(1.0, abs(res.fun)))
