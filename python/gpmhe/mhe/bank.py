@@ -197,18 +197,56 @@ class EstimatorBank:
 
     # ---- the estimates and what the last update reported: read from the core ---------------
     # (The core records an update of every estimator in one step, or none.)
-    t = property(lambda self: self._core.t, doc="Number of updates since construction.")
-    x = property(lambda self: self._core.x, doc="The estimates (n, dim_x).")
-    x_prior = property(lambda self: self._core.x_prior, doc="The last arrival priors (n, dim_x).")
-    x_window = property(lambda self: self._core.x_window,
-                        doc="The last windows' optimal trajectories (n, M_t + 1, dim_x).")
-    P = property(lambda self: self._core.covariance, doc="The covariance estimates (n, dim_x, dim_x).")
-    cost = property(lambda self: self._core.optimal_cost, doc="The last windows' optimal costs (n,).")
-    success = property(lambda self: self._core.success, doc="Whether each solver converged (n,).")
-    nit = property(lambda self: self._core.nit, doc="Each solver's iterations (n,).")
-    nfev = property(lambda self: self._core.nfev, doc="Each update's window evaluations (n,).")
-    projected_gradient = property(lambda self: self._core.projected_gradient,
-                                  doc="Each solver's final projected gradient (n,).")
+    @property
+    def t(self):
+        """Number of updates since construction."""
+        return self._core.t
+
+    @property
+    def x(self):
+        """The estimates (n, dim_x)."""
+        return self._core.x
+
+    @property
+    def x_prior(self):
+        """The last arrival priors (n, dim_x)."""
+        return self._core.x_prior
+
+    @property
+    def x_window(self):
+        """The last windows' optimal trajectories (n, M_t + 1, dim_x)."""
+        return self._core.x_window
+
+    @property
+    def P(self):  # noqa: N802
+        """The covariance estimates (n, dim_x, dim_x)."""
+        return self._core.covariance
+
+    @property
+    def cost(self):
+        """The last windows' optimal costs (n,)."""
+        return self._core.optimal_cost
+
+    @property
+    def success(self):
+        """Whether each solver converged (n,)."""
+        return self._core.success
+
+    @property
+    def nit(self):
+        """Each solver's iterations (n,)."""
+        return self._core.nit
+
+    @property
+    def nfev(self):
+        """Each update's window evaluations (n,)."""
+        return self._core.nfev
+
+    @property
+    def projected_gradient(self):
+        """Each solver's final projected gradient (n,)."""
+        return self._core.projected_gradient
+
 
     def __len__(self):
         return len(self._core)

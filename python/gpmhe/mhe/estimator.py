@@ -196,9 +196,10 @@ class GPMHE:
     P_p : ndarray of shape (dim_p, dim_p)
         Its covariance, the parameters' block of 4 H⁻¹ at the newest node.
     Q0, R0, P2, P0, eta
-        The weights, settable between updates (each takes effect from the next update and is
-        validated as in the constructor; setting P2 or P0 restarts the "ekf" arrival weight).
-        Other names are rejected (``est.R = ...`` raises AttributeError).
+        The weights, settable between updates: each takes effect from the next update, is
+        validated as in the constructor and changes nothing else (setting P2 or P0 restarts the
+        "ekf" arrival weight; Q0, R0 and eta leave it as it is). Other names are rejected
+        (``est.R = ...`` raises AttributeError).
     model, horizon, form, solver, solver_options, arrival_mean, arrival_weight, x_bounds
         The settings as given, read-only (``x_bounds`` as a (lower, upper) pair of arrays, ±inf
         where unbounded).
@@ -210,8 +211,8 @@ class GPMHE:
     Raises
     ------
     ValueError
-        If a setting is invalid (shapes, P2 not positive definite, Q0 or R0 not positive
-        diagonal, lower >= upper, x0 outside the bounds, an unknown solver or solver option).
+        If a setting is invalid (not real numbers, shapes, P2, Q0 or R0 not symmetric positive
+        definite, lower >= upper, x0 outside the bounds, an unknown solver or solver option).
 
     See Also
     --------
@@ -375,29 +376,81 @@ class GPMHE:
         """Discount factor η in [0, 1]; settable."""
         return self._settings.eta
 
-    dim_x = property(lambda self: self._settings.dims[0], doc="The model's state dimension n.")
-    dim_y = property(lambda self: self._settings.dims[1], doc="The model's output dimension p.")
-    dim_u = property(lambda self: self._settings.dims[2], doc="The model's input dimension m.")
-    dim_p = property(lambda self: self._settings.dims[3], doc="The number of parameters.")
-    horizon = property(lambda self: self._settings.horizon, doc="The window length M.")
-    form = property(lambda self: self._settings.form, doc='"prediction" or "filtering".')
-    solver = property(lambda self: self._settings.solver, doc="The window solver.")
-    solver_options = property(lambda self: dict(self._settings.solver_options),
-                              doc="The solver options given (a copy).")
-    arrival_mean = property(lambda self: self._settings.arrival_mean,
-                            doc='The arrival mean, "smoothed" or "estimate".')
-    arrival_weight = property(lambda self: self._settings.arrival_weight,
-                              doc='The arrival weight, "ekf" or "constant".')
-    x_bounds = property(lambda self: tuple(b.copy() for b in self._settings.x_bounds),
-                        doc="The state box (lower, upper), ±inf where unbounded.")
-    p0 = property(lambda self: self._settings.p0.copy(), doc="The parameters' initial guess.")
-    P_p0 = property(lambda self: self._settings.P_p0.copy(),  # noqa: N815
-                    doc="The parameters' prior covariance.")
-    p_bounds = property(lambda self: None if self._settings.p_bounds is None
-                        else tuple(b.copy() for b in self._settings.p_bounds),
-                        doc="The parameters' bounds (lower, upper), or None.")
-    p_drift = property(lambda self: self._settings.p_drift.copy(),
-                       doc="The parameters' random-walk standard deviation per step.")
+    @property
+    def dim_x(self):
+        """The model's state dimension n."""
+        return self._settings.dims[0]
+
+    @property
+    def dim_y(self):
+        """The model's output dimension p."""
+        return self._settings.dims[1]
+
+    @property
+    def dim_u(self):
+        """The model's input dimension m."""
+        return self._settings.dims[2]
+
+    @property
+    def dim_p(self):
+        """The number of parameters."""
+        return self._settings.dims[3]
+
+    @property
+    def horizon(self):
+        """The window length M."""
+        return self._settings.horizon
+
+    @property
+    def form(self):
+        """The form, "prediction" or "filtering"."""
+        return self._settings.form
+
+    @property
+    def solver(self):
+        """The window solver."""
+        return self._settings.solver
+
+    @property
+    def solver_options(self):
+        """The solver options given (a copy)."""
+        return dict(self._settings.solver_options)
+
+    @property
+    def arrival_mean(self):
+        """The arrival mean, "smoothed" or "estimate"."""
+        return self._settings.arrival_mean
+
+    @property
+    def arrival_weight(self):
+        """The arrival weight, "ekf" or "constant"."""
+        return self._settings.arrival_weight
+
+    @property
+    def x_bounds(self):
+        """The state box (lower, upper), ±inf where unbounded."""
+        return tuple(b.copy() for b in self._settings.x_bounds)
+
+    @property
+    def p0(self):
+        """The parameters' initial guess."""
+        return self._settings.p0.copy()
+
+    @property
+    def P_p0(self):  # noqa: N802
+        """The parameters' prior covariance."""
+        return self._settings.P_p0.copy()
+
+    @property
+    def p_bounds(self):
+        """The parameters' bounds (lower, upper), or None."""
+        return None if self._settings.p_bounds is None else tuple(b.copy() for b in self._settings.p_bounds)
+
+    @property
+    def p_drift(self):
+        """The parameters' random-walk standard deviation per step."""
+        return self._settings.p_drift.copy()
+
 
     def reset(self, x0, p0=None):
         """Forget the history and restart from the estimate x̂(0) = x0.
