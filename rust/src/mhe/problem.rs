@@ -747,6 +747,30 @@ impl WindowEval {
         }
     }
 
+    /// 2JᵀJ as a dense (n_nodes·n)² matrix, row-major (for the SciPy solvers and tests; the
+    /// window solver uses the blocks of [`WindowEval::gauss_newton_blocks_into`]).
+    pub fn dense_gauss_newton(&self) -> Vec<f64> {
+        let (n, nodes) = (self.n, self.nodes);
+        let (nn, nv) = (n * n, nodes * n);
+        let mut diag = vec![0.0; nodes * nn];
+        let mut off = vec![0.0; nodes.saturating_sub(1) * nn];
+        self.gauss_newton_blocks_into(&mut diag, &mut off);
+        let mut h = vec![0.0; nv * nv];
+        for i in 0..nodes {
+            for a in 0..n {
+                for b in 0..n {
+                    h[(i * n + a) * nv + i * n + b] = diag[i * nn + a * n + b];
+                    if i + 1 < nodes {
+                        let v = off[i * nn + a * n + b];
+                        h[(i * n + a) * nv + (i + 1) * n + b] = v;
+                        h[((i + 1) * n + b) * nv + i * n + a] = v;
+                    }
+                }
+            }
+        }
+        h
+    }
+
     /// The dense Jacobian (n_residuals × n_nodes·n, row-major) into `jac`.
     pub fn dense_jacobian_into(&self, jac: &mut [f64]) {
         let n = self.n;

@@ -17,7 +17,7 @@ use super::error::detach_interruptible;
 use super::sparse::PySparseMultiGp;
 use crate::error::Error;
 use crate::kernel::SeArd;
-use crate::rgp::{Jitter, Rgp, RgpBasis, RgpEkf, RgpEkfState};
+use crate::rgp::{ConstantJacobians, Jitter, Rgp, RgpBasis, RgpEkf, RgpEkfState};
 use faer::MatRef;
 use pyo3::types::{PyDict, PyFloat, PyList, PyTuple, PyType};
 
@@ -377,9 +377,7 @@ fn detach_if<T: Send>(py: Python<'_>, release: bool, f: impl FnOnce() -> T + Sen
 #[pyclass(name = "RGPEKFCore", module = "gpmhe._core")]
 pub struct RgpEkfCore {
     inner: RgpEkf,
-    a_const: Option<Vec<f64>>,
-    e_const: Option<Vec<f64>>,
-    h_const: Option<Vec<f64>>,
+    constants: ConstantJacobians,
     /// Per-step copies of the inputs and of the user functions' results (a few values each).
     buf: StepBuffers,
     /// The constructor arguments of the GPs (for pickling).
@@ -397,6 +395,8 @@ struct StepBuffers {
     hx: Vec<f64>,
     h: Vec<f64>,
     r: Vec<f64>,
+    nu: Vec<f64>,
+    r_full: Vec<f64>,
 }
 
 /// The shape of a value read by [`read_f64`] (up to four dimensions kept; more only appear in
@@ -504,9 +504,7 @@ impl RgpEkfCore {
         let gps = gps.iter().map(|g| g.inner.clone()).collect();
         Ok(Self {
             inner: RgpEkf::new(slice1("x0", &x0)?, p, gps, augmented)?,
-            a_const: None,
-            e_const: None,
-            h_const: None,
+            constants: ConstantJacobians::default(),
             buf: StepBuffers::default(),
             gp_args,
         })
@@ -526,7 +524,7 @@ impl RgpEkfCore {
                 .transpose()
         };
         let (a, e, h) = (copy("A", &a)?, copy("e", &e)?, copy("H", &h)?);
-        (self.a_const, self.e_const, self.h_const) = (a, e, h);
+        self.constants = ConstantJacobians { a, e, h };
         Ok(())
     }
 
@@ -589,21 +587,17 @@ impl RgpEkfCore {
             }
         }
         read_f64("Q_x", q_x, &mut self.buf.q)?;
-        let missing = |arg: &str| {
-            PyValueError::new_err(format!("{arg}: not given and no constant {arg} was stored"))
-        };
-        let a = match (a_fn, &self.a_const) {
-            (Some(_), _) => &self.buf.a,
-            (None, Some(c)) => c,
-            (None, None) => return Err(missing("A")),
-        };
-        let e = match (e_fn, &self.e_const) {
-            (Some(_), _) => &self.buf.e,
-            (None, Some(c)) => c,
-            (None, None) => return Err(missing("e")),
-        };
-        let (inner, xp, qb) = (&mut self.inner, &self.buf.x_pred, &self.buf.q);
-        Ok(detach_if(py, release, || inner.predict(xp, a, e, qb))?)
+        let a = a_fn.map(|_| &self.buf.a[..]);
+        let e = e_fn.map(|_| &self.buf.e[..]);
+        let (inner, xp, qb, c) = (
+            &mut self.inner,
+            &self.buf.x_pred,
+            &self.buf.q,
+            &self.constants,
+        );
+        Ok(detach_if(py, release, || {
+            inner.predict_step(xp, a, e, qb, c)
+        })?)
     }
 
     /// One EKF update (paper §3.4, step 4) in one call: h(x⁻) and H(x⁻) (None: the stored
@@ -649,32 +643,21 @@ impl RgpEkfCore {
                 )));
             }
         }
-        let h = match (h_fn, &self.h_const) {
-            (Some(_), _) => &self.buf.h,
-            (None, Some(c)) => c,
-            (None, None) => {
-                return Err(PyValueError::new_err(
-                    "H: not given and no constant H was stored",
-                ))
-            }
-        };
-        // ν = y − h(x⁻), in place of h(x⁻)
-        for (v, yi) in self.buf.hx.iter_mut().zip(&self.buf.y) {
-            *v = yi - *v;
-        }
-        if read_f64("R_x", r, &mut self.buf.r)?.ndim == 0 {
-            // a scalar: R_x I
-            let rv = self.buf.r[0];
-            self.buf.r.clear();
-            self.buf.r.resize(p * p, 0.0);
-            for i in 0..p {
-                self.buf.r[i * p + i] = rv;
-            }
-        }
+        let scalar = read_f64("R_x", r, &mut self.buf.r)?.ndim == 0;
         let release = self.release_gil();
-        let (inner, nu, rb) = (&mut self.inner, &self.buf.hx, &self.buf.r);
+        let StepBuffers {
+            y,
+            hx,
+            h: h_given,
+            r: r_x,
+            nu,
+            r_full,
+            ..
+        } = &mut self.buf;
+        let h = h_fn.map(|_| &h_given[..]);
+        let (inner, c) = (&mut self.inner, &self.constants);
         Ok(detach_if(py, release, || {
-            inner.update(nu, h, rb, learning)
+            inner.update_step(y, hx, h, r_x, scalar, learning, c, nu, r_full)
         })?)
     }
 
@@ -759,9 +742,7 @@ impl RgpEkfCore {
     fn __copy__(&self) -> Self {
         Self {
             inner: self.inner.clone(),
-            a_const: self.a_const.clone(),
-            e_const: self.e_const.clone(),
-            h_const: self.h_const.clone(),
+            constants: self.constants.clone(),
             buf: StepBuffers::default(),
             gp_args: self.gp_args.clone(),
         }
@@ -819,9 +800,9 @@ impl RgpEkfCore {
         d.set_item("S", array2(py, st.s, p, p)?)?;
         d.set_item("log_likelihood", st.log_likelihood)?;
         for (key, m, cols) in [
-            ("A_const", &self.a_const, n),
-            ("e_const", &self.e_const, q),
-            ("H_const", &self.h_const, n),
+            ("A_const", &self.constants.a, n),
+            ("e_const", &self.constants.e, q),
+            ("H_const", &self.constants.h, n),
         ] {
             if let Some(m) = m {
                 d.set_item(key, array2(py, m.clone(), m.len() / cols.max(1), cols)?)?;
@@ -881,9 +862,11 @@ impl RgpEkfCore {
             .collect::<PyResult<Vec<_>>>()?;
         self.inner.set_state(st)?;
         let mut consts = consts.into_iter();
-        self.a_const = consts.next().flatten();
-        self.e_const = consts.next().flatten();
-        self.h_const = consts.next().flatten();
+        self.constants = ConstantJacobians {
+            a: consts.next().flatten(),
+            e: consts.next().flatten(),
+            h: consts.next().flatten(),
+        };
         Ok(())
     }
 }

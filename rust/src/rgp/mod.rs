@@ -17,7 +17,8 @@
 //!
 //! Files: `basis.rs` ([`RgpBasis`] and its triangular solves), `points.rs` (bases at given
 //! points, the prior mean, [`Rgp::from_sparse`]), `recursive.rs` ([`Rgp`]),
-//! `ekf.rs` ([`RgpEkf`]), `dense.rs` (the small dense helpers of the filter: p × p Cholesky,
+//! `ekf.rs` ([`RgpEkf`]), `step.rs` (what a step assembles around the kernels: constant or
+//! given Jacobians, the innovation, R_x), `dense.rs` (the small dense helpers of the filter: p × p Cholesky,
 //! rank-p downdate, quadratic form). The reductions and triangular solves of the kernels are in
 //! `crate::linalg` (AVX2 chosen at run time).
 
@@ -61,10 +62,12 @@ mod dense;
 mod ekf;
 mod points;
 mod recursive;
+mod step;
 
 pub use basis::{Jitter, RgpBasis};
 pub use ekf::{RgpEkf, RgpEkfState};
 pub use recursive::Rgp;
+pub use step::ConstantJacobians;
 
 fn check_positive(arg: &str, v: f64) -> Result<()> {
     if v.is_finite() && v > 0.0 {

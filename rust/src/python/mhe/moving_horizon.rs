@@ -76,28 +76,6 @@ impl PyMovingHorizon {
     fn n_vars(&self) -> usize {
         self.core.problem().n_nodes() * self.core.problem().dim_x()
     }
-
-    fn dense_gn(eval: &crate::mhe::WindowEval) -> Vec<f64> {
-        let (n, nodes) = (eval.dim_x(), eval.n_nodes());
-        let (nn, nv) = (n * n, nodes * n);
-        let mut diag = vec![0.0; nodes * nn];
-        let mut off = vec![0.0; nodes.saturating_sub(1) * nn];
-        eval.gauss_newton_blocks_into(&mut diag, &mut off);
-        let mut h = vec![0.0; nv * nv];
-        for i in 0..nodes {
-            for a in 0..n {
-                for b in 0..n {
-                    h[(i * n + a) * nv + i * n + b] = diag[i * nn + a * n + b];
-                    if i + 1 < nodes {
-                        let v = off[i * nn + a * n + b];
-                        h[(i * n + a) * nv + (i + 1) * n + b] = v;
-                        h[((i + 1) * n + b) * nv + i * n + a] = v;
-                    }
-                }
-            }
-        }
-        h
-    }
 }
 
 #[pymethods]
@@ -468,7 +446,7 @@ impl PyMovingHorizon {
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let z = slice1("z", &z)?;
         let h = self.run(py, |core, model| {
-            Ok(Self::dense_gn(core.evaluate(model, z, true)?))
+            Ok(core.evaluate(model, z, true)?.dense_gauss_newton())
         })?;
         let nv = self.n_vars();
         array2(py, h, nv, nv)
