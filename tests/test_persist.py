@@ -446,3 +446,24 @@ def test_gpmhe_load_checks_the_model(tmp_path):
         GPMHE.load(io.BytesIO(data), KNOWN)
     with pytest.raises(ValueError, match="^model: "):
         GPMHE.load(io.BytesIO(data), reactor_known_model())
+
+
+def test_a_checkpoint_of_the_previous_format_loads_and_continues_as_it_would_have():
+    """tests/data/gpmhe_checkpoint_format2.npz was written by gpmhe with checkpoint format 2 (the
+    estimate and the last report kept as attributes beside the core's state) after 8 updates of
+    the batch reactor in the filtering form; ..._continuation.npz holds what that estimator gave
+    on the next 6 outputs. Loaded now, it continues bit for bit the same."""
+    import pathlib
+
+    from gpmhe import GPMHE, KnownModel
+    from gpmhe.systems import batch_reactor as br
+
+    data = pathlib.Path(__file__).with_name("data")
+    model = KnownModel(br.f, br.h, dim_x=2, dim_y=1)
+    est = GPMHE.load(data / "gpmhe_checkpoint_format2.npz", model)
+    ref = np.load(data / "gpmhe_checkpoint_format2_continuation.npz")
+    assert est.t == 8 and est.form == "filtering" and est.horizon == 5
+    xs = np.array([est.update(None, ref["y"][t]).copy() for t in range(8, 14)])
+    np.testing.assert_array_equal(xs, ref["xs"])
+    np.testing.assert_array_equal(est.P, ref["P"])
+    assert est.cost == ref["cost"] and est.t == ref["t"]

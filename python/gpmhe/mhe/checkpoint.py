@@ -7,7 +7,6 @@ formats 1 and 2, which also kept them as attributes, still load.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from gpmhe._npz import NpzReader
 from gpmhe.mhe.settings import MHESettings
@@ -53,8 +52,8 @@ def load(cls, path, model):
         settings = MHESettings.from_file(f, (n, p, m, k))
         est = cls._from_settings(model, settings, np.clip(np.zeros(n), *settings.x_bounds))
         state = _core_state(f, n + k, m, p, kind)
-        state.update(_outcome(f, n, k, settings.p_scale) if f.version >= 3
-                     else _outcome_of_format2(f, state["t"], n, k, settings.p_scale))
+        state.update(_outcome(f, n + k) if f.version >= 3
+                     else _outcome_of_format2(f, state["t"], n, k, settings.scaling))
         try:
             est._core.__setstate__(state)
         except ValueError as e:
@@ -76,9 +75,8 @@ def _core_state(f, na, m, p, kind):
     return state
 
 
-def _outcome(f, n, k, scale):
+def _outcome(f, na):
     """The core's record of the last update (core_outcome_*) in a file of format >= 3."""
-    na = n + k
     return {"outcome_x_prior": f.floats("core_outcome_x_prior", (na,)),
             "outcome_P": f.floats("core_outcome_P", (na, na)),
             "outcome_cost": f.float("core_outcome_cost"),
@@ -90,18 +88,17 @@ def _outcome(f, n, k, scale):
             "outcome_input_pending": f.boolean("core_outcome_input_pending")}
 
 
-def _outcome_of_format2(f, t_core, n, k, scale):
+def _outcome_of_format2(f, t_core, n, k, scaling):
     """The core's record of the last update from the attributes a file of format 1 or 2 saved
     beside the core's state (P and P_p become the blocks of the augmented covariance; their
     cross-covariance was not saved and is zero)."""
     t = f.integer("t")
     if t != t_core:
         raise f.error("core_t", f"is {t_core} but entry 't' is {t}")
-    P = f.floats("P", (n, n))
-    x_prior = f.floats("x_prior", (n,))
+    P, x_prior = f.floats("P", (n, n)), f.floats("x_prior", (n,))
     if k:
-        P = scipy.linalg.block_diag(P, f.floats("P_p", (k, k)) / np.outer(scale, scale))
-        x_prior = np.concatenate([x_prior, f.floats("p", (k,)) / scale])
+        P = scaling.covariance(P, f.floats("P_p", (k, k)))
+        x_prior = scaling.state(x_prior, f.floats("p", (k,)))
     return {"outcome_x_prior": x_prior, "outcome_P": np.ascontiguousarray(P),
             "outcome_cost": f.float("cost"), "outcome_success": f.boolean("success"),
             "outcome_nit": f.integer("nit"), "outcome_nfev": f.integer("nfev"),

@@ -519,17 +519,12 @@ class GPMHE:
     @property
     def p(self):
         """The estimate of the parameters (dim_p,) (empty without parameters)."""
-        if not self.dim_p:
-            return np.zeros(0)
-        return self._core.x[self.dim_x:] * self._settings.p_scale
+        return self._settings.scaling.parameters(self._core.x)
 
     @property
     def P_p(self):  # noqa: N802
         """The covariance of ``p`` (dim_p, dim_p)."""
-        n, s = self.dim_x, self._settings.p_scale
-        if not self.dim_p:
-            return np.zeros((0, 0))
-        return s[:, None] * self._core.covariance[n:, n:] * s[None, :]
+        return self._settings.scaling.parameter_covariance(self._core.covariance)
 
     @property
     def cost(self):

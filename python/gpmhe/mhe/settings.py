@@ -5,8 +5,8 @@
 estimator keeps one value; a weight set between updates builds a new value with `replace`, which
 validates only what changed and tells the estimator what to hand to the core. Checkpoints write
 and read a value with `entries` / `from_file`. With a model's unknown parameters p the core runs
-on the augmented state [x; p̃], p = s ⊙ p̃ (`gpmhe.models.parameters`): the ``core_*`` methods
-here are the only place where weights, bounds and x̂(0) are augmented.
+on the augmented state [x; p̃], p = s ⊙ p̃: the ``core_*`` methods hand the core weights,
+bounds and x̂(0) augmented by `gpmhe.models.parameters.Scaling`.
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import json
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
-import scipy.linalg
 from scipy.optimize import least_squares
 
 from gpmhe import _core
 from gpmhe._validation import box, finite_vector, integer, one_of, options, positive
+from gpmhe.models.parameters import Scaling
 from gpmhe._validation import positive_scalar, symmetric_matrix
 
 __all__ = ["MHESettings", "SOLVERS"]
@@ -180,40 +180,33 @@ class MHESettings:
         return dataclasses.replace(self, **new), tuple(new)
 
     # ---- what the core takes (on [x; p̃] with parameters) -----------------------------------
+    @property
+    def scaling(self):
+        """The map between the estimator's quantities and the core's state [x; p̃]."""
+        return Scaling(self.dims[0], self.p_scale)
+
     def core_weights(self, names=WEIGHTS):
         """The core's weights among ``names``: ``eta``, ``q0`` and ``r0`` (Q0, R0: diagonals when
         diagonal, else flattened), ``p2_sqrt`` (S with P2 = SᵀS)."""
-        s, k = self.p_scale, self.dims[3]
         out = {}
         if "eta" in names:
             out["eta"] = self.eta
         if "Q0" in names:
-            Q0 = self.Q0
-            if k:
-                Q0 = scipy.linalg.block_diag(Q0, np.diag((self.p_drift / s) ** 2))
-            out["q0"] = _flat(Q0)
+            out["q0"] = _flat(self.scaling.process_noise(self.Q0, self.p_drift))
         if "R0" in names:
             out["r0"] = _flat(self.R0) if self.dims[1] else np.zeros(0)
         if "P2" in names:
-            P2 = self.P2
-            if k:
-                P2 = scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(self.P_p0) * s[None, :])
+            P2 = self.scaling.arrival_weight(self.P2, self.P_p0)
             out["p2_sqrt"] = np.ascontiguousarray(np.linalg.cholesky(P2).T)
         return out
 
     def core_bounds(self):
         """The box of the core's state."""
-        lb, ub = self.x_bounds
-        if self.dims[3]:
-            plb, pub = self.p_bounds
-            lb, ub = np.concatenate([lb, plb / self.p_scale]), np.concatenate([ub, pub / self.p_scale])
-        return lb, ub
+        return self.scaling.bounds(*self.x_bounds, self.p_bounds)
 
     def core_state(self, x, p=None):
         """The core's state for x and the parameters p (None: p0)."""
-        if not self.dims[3]:
-            return x
-        return np.concatenate([x, (self.p0 if p is None else p) / self.p_scale])
+        return self.scaling.state(x, self.p0 if p is None else p)
 
     def core_solver(self):
         """The Rust solver's settings (None for SciPy's solvers)."""

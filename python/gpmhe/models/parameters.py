@@ -5,15 +5,17 @@ A model with parameters, f(x, u, p) and h(x, u, p), is run by the estimator on t
 state [x; p̃] with p = s ⊙ p̃: s is the parameters' scale (so that p̃ is of order one for the
 solver, whatever the units of p) and p̃ is constant (p̃(t+1) = p̃(t) for a discrete map,
 dp̃/dt = 0 for a right-hand side). The functions here build the augmented callables (numpy, per
-point or vectorised) and CasADi functions; `gpmhe.models.KnownModel` builds the augmented model
-from them when an estimator asks for it.
+point or vectorised) and CasADi functions, from which `gpmhe.models.KnownModel` builds the
+augmented model when an estimator asks for it; `Scaling` maps the estimator's quantities between
+p and p̃ (the state, its bounds, covariance and weights). Nothing else knows of the scaling.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 
-__all__ = ["augment_numpy", "augment_casadi"]
+__all__ = ["augment_numpy", "augment_casadi", "Scaling"]
 
 
 def _check(name, a, shape):
@@ -82,3 +84,53 @@ def augment_casadi(f, h, n, n_p, scale, continuous):
     args = [x, u, p][:h.n_in()]
     ha = ca.Function(h.name() + "_with_parameters", [xa, u], [h(*args)], ["x", "u"], ["y"])
     return fa, ha
+
+
+class Scaling:
+    """The estimator's quantities on the augmented state [x; p̃], p = s ⊙ p̃, for n states and
+    the scale ``s`` of the parameters (k values; k = 0: no parameters, every map the identity)."""
+
+    def __init__(self, n, scale):
+        self.n, self.s = n, np.asarray(scale, dtype=np.float64)
+
+    @property
+    def k(self):
+        return self.s.size
+
+    def state(self, x, p):
+        """[x; p / s]."""
+        return np.concatenate([x, p / self.s]) if self.k else x
+
+    def bounds(self, lb, ub, p_bounds):
+        """The box of [x; p̃] from the state's and the parameters' boxes."""
+        if not self.k:
+            return lb, ub
+        return np.concatenate([lb, p_bounds[0] / self.s]), np.concatenate([ub, p_bounds[1] / self.s])
+
+    def process_noise(self, Q0, p_drift):
+        """The process-noise covariance of [x; p̃]: Q0 and the random walk of p̃ (p_drift / s)²."""
+        if not self.k:
+            return Q0
+        return scipy.linalg.block_diag(Q0, np.diag((p_drift / self.s) ** 2))
+
+    def arrival_weight(self, P2, P_p0):
+        """The arrival weight of [x; p̃]: P2 and the prior weight s P_p0⁻¹ s of p̃."""
+        if not self.k:
+            return P2
+        s = self.s
+        return scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(P_p0) * s[None, :])
+
+    def parameters(self, z):
+        """p from the augmented state z."""
+        return z[self.n:] * self.s
+
+    def covariance(self, P, P_p):
+        """The covariance of [x; p̃] from those of x and p (no cross-covariance)."""
+        if not self.k:
+            return P
+        return scipy.linalg.block_diag(P, P_p / np.outer(self.s, self.s))
+
+    def parameter_covariance(self, C):
+        """The covariance of p from that of [x; p̃]."""
+        n, s = self.n, self.s
+        return s[:, None] * C[n:, n:] * s[None, :]
