@@ -320,11 +320,10 @@ class LearnedModel(SharedOnCopy):
         [1.9 4.1] [1.9 4.1]
         """
         x, u = point(x, u, self.dim_x, self.dim_u)
-        d = np.concatenate([x, u])[None, :]
-        mean = self.f_gp.predict(d)[0]
+        mean = self._gp_stage_model().predict(x, u)  # (plus x with f_residual)
         if self.nominal is not None:
             return mean + self.nominal.predict(x, u)
-        return mean + x if self.f_residual else mean
+        return mean
 
     def stage_eval(self, d):
         """Means, latent variances and their gradients at a batch of points d = [x; u].
@@ -371,17 +370,9 @@ class LearnedModel(SharedOnCopy):
         >>> bool(np.all(vx > 0))
         True
         """
-        n = self.dim_x
-        nd = n + self.dim_u
-        d = points("d", d, nd, one_point=True)
-        k = d.shape[0]
-        mx, vx, dmx, dvx = (np.array(a) for a in self.f_gp.predict_with_gradients(d))
-        if self.nominal is not None:
-            return self._add_nominal(d, (mx, vx, dmx, dvx) + self._h_eval(d, k, nd))
-        if self.f_residual:
-            mx = mx + d[:, :n]
-            dmx[:, np.arange(n), np.arange(n)] += 1.0
-        return (mx, vx, dmx, dvx) + self._h_eval(d, k, nd)
+        d = points("d", d, self.dim_x + self.dim_u, one_point=True)
+        parts = self._gp_stage_model().evaluate(d)  # the core's evaluation, residual included
+        return parts if self.nominal is None else self._add_nominal(d, parts)
 
     # ---- diagnostics -------------------------------------------------------------------------
     def diagnostics(self):
@@ -442,12 +433,6 @@ class LearnedModel(SharedOnCopy):
             warnings.warn("LearnedModel: " + "; ".join(found) + " (print model.summary() for all numbers)",
                           FitWarning, stacklevel=3)
 
-    def _h_eval(self, d, k, nd):
-        """The h-GPs' (mean, var, dmean, dvar) at d (empty arrays for p = 0)."""
-        if self.h_gp is None:
-            return np.zeros((k, 0)), np.zeros((k, 0)), np.zeros((k, 0, nd)), np.zeros((k, 0, nd))
-        return tuple(np.array(a) for a in self.h_gp.predict_with_gradients(d))
-
     def _add_nominal(self, d, gp_parts):
         """The GPs' stage values plus the nominal model's means and mean Jacobians."""
         nom = self.nominal.stage_eval(d)
@@ -462,12 +447,30 @@ class LearnedModel(SharedOnCopy):
 
     def _stage_model(self):
         """What the Rust core evaluates (a `gpmhe._core.StageModel`): the GPs themselves; with a
-        nominal model, `stage_eval`, called back."""
+        nominal model, `stage_eval` (the GPs' values from the core plus the nominal model's),
+        called back."""
         if self.nominal is not None:
             return _core.StageModel.callback(self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
                                              predict=self._predict_f64)
-        h = None if self.h_gp is None else self.h_gp._core_model
-        return _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u, self.f_residual)
+        return self._gp_stage_model()
+
+    def __getstate__(self):
+        """Pickles without the core's view of the GPs (`_gp_stage_model` builds it again)."""
+        state = dict(self.__dict__)
+        state.pop("_gp_core", None)
+        return state
+
+    def _gp_stage_model(self):
+        """The GPs as the core evaluates them (the one implementation of the learned model's
+        values: `stage_eval` and `predict` read them from here); f's residual form applies
+        without a nominal model."""
+        core = self.__dict__.get("_gp_core")
+        if core is None:  # built once: the GPs are immutable
+            h = None if self.h_gp is None else self.h_gp._core_model
+            core = _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u,
+                                       self.f_residual and self.nominal is None)
+            self.__dict__["_gp_core"] = core
+        return core
 
     def save(self, path):
         """Save both GPs and the settings to one ``.npz`` file (no pickle).

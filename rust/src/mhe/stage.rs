@@ -204,6 +204,12 @@ impl GpStageModel {
         })
     }
 
+    /// Forgets the last evaluation: the next evaluates every point afresh.
+    pub fn clear_cache(&mut self) {
+        self.last_d.clear();
+        self.last = StageEval::default();
+    }
+
     /// The one-step prediction m_x(x, u) (the f-GPs' means, plus x with `f_residual`) into
     /// `out` (n). Does not touch the cache of the last evaluation.
     pub fn predict_mean(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> Result<()> {

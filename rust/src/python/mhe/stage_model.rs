@@ -2,13 +2,14 @@
 //! GIL) or a known model's Python functions (`gpmhe.KnownModel.stage_eval`, run with the GIL)
 //! behind [`CallbackModel`], and the Python class `StageModel` that holds either.
 
-use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArrayDyn};
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn};
 use pyo3::exceptions::{PyArithmeticError, PyException, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
 use crate::error::Error;
 use crate::mhe::{GpStageModel, StageEval, StageModel};
+use crate::python::convert::{slice1, slice2};
 use crate::python::sparse::{extract_model, model_object};
 
 /// A [`StageModel`] backed by the Python callable `stage_eval(d) -> (mean_x, var_x, dmean_x,
@@ -252,6 +253,72 @@ impl PyStageModel {
     #[getter]
     fn dims(&self) -> (usize, usize, usize) {
         self.model.dims()
+    }
+
+    /// The learned model's values at the points `d` (k, n + m), as the estimator's core
+    /// evaluates them: (mean_x (k, n), var_x (k, n), dmean_x (k, n, n + m), dvar_x, mean_y
+    /// (k, p), var_y, dmean_y (k, p, n + m), dvar_y). A callback model: ValueError (call its
+    /// Python functions instead).
+    fn evaluate<'py>(
+        &self,
+        py: Python<'py>,
+        d: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let Model::Gp(gp) = &self.model else {
+            return Err(PyValueError::new_err(
+                "model: a callback model evaluates in Python",
+            ));
+        };
+        let (n, m, p) = (gp.dim_x(), gp.dim_u(), gp.dim_y());
+        let (points, k, cols) = slice2("d", &d)?;
+        if cols != n + m {
+            return Err(PyValueError::new_err(format!(
+                "d: expected {} columns (dim_x + dim_u), got {cols}",
+                n + m
+            )));
+        }
+        // A fresh copy: every point evaluated in this batch, none taken from a cache.
+        let mut model = GpStageModel::clone(gp);
+        model.clear_cache();
+        let mut ev = StageEval::default();
+        let points = points.to_vec();
+        py.detach(|| model.evaluate(&points, &mut ev))?;
+        let nd = n + m;
+        let a = |v: Vec<f64>, dims: &[usize]| -> PyResult<Bound<'py, PyAny>> {
+            Ok(PyArray1::from_vec(py, v).reshape(dims.to_vec())?.into_any())
+        };
+        PyTuple::new(
+            py,
+            [
+                a(ev.mean_x, &[k, n])?,
+                a(ev.var_x, &[k, n])?,
+                a(ev.dmean_x, &[k, n, nd])?,
+                a(ev.dvar_x, &[k, n, nd])?,
+                a(ev.mean_y, &[k, p])?,
+                a(ev.var_y, &[k, p])?,
+                a(ev.dmean_y, &[k, p, nd])?,
+                a(ev.dvar_y, &[k, p, nd])?,
+            ],
+        )
+    }
+
+    /// The learned model's one-step prediction m_x(x, u) (n,), as the estimator's core makes it.
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyReadonlyArray1<'py, f64>,
+        u: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let Model::Gp(gp) = &self.model else {
+            return Err(PyValueError::new_err(
+                "model: a callback model predicts in Python",
+            ));
+        };
+        let (x, u) = (slice1("x", &x)?, slice1("u", &u)?);
+        let mut model = GpStageModel::clone(gp);
+        let mut out = vec![0.0; gp.dim_x()];
+        model.predict_mean(x, u, &mut out)?;
+        Ok(PyArray1::from_vec(py, out))
     }
 
     // ---- copies and pickles -----------------------------------------------------------------
