@@ -362,7 +362,7 @@ class KnownModel(SharedOnCopy):
         model._f_joint = f.value_and_jacobian
         return model
 
-    # ---- unknown parameters (gpmhe/_parameters.py) -----------------------------------------
+    # ---- unknown parameters (models/parameters.py) ------------------------------------------
     @classmethod
     def _parametrised(cls, source, f, h, dims=None):
         """A model with parameters: its dimensions, and how `_augment` builds the model on

@@ -1,5 +1,6 @@
-"""The SE-ARD posterior of the learned model's GPs in numpy (means, standard deviations and their
-bounds over a grid cell), as the certificate's bounds need them."""
+"""The SE-ARD posterior of the learned model's GPs as the certificate's bounds need it (the
+Hessian of the mean, the covariance of the gradient, the RKHS norm of the mean), in numpy on the
+Rust core's kernel (`gpmhe._core.se_ard_kernel`, the one SE-ARD implementation)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-
+from gpmhe import _core
 from gpmhe.theory.common import _is_learned
 from gpmhe.theory.constants import _EPS
 
@@ -31,8 +32,9 @@ class _SEPosterior:
         self.rkhs_norm = math.sqrt(max(float(self.alpha @ K @ self.alpha), 0.0))
 
     def _kernel(self, a, b):
-        r = (a[:, None, :] - b[None, :, :]) / self.ls
-        return self.sf2 * np.exp(-0.5 * np.sum(r * r, axis=-1))
+        return _core.se_ard_kernel(np.ascontiguousarray(a, dtype=np.float64),
+                                   np.ascontiguousarray(b, dtype=np.float64), self.sigma_f,
+                                   np.ascontiguousarray(self.ls))
 
     def mean_hessian(self, d):
         """∂²m/∂d∂d at the points d (k, n_d) -> (k, n_d, n_d)."""

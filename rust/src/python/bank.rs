@@ -2,7 +2,7 @@
 //! sample's arrays, calls the core and maps errors. The learned model's bank updates its
 //! estimators in parallel without the GIL (the calling thread meanwhile runs Python's signal
 //! handlers: Ctrl-C stops the update with every estimator unchanged); a Python callback model
-//! (`gpmhe.KnownModel`) runs them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/bank.py) validates
+//! (`gpmhe.KnownModel`) runs them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/mhe/bank.py) validates
 //! the input and holds the public attributes.
 
 use numpy::{

@@ -1,6 +1,6 @@
 //! Exact GPs (`crate::gp`): `MultiGP` (independent outputs on shared inputs; gpmhe.GaussianProcess
 //! is its q = 1 case), `log_marginal_likelihood` and the kernel matrix. Inputs must be C-contiguous
-//! float64 (gpmhe/gp.py converts and validates first); the numerics run without the GIL.
+//! float64 (gpmhe/gp/base.py converts and validates first); the numerics run without the GIL.
 
 use numpy::{PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};

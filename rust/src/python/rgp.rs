@@ -1,6 +1,6 @@
 //! Recursive GP (`crate::rgp::Rgp`, on a grid or at given points such as a sparse GP's inducing
 //! inputs) and the RGP-dKF step kernels (`crate::rgp::RgpEkf`); the Python classes in
-//! gpmhe/rgp.py validate input and call these once per step.
+//! gpmhe/rgp/ validate input and call these once per step.
 
 use numpy::{
     PyArray1, PyArray2, PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
@@ -12,7 +12,7 @@ use pyo3::prelude::*;
 use super::convert::{array2, slice1, slice2};
 use super::error::detach_interruptible;
 // Recursive GP (`Rgp`) and the RGP-dKF kernels (`RgpEkf`); the Python classes live in
-// python/gpmhe/rgp.py, which validates inputs and calls these once per step.
+// python/gpmhe/rgp/, which validates inputs and calls these once per step.
 
 use super::sparse::PySparseMultiGp;
 use crate::error::Error;
