@@ -74,3 +74,36 @@ def test_a_weight_set_between_updates_equals_an_estimator_built_with_it_from_the
     est.update(None, ys[10])
     built.update(None, ys[10])
     np.testing.assert_array_equal(est.x, built.x)
+
+
+class _InterruptedAfterSetWeights:
+    """The core of an estimator whose set_weights is followed at once by a Ctrl-C (the signal's
+    handler runs as the call returns), or that is interrupted before the call (``before``)."""
+
+    def __init__(self, core, before):
+        self._real, self._before = core, before
+
+    def set_weights(self, **kw):
+        if self._before:
+            raise KeyboardInterrupt
+        self._real.set_weights(**kw)
+        raise KeyboardInterrupt
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+
+@pytest.mark.parametrize("before", [False, True])
+def test_an_interrupt_around_a_setter_keeps_settings_and_core_together(ys, before):
+    est, twin = reactor(), reactor()
+    est.batch_filter(ys[:10])
+    twin.batch_filter(ys[:10])
+    real = est._core
+    est._core = _InterruptedAfterSetWeights(real, before)
+    with pytest.raises(KeyboardInterrupt):
+        est.Q0 = 4e-3
+    est._core = real
+    if not before:  # the core took the new Q0: so do the settings, as on the twin
+        twin.Q0 = 4e-3
+    np.testing.assert_array_equal(est.Q0, twin.Q0)
+    np.testing.assert_array_equal(est.batch_filter(ys[10:])[0], twin.batch_filter(ys[10:])[0])

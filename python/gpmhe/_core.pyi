@@ -406,6 +406,10 @@ class MovingHorizon:
         """Replace the weights given from the next update on and keep the others; only a new
         P2 restarts the arrival weight. On error nothing changes."""
         ...
+    @property
+    def weights_version(self) -> int:
+        """How many times `set_weights` replaced weights (a copy keeps the count)."""
+        ...
     def set_last_input(self, u: _F) -> None:
         """Give u(t − 1) to the last update, which was given None; refused otherwise."""
         ...

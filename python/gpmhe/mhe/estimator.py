@@ -339,13 +339,19 @@ class GPMHE:
     def _set_weights(self, **changes):
         """A new settings value with ``changes``; exactly the changed weights go to the core
         (the others, and the arrival weight unless P2 changes, stay as they are). On error
-        nothing changes."""
+        nothing changes; the settings follow the core's weights even when an interrupt lands
+        right after the core took them."""
         settings, changed = self._settings.replace(**changes)
         try:
-            self._core.set_weights(**settings.core_weights(changed))
+            weights = settings.core_weights(changed)
         except np.linalg.LinAlgError as e:
             raise ValueError(f"{', '.join(changed)}: {e}") from None
-        object.__setattr__(self, "_settings", settings)
+        version = self._core.weights_version
+        try:
+            self._core.set_weights(**weights)
+        finally:
+            if self._core.weights_version != version:
+                object.__setattr__(self, "_settings", settings)
 
     @property
     def Q0(self):  # noqa: N802 (the paper's symbol)

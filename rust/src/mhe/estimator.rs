@@ -62,6 +62,9 @@ pub struct MovingHorizon {
     /// The last one-step prediction: the filtering form's commit computes the one the next
     /// warm start needs.
     prediction: LastPrediction,
+    /// How many times the weights were replaced (`set_weights`): lets a caller that keeps its
+    /// own copy of the weights tell whether a replacement took effect.
+    weights_version: u64,
 }
 
 /// A one-step prediction m_x(x, u) and the bits of the point it was made at (a model is a
@@ -152,7 +155,13 @@ impl MovingHorizon {
             has_window: false,
             arrival: Arrival::default(),
             prediction: LastPrediction::default(),
+            weights_version: 0,
         })
+    }
+
+    /// How many times the weights were replaced since construction.
+    pub fn weights_version(&self) -> u64 {
+        self.weights_version
     }
 
     /// The arrival cost settings.
@@ -189,6 +198,7 @@ impl MovingHorizon {
         if let Some(s) = p2_sqrt {
             self.history.set_arrival_sqrt(s.to_vec());
         }
+        self.weights_version += 1;
         self.staged = None;
         self.has_window = false;
         self.evaluated_at.clear();

@@ -157,6 +157,13 @@ impl PyMovingHorizon {
         Ok(self.core.set_weights(eta, q0, r0, p2.map(|(s, _, _)| s))?)
     }
 
+    /// How many times `set_weights` replaced weights since construction (a copy keeps the
+    /// count).
+    #[getter]
+    fn weights_version(&self) -> u64 {
+        self.core.weights_version()
+    }
+
     /// Replaces the input of the last update (see `MovingHorizon::set_last_input`).
     fn set_last_input(&mut self, py: Python<'_>, u: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
         let u = slice1("u", &u)?;
