@@ -134,3 +134,48 @@ def test_a_long_gp_prediction_releases_the_gil(learned):
     worker.join()
     # with the GIL held for the whole prediction this loop could not run during it
     assert ticks >= 50, ticks  # (~600 here with the GIL released)
+
+
+def test_estimators_sharing_one_casadi_model_in_two_threads_give_the_serial_results():
+    """One KnownModel.from_casadi model shared by two estimators, each updated in a thread of its
+    own. The core reads the model's results after its callback returned; here each callback
+    yields the GIL as it returns (what a thread switch at the end of the callback does, rarely,
+    by itself), so another thread's callback runs in between: each thread must have result
+    buffers of its own. Every run equals the serial run bit for bit."""
+    ca = pytest.importorskip("casadi")
+    import time
+
+    from gpmhe import GPMHE, KnownModel
+    from gpmhe.systems import batch_reactor as br
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 0)
+    k1, k2 = 0.16, 0.0064
+    f = ca.Function("f", [x, u], [x + 0.1 * ca.vertcat(-2 * k1 * x[0] ** 2 + 2 * k2 * x[1],
+                                                         k1 * x[0] ** 2 - k2 * x[1])])
+    h = ca.Function("h", [x, u], [x[0] + x[1]])
+    model = KnownModel.from_casadi(f, h)
+    casadi_model = model._casadi
+    for name in ("stage_callback", "predict_callback"):
+        def yielding(*args, _call=getattr(casadi_model, name)):
+            result = _call(*args)
+            time.sleep(0)  # let the other thread run before the core reads the result
+            return result
+        setattr(casadi_model, name, yielding)
+    ys = [br.simulate(br.X_TRUE0, 40, np.random.default_rng(s))[1] for s in (0, 1)]
+
+    def run(i, out):
+        est = GPMHE(model, x0=[3.0, 1.0], horizon=8, Q0=1e-3, R0=1e-2, x_bounds=br.X_BOUNDS)
+        out[i] = np.array([est.update(None, y).copy() for y in ys[i]])
+
+    serial = {}
+    run(0, serial)
+    run(1, serial)
+    for _ in range(5):
+        got = {}
+        threads = [threading.Thread(target=run, args=(i, got)) for i in (0, 1)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for i in (0, 1):
+            np.testing.assert_array_equal(got[i], serial[i])

@@ -145,8 +145,11 @@ class CasadiModel:
         self._lock = threading.Lock()
         self._functions = {}  # part -> Function of d (built on first use)
         self._maps = {}       # (part, k) -> (mapped function, buffer, trigger)
-        self._callback = {}   # k -> (buffer, trigger, results, the 8 arrays): the core's callback
-        self._predictor = None  # (buffer, trigger, point, result): the core's prediction
+        # The core's callbacks hand back views of result buffers, read by the core after the
+        # callback returned; each thread has buffers of its own, so another thread's call can
+        # never overwrite them in between (the lock guards building them and `_evaluate`).
+        self._callback = {}   # (thread, k) -> (buffer, trigger, results, the 8 arrays)
+        self._predictor = {}  # thread -> (buffer, trigger, point, result)
         # the values each part writes per point, in the order of its outputs
         self._sizes = {"stage": (n, n * nd, p, p * nd), "f": (n,), "h": (p,),
                        "f_jacobian": (n * n,), "h_jacobian": (p * n,)}
@@ -232,13 +235,15 @@ class CasadiModel:
         k = d.shape[0]
         return out.reshape((k, rows) if name in ("f", "h") else (k, rows, n))
 
-    def _callback_entry(self, k):
-        """For the core's stage callback at k points: a buffer of its own whose results are
-        bound once to one array, and the 8 arrays (views of it, the variances zeros) returned
-        by every call."""
+    def _callback_entry(self, key):
+        """For the core's stage callback of one thread at k points (``key`` = (thread, k)): a
+        buffer of its own whose results are bound once to one array, and the 8 arrays (views of
+        it, the variances zeros) returned by every call."""
         n, m, p = self.dims
         nd = n + m
-        mapped = self._map("stage", k)[0]
+        k = key[1]
+        with self._lock:
+            mapped = self._map("stage", k)[0]
         buf, trigger = mapped.buffer()
         out = np.empty(k * self._per_point["stage"])
         a, b, c = k * n, k * n * (1 + nd), k * (n + n * nd + p)
@@ -250,13 +255,14 @@ class CasadiModel:
                   out[b:c].reshape(k, p), zeros[2], out[c:].reshape(k, p, nd), zeros[3])
         for arr in arrays:
             arr.flags.writeable = False
-        entry = self._callback[k] = (buf, trigger, out, arrays)
+        entry = self._callback[key] = (buf, trigger, out, arrays)
         return entry
 
     def _stage(self, d):
-        entry = self._callback.get(d.shape[0])
+        key = (threading.get_ident(), d.shape[0])
+        entry = self._callback.get(key)
         if entry is None:
-            entry = self._callback_entry(d.shape[0])
+            entry = self._callback_entry(key)
         buf, trigger, out, arrays = entry
         buf.set_arg(0, memoryview(d))
         trigger()
@@ -266,15 +272,13 @@ class CasadiModel:
 
     def stage_callback(self, d):
         """The 8 arrays of `KnownModel.stage_eval` at the points d (C-contiguous float64
-        (k, n + m)): the estimator core's callback. The arrays are read-only and shared: the
-        next call overwrites them (the core copies them before any other Python code runs)."""
-        with self._lock:
-            return self._stage(d)
+        (k, n + m)): the estimator core's callback. The arrays are read-only and belong to the
+        calling thread: its next call overwrites them, another thread's never does."""
+        return self._stage(d)
 
     def stage(self, d):
         """`stage_callback` with fresh, writable arrays: `KnownModel.stage_eval`."""
-        with self._lock:
-            return tuple(np.array(a) for a in self._stage(d))
+        return tuple(np.array(a) for a in self._stage(d))
 
     def _raise_bad(self, out, k):
         n, m, p = self.dims
@@ -287,22 +291,24 @@ class CasadiModel:
 
     def predict_callback(self, x, u):
         """f(x, u) at one point (contiguous float64 vectors): the estimator core's prediction
-        callback. The result is shared: the next call overwrites it."""
-        with self._lock:
-            if self._predictor is None:
+        callback. The result belongs to the calling thread: its next call overwrites it."""
+        me = threading.get_ident()
+        entry = self._predictor.get(me)
+        if entry is None:
+            with self._lock:
                 mapped = self._map("f", 1)[0]
-                buf, trigger = mapped.buffer()
-                point, result = np.empty(sum(self.dims[:2])), np.empty(self.dims[0])
-                buf.set_arg(0, memoryview(point))
-                buf.set_res(0, memoryview(result))
-                self._predictor = (buf, trigger, point, result)
-            _, trigger, point, result = self._predictor
-            n = self.dims[0]
-            point[:n] = x
-            point[n:] = u
-            trigger()
-            self._check("f", result)
-            return result
+            buf, trigger = mapped.buffer()
+            point, result = np.empty(sum(self.dims[:2])), np.empty(self.dims[0])
+            buf.set_arg(0, memoryview(point))
+            buf.set_res(0, memoryview(result))
+            entry = self._predictor[me] = (buf, trigger, point, result)
+        _, trigger, point, result = entry
+        n = self.dims[0]
+        point[:n] = x
+        point[n:] = u
+        trigger()
+        self._check("f", result)
+        return result
 
 
 class CasadiPart:
