@@ -139,3 +139,12 @@ def test_a_bad_number_in_a_learned_models_training_data_is_refused():
     bad[0][0, 0] = "3.0"
     with pytest.raises(ValueError, match=r"^states\b"):
         LearnedModel.from_trajectories(bad, outputs)
+
+
+def test_a_bool_among_the_numbers_of_an_output_is_refused():
+    """numpy turns [True, 0.5] into floats; an output sample refuses it like any bool."""
+    model = KnownModel(lambda x, u: x, lambda x, u: x, dim_x=2, dim_y=2)
+    est = GPMHE(model, x0=[0.0, 0.0], horizon=2)
+    with pytest.raises(ValueError, match="^y: must be 2 real numbers"):
+        est.update(None, [True, 0.5])
+    assert est.t == 0

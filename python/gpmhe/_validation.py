@@ -30,6 +30,8 @@ __all__ = [
     "real_array",
     "float_array",
     "box",
+    "output_sample",
+    "sequence_rows",
     "finite_vector",
     "positive",
     "positive_scalar",
@@ -204,6 +206,40 @@ def box(name: str, bounds: Any, n: int, rows: Optional[int] = None) -> Tuple[np.
         where = "" if rows is None else f" (estimator {int(np.flatnonzero(bad)[0])})"
         raise ValueError(f"{name}: lower must be < upper{where}")
     return out[0], out[1]
+
+
+def output_sample(name: str, y: Any, p: int) -> Tuple[np.ndarray, bool]:
+    """One output sample y(t) of p values (NaN entries are channels not measured; inf, values of
+    magnitude > MAX_ABS and anything but real numbers are refused) and whether any channel is
+    measured. A Python loop over the values: cheaper than numpy's reductions for the few values
+    of one sample."""
+    try:
+        a = np.asarray(y)
+        if a.dtype.kind not in _REAL_KINDS or (isinstance(y, (list, tuple)) and _has_bool(y)):
+            raise TypeError
+        a = a.astype(np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be {p} real numbers (NaN for a channel not measured)") from None
+    if a.shape != (p,):
+        raise ValueError(f"{name}: expected shape ({p},), got {a.shape}")
+    measured = False
+    for v in a.tolist():
+        if v == v:  # not NaN
+            if not -MAX_ABS <= v <= MAX_ABS:
+                raise ValueError(f"{name}: contains inf or a value of magnitude > {MAX_ABS:g} "
+                                 "(NaN marks a channel not measured)")
+            measured = True
+    return a, measured
+
+
+def sequence_rows(name: str, value: Any) -> list:
+    """The rows of a sequence (a list, tuple or array; strings, dicts and sets are refused)."""
+    if isinstance(value, (str, bytes, dict, set)) or not hasattr(value, "__len__"):
+        raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}")
+    try:
+        return list(value)
+    except TypeError:
+        raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
 
 
 def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:

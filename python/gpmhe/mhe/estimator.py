@@ -17,44 +17,11 @@ import numpy as np
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import MAX_ABS, finite_vector
+from gpmhe._validation import finite_vector, output_sample, sequence_rows
 from gpmhe.mhe import checkpoint, solvers
 from gpmhe.mhe.settings import WEIGHTS, MHESettings
 
 __all__ = ["GPMHE"]
-
-
-def _output(name, y, p):
-    """y(t) of p values (NaN entries are channels not measured, inf is refused) and whether any
-    channel is measured. A Python loop over the values: cheaper than numpy's reductions for
-    the few values of one sample."""
-    try:
-        a = np.asarray(y)
-        if a.dtype.kind not in "fiu":
-            raise TypeError
-        a = a.astype(np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: must be {p} numbers (NaN for a channel not measured)") from None
-    if a.shape != (p,):
-        raise ValueError(f"{name}: expected shape ({p},), got {a.shape}")
-    measured = False
-    for v in a.tolist():
-        if v == v:  # not NaN
-            if not -MAX_ABS <= v <= MAX_ABS:
-                raise ValueError(f"{name}: contains inf or a value of magnitude > {MAX_ABS:g} "
-                                 "(NaN marks a channel not measured)")
-            measured = True
-    return a, measured
-
-
-def _rows(name, value):
-    """The rows of a sequence (a list, tuple or array; strings, dicts and sets are refused)."""
-    if isinstance(value, (str, bytes, dict, set)) or not hasattr(value, "__len__"):
-        raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}")
-    try:
-        return list(value)
-    except TypeError:
-        raise ValueError(f"{name}: must be a sequence of rows, got {type(value).__name__}") from None
 
 
 class GPMHE:
@@ -575,7 +542,7 @@ class GPMHE:
             u = finite_vector("u", u, m, flatten=True)
         if y is None:
             return u, np.zeros(p), False
-        y, present = _output("y", y, p)
+        y, present = output_sample("y", y, p)
         if u is None and m and present and self._output_uses_input(self._core.last_input):
             raise ValueError("u: required, the model's output h depends on u (u=None is for "
                              "models whose h(x, u) does not use u)")
@@ -722,8 +689,8 @@ class GPMHE:
         >>> bool(rmse < 0.3)
         True
         """
-        ys = _rows("ys", ys)
-        us = [None] * len(ys) if us is None else _rows("us", us)
+        ys = sequence_rows("ys", ys)
+        us = [None] * len(ys) if us is None else sequence_rows("us", us)
         if len(us) != len(ys):
             raise ValueError(f"us, ys: us has {len(us)} rows but ys has {len(ys)}")
         steps = []
