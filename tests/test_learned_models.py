@@ -318,3 +318,21 @@ def test_trajectories_of_different_lengths_and_subsampling():
     assert small.f_gp.D_train.shape[0] == 20 and small.h_gp.D_train.shape[0] == 20
     with pytest.raises(ValueError, match="max_points"):
         LearnedModel.from_trajectories(X, Y, max_points=1)
+
+
+def test_stage_eval_follows_a_gp_refitted_after_the_model_was_built():
+    """LearnedModel.stage_eval and predict read the core's view of the GPs, which is cached; a GP
+    whose theta is set afterwards (refitted in place) is read afresh, as the GP itself predicts."""
+    states, outputs = br.training_data(3, rng=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = LearnedModel.from_trajectories(states, outputs, n_restarts=0, random_state=0)
+    d = np.array([[2.0, 1.0], [1.0, 3.0]])
+    before = model.stage_eval(d)[0].copy()
+    theta = model.f_gp.theta.copy()
+    theta[:, 1] += 0.3
+    model.f_gp.theta = theta
+    after = model.stage_eval(d)[0]
+    assert not np.array_equal(before, after)
+    np.testing.assert_allclose(after, model.f_gp.predict(d), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(model.predict(d[0]), model.f_gp.predict(d[:1])[0], rtol=1e-12)

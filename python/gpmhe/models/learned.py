@@ -464,13 +464,15 @@ class LearnedModel(SharedOnCopy):
         """The GPs as the core evaluates them (the one implementation of the learned model's
         values: `stage_eval` and `predict` read them from here); f's residual form applies
         without a nominal model."""
-        core = self.__dict__.get("_gp_core")
-        if core is None:  # built once: the GPs are immutable
-            h = None if self.h_gp is None else self.h_gp._core_model
-            core = _core.StageModel.gp(self.f_gp._core_model, h, self.dim_u,
-                                       self.f_residual and self.nominal is None)
-            self.__dict__["_gp_core"] = core
-        return core
+        f = self.f_gp._core_model
+        h = None if self.h_gp is None else self.h_gp._core_model
+        cached = self.__dict__.get("_gp_core")
+        # Built once per fit of the GPs (setting a GP's theta refits it into a new core model).
+        if cached is None or cached[0] is not f or cached[1] is not h:
+            cached = (f, h, _core.StageModel.gp(f, h, self.dim_u,
+                                                self.f_residual and self.nominal is None))
+            self.__dict__["_gp_core"] = cached
+        return cached[2]
 
     def save(self, path):
         """Save both GPs and the settings to one ``.npz`` file (no pickle).
