@@ -26,6 +26,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gpmhe import (
+    SEKernel,
     GPMHE,
     RGPEKF,
     GaussianProcess,
@@ -98,6 +99,8 @@ def bad_values(valid, extras=(), allow=(), numeric=True, generic=True):
 def _freeze(v):
     if isinstance(v, np.ndarray):
         return v.copy()
+    if isinstance(v, tuple) and hasattr(v, "_fields"):  # a named tuple
+        return type(v)(*(_freeze(x) for x in v))
     if isinstance(v, (list, tuple)):
         return type(v)(_freeze(x) for x in v)
     if isinstance(v, dict):
@@ -134,6 +137,8 @@ def assert_same(a, b, strict=True, path="state"):
             assert_same(a[k], b[k], strict, f"{path}.{k}")
     elif a is None or isinstance(a, (bool, int, float, str, type, np.generic)):
         assert type(a) is type(b) and (a == b or (a != a and b != b)), (path, a, b)
+    elif isinstance(a, SEKernel):  # a value (a fitted GP's kernel is made from the model on access)
+        assert type(b) is SEKernel and a == b, path
     elif strict:
         assert a is b, path
     else:

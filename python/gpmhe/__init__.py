@@ -8,7 +8,7 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 * Gaussian processes: `GaussianProcess`, `MultiOutputGP` (with `ConvergenceWarning`,
   `NotFittedError`), their fit diagnostics `FitDiagnostics`, `FitWarning`, and their sparse
   (inducing-point) forms `SparseGaussianProcess`, `SparseMultiOutputGP` for thousands of
-  training points;
+  training points, all with an `SEKernel` that owns the hyperparameters and their bounds;
 * moving horizon estimation: `GPMHE` with a `LearnedModel` (GP-MHE) or a `KnownModel` (from
   Python callables, CasADi functions or a continuous-time model sampled by `discretize`), and
   `EstimatorBank`, many of them updated together (in parallel);
@@ -23,7 +23,7 @@ See the user guide, starting with *Notation*.
 
 from gpmhe._core import NumericalError
 from gpmhe.gp import (ConvergenceWarning, FitDiagnostics, FitWarning, GaussianProcess,
-                      MultiOutputGP, NotFittedError, SparseGaussianProcess, SparseMultiOutputGP)
+                      MultiOutputGP, NotFittedError, SEKernel, SparseGaussianProcess, SparseMultiOutputGP)
 from gpmhe.mhe import GPMHE, EstimatorBank
 from gpmhe.models import KnownModel, LearnedModel
 from gpmhe.models.discretization import DiscreteDynamics, discretize
@@ -37,6 +37,7 @@ __all__ = [
     "MultiOutputGP",
     "SparseGaussianProcess",
     "SparseMultiOutputGP",
+    "SEKernel",
     "ConvergenceWarning",
     "NotFittedError",
     "FitDiagnostics",

@@ -1,40 +1,36 @@
-"""`_ExactGP`, what `GaussianProcess` (``single.py``) and `MultiOutputGP` (``multi.py``) share:
-Gaussian-process regression with the SE-ARD kernel on the Rust core's `MultiGP`.
+"""`_GP`, what every GP class shares (`GaussianProcess`, `MultiOutputGP` and their sparse
+counterparts): the kernel (`SEKernel`, the owner of θ), the fit settings, the fitted state, and
+fit, predict, diagnostics, save and load. What differs between exact and sparse GPs is an
+*approximation* object the class delegates to (``exact.py``'s `EXACT` or ``inducing.py``'s
+`Sparse`); what differs between one and several outputs is ``outputs.py``.
 
 The numerics run on the Rust core; the user guide page *Gaussian processes* describes the model,
-the hyperparameter fit and the numerical safeguards in more detail.
-
-``GaussianProcess`` is one zero-mean GP; ``MultiOutputGP`` is one independent GP per output column
-on shared inputs, each with its own hyperparameters, predicted in one Rust call. Hyperparameters
-are optimised in log space, theta = log([sigma_f, lengthscales..., sigma_eps]), by maximising the
-log marginal likelihood with SciPy's L-BFGS-B and the analytic gradient from Rust, with optional
-random restarts inside the bounds. Models are saved as ``.npz`` (no pickle).
+the hyperparameter fit and the numerical safeguards.
 
 Model (per output)::
 
-    y_i = f(d_i) + eps_i,   eps_i ~ N(0, sigma_eps^2),   f ~ GP(0, k),
+    y_i = f(d_i) + eps_i,   eps_i ~ N(0, sigma_eps^2),   f ~ GP(m, k),
     k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d'))
 
-Posterior at a test point d*: mean m(d*) = k*^T (K + sigma_eps^2 I)^-1 y and latent (noise-free)
-variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*, computed as sigma_f^2 - ‖L^-1 k*‖^2.
-If K + sigma_eps^2 I is numerically singular, the core adds a small diagonal jitter (from
-1e-10 (sigma_f^2 + sigma_eps^2), growing tenfold up to 1e-6 (sigma_f^2 + sigma_eps^2)) and records
-it in ``jitter``; beyond that it raises ``gpmhe.NumericalError``.
+Hyperparameters are optimised in log space, theta = log([sigma_f, lengthscales..., sigma_eps]),
+by maximising the training objective (the exact log marginal likelihood or a sparse bound) with
+SciPy's L-BFGS-B and the analytic gradient from Rust, with optional random restarts inside the
+bounds. If K + sigma_eps^2 I (sparse: K(Z, Z)) is numerically singular, the core adds a small
+diagonal jitter (from 1e-10 (sigma_f^2 + sigma_eps^2), growing tenfold up to
+1e-6 (sigma_f^2 + sigma_eps^2)) and records it in ``jitter``; beyond that it raises
+``gpmhe.NumericalError``. Models are saved as ``.npz`` (no pickle).
 """
 
 from __future__ import annotations
 
 import json
 import os
-from typing import Any, Callable, Optional, Sequence, Tuple, Union
+from typing import Any, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 
-from gpmhe import _core
-from gpmhe.gp import priors as _priors
 from gpmhe._core import NumericalError
 from gpmhe._npz import NpzReader
-from gpmhe.gp.diagnostics import diagnose, exact_loo, summary_table
 from gpmhe._validation import (
     boolean,
     float_array,
@@ -44,14 +40,17 @@ from gpmhe._validation import (
     random_state as check_random_state,
     training_set,
 )
-
+from gpmhe.gp import priors as _priors
+from gpmhe.gp.diagnostics import diagnose, summary_table
 from gpmhe.gp.errors import NotFittedError
-from gpmhe.gp.kernel import DEFAULT_BOUNDS, _Theta
-from gpmhe.gp.fit import _exact_lml, _maximise, _posterior
+from gpmhe.gp.exact import EXACT
+from gpmhe.gp.fit import Fitting
+from gpmhe.gp.kernel import DEFAULT_BOUNDS, SEKernel
 
 __all__: list = []
 
 _FORMAT_VERSION = 2  # of saved GPs (2: prior mean, normalize, hyperprior)
+
 
 def _settings(est: Any) -> dict:
     return dict(
@@ -82,19 +81,28 @@ def _settings_from(f: NpzReader) -> dict:
     return settings
 
 
-class _ExactGP:
-    """The one implementation behind `GaussianProcess` and `MultiOutputGP`.
+class _Fit(NamedTuple):
+    """A fitted GP's state, replaced as a whole (one assignment): the core model, the training
+    data (N, n_d) and (N, q), the approximation that built the model, and the fit's record for
+    the diagnostics (natural-unit log-bounds (q, n_d + 2, 2) and every optimiser run's
+    objective per output; None without an optimiser)."""
 
-    q independent SE-ARD GPs on shared inputs in one ``_core.MultiGP``; the training data are kept
-    as (N, n_d) and (N, q) arrays and theta as (q, n_d + 2). `GaussianProcess` is the q = 1 case:
-    with ``_squeeze`` its results drop the output axis. The subclasses add the natural-unit
-    attributes (``_check_hyperparameters``, ``_store``), what differs in their API (``fit``'s
-    argument name, the shapes of theta, the LML and the jitter, the properties) and ``__repr__``;
-    `_documented` gives each its own copies of the shared methods with its docstrings.
-    """
+    model: Any
+    D: np.ndarray
+    Y: np.ndarray
+    approx: Any
+    record: Any
+
+
+class _GP:
+    """The one implementation behind the GP classes: q independent SE-ARD GPs on shared inputs
+    in one core model. `GaussianProcess` and its sparse counterpart are the q = 1 case (``outputs.py``:
+    with ``_squeeze`` their results drop the output axis). Subclasses give the class name
+    (``_kind``), the target's name in messages (``_target``), and the approximation
+    (``_approximation``, exact unless overridden) with its file entries (``_read_extra``)."""
 
     #: The class name, in messages and as the ``kind`` of saved files.
-    _kind = "_ExactGP"
+    _kind = "_GP"
     #: The target's name in ``fit`` (for messages).
     _target = "Y"
     #: One output: drop the output axis of predictions, theta, the LML and the saved targets.
@@ -114,47 +122,90 @@ class _ExactGP:
         normalize: bool = False,
         hyperprior: Any = None,
     ) -> None:
-        self._check_hyperparameters(sigma_f, lengthscales, sigma_eps)
+        self._kernel = self._make_kernel(sigma_f, lengthscales, sigma_eps, bounds)
         self.optimizer = one_of("optimizer", optimizer, ("L-BFGS-B", None))
         self.n_restarts = integer("n_restarts", n_restarts)
-        _Theta.log_bounds(bounds, None)  # validate the form now; expanded once n_d is known
-        self.bounds = bounds
         self.random_state = check_random_state("random_state", random_state)
         self.maxiter = integer("maxiter", maxiter, low=1)
         self.mean = _priors.check_mean(mean)
         self.normalize = boolean("normalize", normalize)
         self.hyperprior = _priors.check_hyperprior(hyperprior)
-        self._core_model: Optional[_core.MultiGP] = None
-        self._D: Optional[np.ndarray] = None
-        self._Y: Optional[np.ndarray] = None
-        #: The fit's record for `diagnostics`: natural-unit log-bounds (q, n_d + 2, 2) and the
-        #: objective of every optimiser run per output; None without an optimiser.
-        self._fit_record: Optional[Tuple[np.ndarray, list]] = None
-        self._diagnostics: Optional[list] = None
+        self._fitted: Optional[_Fit] = None
+        self._diagnostics: Optional[tuple] = None  # (the _Fit they describe, the list)
 
-    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
-        """Set sigma_f, lengthscales and sigma_eps (natural units) from the constructor's values."""
-        raise NotImplementedError
+    def _make_kernel(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any, bounds: Any) -> SEKernel:
+        """The kernel of these values (the output-count classes check the shapes they take)."""
+        return SEKernel(sigma_f, lengthscales, sigma_eps, bounds)
 
-    def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
-        """Set sigma_f, lengthscales and sigma_eps from their (q,), (q, n_d), (q,) values."""
-        raise NotImplementedError
+    def _approximation(self) -> Any:
+        """The approximation a fit uses (the sparse classes return theirs, built from their
+        settings as they are now)."""
+        return EXACT
+
+    @classmethod
+    def _read_extra(cls, f: NpzReader, nd: int, q: int) -> tuple:
+        """(constructor settings, inducing points) a saved file holds beyond the exact GP's."""
+        return {}, None
+
+    # -- the kernel --------------------------------------------------------------------------
+
+    @property
+    def kernel(self) -> SEKernel:
+        """The kernel with the current hyperparameters and their bounds.
+
+        Before ``fit`` the initial values given; after it the fitted ones (from the core
+        model: theta has one home).
+        """
+        fit = self._fitted
+        return self._kernel if fit is None else self._kernel.with_theta(fit.model.thetas)
+
+    def _set_kernel(self, **values: Any) -> None:
+        """Set hyperparameters or bounds (natural units): before ``fit`` the initial values; on a
+        fitted GP the model is factored again at the new values (no optimisation)."""
+        current = dict(sigma_f=self.sigma_f, lengthscales=self.lengthscales, sigma_eps=self.sigma_eps,
+                       bounds=self._kernel.bounds)
+        current.update(values)
+        new = self._make_kernel(**current)
+        fit = self._fitted
+        if fit is None:
+            self._kernel = new
+            return
+        q, nd = fit.model.n_outputs, fit.model.dim
+        if set(values) != {"bounds"}:
+            self._refactor_rows(new.theta(q, nd))
+        self._kernel = self._kernel.with_bounds(new.bounds)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(low, high) of sigma_f, the length-scales and sigma_eps in natural units, shape (3, 2)
+        or (n_d + 2, 2): the fit keeps theta within their logarithms."""
+        return self._kernel.bounds
+
+    @bounds.setter
+    def bounds(self, value: Any) -> None:
+        self._set_kernel(bounds=value)
 
     # -- state -------------------------------------------------------------------------------
 
-    def _set_model(self, model: "_core.MultiGP", D: np.ndarray, Y: np.ndarray) -> None:
-        self._core_model, self._D, self._Y = model, D, Y
-        self._diagnostics = None
-        self._store(*_Theta.to_natural(model.thetas))
+    @property
+    def _core_model(self) -> Any:
+        """The fitted core model (`gpmhe._core.MultiGP` or `SparseMultiGP`), or None."""
+        fit = self._fitted
+        return None if fit is None else fit.model
+
+    def _fit_state(self) -> _Fit:
+        fit = self._fitted
+        if fit is None:
+            raise NotFittedError(f"this {self._kind} is not fitted yet; call fit(D, {self._target}) first")
+        return fit
+
+    def _model(self) -> Any:
+        return self._fit_state().model
 
     def _residuals(self) -> np.ndarray:
         """The targets the GPs regress: y − m(D) with the fitted prior mean."""
-        return _priors.residuals(self._core_model.mean, self._D, self._Y)
-
-    def _model(self) -> "_core.MultiGP":
-        if self._core_model is None:
-            raise NotFittedError(f"this {self._kind} is not fitted yet; call fit(D, {self._target}) first")
-        return self._core_model
+        fit = self._fit_state()
+        return _priors.residuals(fit.model.mean, fit.D, fit.Y)
 
     def _theta_rows(self, value: Any) -> np.ndarray:
         """A theta argument of the fitted model (n_d + 2,) or (q, n_d + 2) as (q, n_d + 2)."""
@@ -166,25 +217,13 @@ class _ExactGP:
         return theta.reshape(m.n_outputs, m.dim + 2)
 
     def _refactor(self, theta: Any) -> None:
-        """Factor the fitted model again at a new theta (the ``theta`` setter)."""
-        m = self._model()
-        core = _core.MultiGP(self._D, self._residuals(), self._theta_rows(theta), m.mean)
-        self._set_model(core, self._D, self._Y)
-        self._fit_record = None
+        """Factor the fitted model again at a new theta (no optimisation)."""
+        self._refactor_rows(self._theta_rows(theta))
 
-    @property
-    def dim(self) -> int:
-        return self._model().dim
-
-    @property
-    def D_train(self) -> np.ndarray:
-        self._model()
-        return self._D.copy()
-
-    @property
-    def y_train(self) -> np.ndarray:
-        self._model()
-        return self._out(self._Y).copy()
+    def _refactor_rows(self, rows: np.ndarray) -> None:
+        fit = self._fit_state()
+        model = fit.approx.rebuild(fit.model, fit.D, self._residuals(), np.ascontiguousarray(rows))
+        self._fitted = _Fit(model, fit.D, fit.Y, fit.approx, None)
 
     def _out(self, a: np.ndarray) -> np.ndarray:
         """A per-point result (k, q, ...) as it is returned: (k, ...) for one output."""
@@ -192,54 +231,30 @@ class _ExactGP:
 
     # -- fitting -----------------------------------------------------------------------------
 
-    def _fit(self, D: Any, Y: Any, y_ndim: int) -> "_ExactGP":
+    def _fit(self, D: Any, Y: Any, y_ndim: int) -> "_GP":
         D, Y = training_set(D, Y, y_ndim)
         if y_ndim == 1:
             Y = Y.reshape(-1, 1)
         q, nd = Y.shape[1], D.shape[1]
+        approx = self._approximation()
         coef = _priors.fit_mean(self.mean, D, Y)
         R = _priors.residuals(coef, D, Y)
-        theta = _Theta.from_natural(self.sigma_f, self.lengthscales, self.sigma_eps, q, nd)
-        record = None
+        theta0 = self.kernel.theta(q, nd)
+        fitting = None
         if self.optimizer is not None:
-            theta, record = self._optimise(D, R, theta)
-        self._set_model(_core.MultiGP(D, R, np.ascontiguousarray(theta), coef), D, Y)
-        self._fit_record = record
+            fitting = Fitting(self._kernel.log_bounds(nd), _priors.log_scales(self.normalize, D, R),
+                              _priors.prior_rows(self.hyperprior, nd), np.random.default_rng(self.random_state),
+                              self.n_restarts, self.maxiter)
+        model, record = approx.fit(D, R, coef, theta0, fitting)
+        self._fitted = _Fit(model, D, Y, approx, record)
         return self
 
-    def _optimise(self, D: np.ndarray, R: np.ndarray, theta0: np.ndarray) -> Tuple[np.ndarray, Tuple[np.ndarray, list]]:
-        """(theta (q, n_d + 2), the fit's record) maximising each output's log marginal likelihood
-        plus log-prior from theta0. The optimiser works on theta − log_scales (standardised
-        units with ``normalize``), where the bounds and the hyperprior apply."""
-        q, nd = R.shape[1], D.shape[1]
-        log_bounds = _Theta.log_bounds(self.bounds, nd)
-        shift = _priors.log_scales(self.normalize, D, R)
-        prior = _priors.prior_rows(self.hyperprior, nd)
-        rng = np.random.default_rng(self.random_state)
-        rows, runs = [], []
-        for o in range(q):  # a loop, not a comprehension: the warning's stacklevel counts frames
-            objective = _posterior(_exact_lml(D, np.ascontiguousarray(R[:, o])), shift[o], prior)
-            t, _, values = _maximise(objective, theta0[o] - shift[o], log_bounds, self.n_restarts, rng, self.maxiter)
-            rows.append(t + shift[o])
-            runs.append(values)
-        return np.array(rows), (log_bounds[None, :, :] + shift[:, :, None], runs)
-
-    def _log_marginal_likelihood(self, theta: Any, eval_gradient: bool) -> Tuple[np.ndarray, np.ndarray]:
-        """(lml (q,), grad (q, n_d + 2) or None) at theta, None for the current one."""
-        m = self._model()
+    def _log_marginal_likelihood(self, theta: Any, eval_gradient: bool) -> tuple:
+        """(objective (q,), grad (q, n_d + 2) or None) at theta, None for the current one."""
+        fit = self._fit_state()
         eval_gradient = boolean("eval_gradient", eval_gradient)
-        if theta is None:
-            lml = m.log_marginal_likelihoods()
-            return lml, (m.log_marginal_likelihood_gradients() if eval_gradient else None)
-        theta = self._theta_rows(theta)
-        R = self._residuals()
-        res = [
-            _core.log_marginal_likelihood(
-                self._D, np.ascontiguousarray(R[:, o]), np.ascontiguousarray(theta[o]), bool(eval_gradient)
-            )
-            for o in range(m.n_outputs)
-        ]
-        return np.array([r[0] for r in res]), np.array([r[1] for r in res])
+        rows = None if theta is None else self._theta_rows(theta)
+        return fit.approx.objective(fit.model, fit.D, self._residuals(), rows, eval_gradient)
 
     # -- diagnostics -------------------------------------------------------------------------
 
@@ -254,8 +269,8 @@ class _ExactGP:
         """Diagnostics of the fit, one `gpmhe.FitDiagnostics` per output.
 
         The fitted hyperparameters, which of them sit at a bound, every optimiser run's objective,
-        and leave-one-out errors (closed form, one dense O(N³) factorisation per output, computed
-        once per fit) against the noise level and against a straight line.
+        and leave-one-out errors (closed form: one dense O(N³) factorisation per output for an exact
+        GP, O(N m²) for a sparse one; computed once per fit) against the noise level and against a straight line.
 
         Returns
         -------
@@ -281,16 +296,14 @@ class _ExactGP:
         >>> GaussianProcess(mean="linear").fit(D, y).diagnostics()[0].collapsed
         False
         """
-        m = self._model()
-        if self._diagnostics is None:
-            self._diagnostics = diagnose(self._D, self._residuals(), m.thetas, m.log_marginal_likelihoods(),
-                                         self._fit_record, self._loo())
-        return list(self._diagnostics)
-
-    def _loo(self) -> Callable:
-        """``loo(o, r)`` of `gpmhe.gp.diagnostics.diagnose` for this model."""
-        m = self._model()
-        return exact_loo(self._D, m.thetas, m.jitters)
+        fit = self._fit_state()
+        cached = self._diagnostics
+        if cached is None or cached[0] is not fit:
+            m = fit.model
+            cached = (fit, diagnose(fit.D, self._residuals(), m.thetas, m.log_marginal_likelihoods(), fit.record,
+                                    fit.approx.loo(m, fit.D)))
+            self._diagnostics = cached
+        return list(cached[1])
 
     def summary(self) -> str:
         """A printable table of `diagnostics`, one row per output, with the problems found.
@@ -309,8 +322,8 @@ class _ExactGP:
         >>> print(gp.summary().splitlines()[0])
         GaussianProcess (mean="linear", N=30)
         """
-        self._model()
-        title = f'{self._kind} (mean="{self.mean}", N={self._D.shape[0]})'
+        fit = self._fit_state()
+        title = f'{self._kind} (mean="{self.mean}", N={fit.D.shape[0]})'
         return summary_table(title, self.diagnostics())
 
     # -- prediction --------------------------------------------------------------------------
@@ -323,7 +336,7 @@ class _ExactGP:
         mean, var = m.predict(D)
         return self._out(mean), np.sqrt(self._out(var))
 
-    def predict_with_gradients(self, D: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def predict_with_gradients(self, D: Any) -> tuple:
         m = self._model()
         mean, var, dmean, dvar = m.predict_with_gradients(points("D", D, m.dim))
         return self._out(mean), self._out(var), self._out(dmean), self._out(dvar)
@@ -331,34 +344,38 @@ class _ExactGP:
     # -- persistence -------------------------------------------------------------------------
 
     def save(self, path: Union[str, os.PathLike]) -> None:
-        model = self._model()
-        theta, Y = model.thetas, self._Y
+        fit = self._fit_state()
+        model = fit.model
+        theta, Y = model.thetas, fit.Y
         if self._squeeze:
             theta, Y = theta[0], Y[:, 0]
         prior_mean = {} if model.mean is None else {"mean_coefficients": model.mean}
-        np.savez(path, format_version=_FORMAT_VERSION, kind=self._kind, D=self._D, y=Y, theta=theta,
-                 **prior_mean, **_settings(self))
+        np.savez(path, format_version=_FORMAT_VERSION, kind=self._kind, D=fit.D, y=Y, theta=theta,
+                 **prior_mean, **self._approximation().save_entries(model), **_settings(self))
 
     @classmethod
-    def load(cls, path: Union[str, os.PathLike]) -> "_ExactGP":
+    def load(cls, path: Union[str, os.PathLike]) -> "_GP":
         # Every entry is checked (a ValueError names the file and the entry): see gpmhe._npz.
         with NpzReader(path, cls._kind, _FORMAT_VERSION) as f:
             D = f.floats("D", (None, None))
-            y_shape, t_shape = ((None,), (D.shape[1] + 2,)) if cls._squeeze else \
-                ((None, None), (None, D.shape[1] + 2))
+            nd = D.shape[1]
+            y_shape, t_shape = ((None,), (nd + 2,)) if cls._squeeze else ((None, None), (None, nd + 2))
             Y, theta = f.floats("y", y_shape), f.floats("theta", t_shape)
-            q = 1 if cls._squeeze else Y.shape[1]
+            q = 1 if cls._squeeze else theta.shape[0]
+            extra, inducing = cls._read_extra(f, nd, q)
             try:
-                gp = cls(**_settings_from(f))
+                gp = cls(**extra, **_settings_from(f))
             except ValueError as e:
                 raise ValueError(f"path: {f.name}: bad settings ({e})") from None
-            coef = None if gp.mean == "zero" else f.floats("mean_coefficients", (q, D.shape[1] + 1))
+            coef = None if gp.mean == "zero" else f.floats("mean_coefficients", (q, nd + 1))
             name = f.name
         if cls._squeeze:
             Y, theta = Y.reshape(-1, 1), theta.reshape(1, -1)
+        approx = gp._approximation()
         try:
-            model = _core.MultiGP(D, _priors.residuals(coef, D, Y), theta, coef)
+            model = approx.load_model(D, _priors.residuals(coef, D, Y), theta, coef, inducing)
         except (ValueError, NumericalError) as e:
-            raise ValueError(f"path: {name}: entries 'D', 'y', 'theta' do not make a GP ({e})") from None
-        gp._set_model(model, D, Y)
+            entries, what = ("'D', 'y', 'theta', 'inducing'", "sparse GP") if approx.sparse else ("'D', 'y', 'theta'", "GP")
+            raise ValueError(f"path: {name}: entries {entries} do not make a {what} ({e})") from None
+        gp._fitted = _Fit(model, D, Y, approx, None)
         return gp

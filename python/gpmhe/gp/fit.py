@@ -1,16 +1,18 @@
-"""Fitting the exact GP's hyperparameters: the log marginal likelihood (with an optional
-hyperprior) maximised with SciPy's L-BFGS-B from the start and random restarts inside the bounds,
-and the test of whether a run converged."""
+"""Fitting a GP's hyperparameters, for the exact and the sparse GP alike: a training objective (a
+log marginal likelihood or a sparse bound, plus an optional hyperprior) maximised with SciPy's
+L-BFGS-B from the start and random restarts inside the bounds; the settings every fit uses
+(`Fitting`), the test of whether a run converged, and the warning's source line."""
 
 from __future__ import annotations
 
+import os
+import sys
 import warnings
-from typing import Any, Callable, Optional, Tuple
+from typing import Any, Callable, NamedTuple, Optional, Tuple
 
 import numpy as np
 import scipy.optimize
 
-from gpmhe import _core
 from gpmhe.gp import priors as _priors
 from gpmhe._core import NumericalError
 
@@ -18,18 +20,35 @@ from gpmhe.gp.errors import ConvergenceWarning
 
 __all__: list = []
 
-def _exact_lml(D: np.ndarray, y: np.ndarray) -> Callable[[np.ndarray], Tuple[float, np.ndarray]]:
-    """The exact GP's log marginal likelihood and its gradient as a function of theta.
+#: Frames in files under this directory are gpmhe's own (see `_user_stacklevel`).
+_PACKAGE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-    D and y must be validated (``training_set``): they are handed to the core as they are.
-    """
 
-    def lml(theta: np.ndarray) -> Tuple[float, np.ndarray]:
-        value, grad = _core.log_marginal_likelihood(D, y, np.ascontiguousarray(theta), True)
-        return float(value), np.asarray(grad)
+class Fitting(NamedTuple):
+    """What one fit of q outputs needs besides the data and the approximation: the log-bounds
+    (n_d + 2, 2), each output's shift to the optimiser's units t = theta − shift (q, n_d + 2),
+    the hyperprior rows, the random generator of the restarts and the L-BFGS-B limits."""
 
-    return lml
+    log_bounds: np.ndarray
+    shift: np.ndarray
+    prior: Any
+    rng: np.random.Generator
+    n_restarts: int
+    maxiter: int
 
+    def record(self, runs: list) -> Tuple[np.ndarray, list]:
+        """The fit's record for the diagnostics: natural-unit log-bounds per output
+        (q, n_d + 2, 2) and every optimiser run's objective per output."""
+        return self.log_bounds[None, :, :] + self.shift[:, :, None], runs
+
+
+def _user_stacklevel() -> int:
+    """The ``stacklevel`` that makes a warning raised by the caller point at the first frame
+    outside gpmhe (the user's call of ``fit`` or of whatever fitted the GP)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
+        frame, level = frame.f_back, level + 1
+    return level
 
 def _posterior(
     lml: Callable[[np.ndarray], Tuple[float, np.ndarray]],
@@ -106,7 +125,7 @@ def _maximise(
             "fit: L-BFGS-B stopped before convergence (iteration limit, or a failed line search "
             "with a large projected gradient); the best hyperparameters found are used",
             ConvergenceWarning,
-            stacklevel=4,  # _maximise <- _ExactGP._fit <- fit <- the caller of fit
+            stacklevel=_user_stacklevel(),
         )
     return best[0], best[1], np.array(values)
 

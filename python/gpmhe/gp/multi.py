@@ -1,6 +1,7 @@
 """`MultiOutputGP`: independent SE-ARD GPs, one per output column, on shared inputs, predicted in
 one Rust call (the form `LearnedModel` uses for f and h). The implementation it shares with
-`GaussianProcess` is `_ExactGP` (``base.py``); the docstrings here are the class's own."""
+every GP class is ``base.py``'s `_GP`, with the several-output shapes of ``outputs.py``; the
+docstrings here are the class's own."""
 
 
 from __future__ import annotations
@@ -10,16 +11,12 @@ from typing import Any, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from gpmhe._validation import (
-    positive,
-)
-
 from gpmhe.gp.kernel import DEFAULT_BOUNDS
-from gpmhe.gp.base import _ExactGP
+from gpmhe.gp.outputs import _ManyOutputs
 
 __all__ = ["MultiOutputGP"]
 
-class MultiOutputGP(_ExactGP):
+class MultiOutputGP(_ManyOutputs):
     """Independent SE-ARD GPs, one per output column, on shared inputs.
 
     Each output o = 1..q is a `GaussianProcess` model of its own (Y[:, o] = f_o(D) + eps_o,
@@ -64,12 +61,16 @@ class MultiOutputGP(_ExactGP):
 
     Attributes
     ----------
+    kernel : SEKernel
+        The kernel with the current hyperparameters and ``bounds`` (the fitted ones after
+        ``fit``).
     sigma_f : ndarray of shape (q,)
-        Signal standard deviations (fitted after ``fit``).
+        Signal standard deviations (fitted after ``fit``; setting it on a fitted model refactors
+        it at the new values without optimising, as for ``theta``).
     lengthscales : ndarray of shape (q, n_d)
-        Length-scales (fitted after ``fit``).
+        Length-scales (fitted after ``fit``); set as ``sigma_f``.
     sigma_eps : ndarray of shape (q,)
-        Noise standard deviations (fitted after ``fit``).
+        Noise standard deviations (fitted after ``fit``); set as ``sigma_f``.
     theta : ndarray of shape (q, n_d + 2)
         One row log([sigma_f, lengthscales..., sigma_eps]) per output; settable on a fitted
         model.
@@ -83,7 +84,9 @@ class MultiOutputGP(_ExactGP):
         Training targets.
     jitter : ndarray of shape (q,)
         Diagonal jitter each output's factorisation needed (normally 0).
-    optimizer, n_restarts, bounds, random_state, maxiter, mean, normalize, hyperprior
+    bounds : ndarray of shape (3, 2) or (n_d + 2, 2)
+        The bounds as given (those of ``kernel``).
+    optimizer, n_restarts, random_state, maxiter, mean, normalize, hyperprior
         The settings as given.
 
     See Also
@@ -125,30 +128,6 @@ class MultiOutputGP(_ExactGP):
         hyperprior: Any = None,
     ) -> None:
         super().__init__(sigma_f=sigma_f, lengthscales=lengthscales, sigma_eps=sigma_eps, optimizer=optimizer, n_restarts=n_restarts, bounds=bounds, random_state=random_state, maxiter=maxiter, mean=mean, normalize=normalize, hyperprior=hyperprior)
-
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return super().dim
-
-    @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return super().D_train
-
-    @property
-    def y_train(self) -> np.ndarray:
-        """Training targets, shape (N, q).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return super().y_train
 
     def predict(self, D: Any, return_std: bool = False):
         """Posterior means, and optionally latent standard deviations, of all outputs.
@@ -281,47 +260,6 @@ class MultiOutputGP(_ExactGP):
         """
         return super().load(path)
 
-    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
-        self.sigma_f = positive("sigma_f", sigma_f)
-        self.lengthscales = positive("lengthscales", lengthscales)
-        self.sigma_eps = positive("sigma_eps", sigma_eps)
-        if 0 in (self.sigma_f.size, self.sigma_eps.size, self.lengthscales.size):
-            raise ValueError("sigma_f, lengthscales, sigma_eps: must not be empty")
-        if self.sigma_f.ndim > 1 or self.sigma_eps.ndim > 1 or self.lengthscales.ndim > 2:
-            raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
-
-    def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
-        self.sigma_f, self.lengthscales, self.sigma_eps = sigma_f, lengthscales, sigma_eps
-
-    @property
-    def n_outputs(self) -> int:
-        """Number of outputs q.
-
-        The number of columns of the training targets; raises `NotFittedError` before ``fit``.
-        """
-        return self._model().n_outputs
-
-    @property
-    def theta(self) -> np.ndarray:
-        """Log-hyperparameters, shape (q, n_d + 2), one row per output.
-
-        Each row is log([sigma_f, lengthscales..., sigma_eps]). Setting it refactors the fitted
-        model at the new values without optimising.
-        """
-        return self._model().thetas
-
-    @theta.setter
-    def theta(self, value: Any) -> None:
-        self._refactor(value)
-
-    @property
-    def jitter(self) -> np.ndarray:
-        """Diagonal jitter of each output's kernel factorisation, shape (q,).
-
-        Normally 0; positive where a kernel matrix was numerically singular.
-        """
-        return self._model().jitters
-
     def fit(self, D: Any, Y: Any) -> "MultiOutputGP":
         """Fit one GP per output column, optimising each output's hyperparameters if set.
 
@@ -362,11 +300,7 @@ class MultiOutputGP(_ExactGP):
         >>> gp.n_outputs, gp.dim, gp.lengthscales.shape
         (2, 3, (2, 3))
         """
-        try:
-            y_ndim = 1 if np.ndim(Y) == 1 else 2
-        except ValueError:  # (a ragged list: training_set names it)
-            y_ndim = 2
-        return self._fit(D, Y, y_ndim)
+        return self._fit_targets(D, Y)
 
     def log_marginal_likelihood(self, theta: Any = None, eval_gradient: bool = False):
         """Log marginal likelihood of each output's training data.
@@ -395,10 +329,10 @@ class MultiOutputGP(_ExactGP):
         >>> lml.shape, grad.shape
         ((2,), (2, 3))
         """
-        lml, grad = self._log_marginal_likelihood(theta, eval_gradient)
-        return (lml, grad) if eval_gradient else lml
+        return self._lml_result(theta, eval_gradient)
 
     def __repr__(self) -> str:
-        if self._core_model is None:
+        fit = self._fitted
+        if fit is None:
             return "MultiOutputGP(not fitted)"
-        return f"MultiOutputGP(q={self.n_outputs}, n_d={self.dim}, N={self._D.shape[0]}, fitted)"
+        return f"MultiOutputGP(q={self.n_outputs}, n_d={self.dim}, N={fit.D.shape[0]}, fitted)"

@@ -1,6 +1,6 @@
-"""`GaussianProcess`: one GP with the SE-ARD kernel (see the package docs and the user guide,
-*Gaussian processes*). The implementation it shares with `MultiOutputGP` is `_ExactGP`
-(``base.py``); the docstrings here are the class's own."""
+"""`GaussianProcess`: one exact GP with the SE-ARD kernel (see the package docs and the user
+guide, *Gaussian processes*). The implementation every GP class shares is ``base.py``'s `_GP`,
+with the one-output shapes of ``outputs.py``; the docstrings here are the class's own."""
 
 
 from __future__ import annotations
@@ -10,18 +10,12 @@ from typing import Any, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from gpmhe._validation import (
-    float_array,
-    positive,
-    positive_scalar,
-)
-
-from gpmhe.gp.kernel import DEFAULT_BOUNDS, _Theta
-from gpmhe.gp.base import _ExactGP
+from gpmhe.gp.kernel import DEFAULT_BOUNDS
+from gpmhe.gp.outputs import _OneOutput
 
 __all__ = ["GaussianProcess"]
 
-class GaussianProcess(_ExactGP):
+class GaussianProcess(_OneOutput):
     """Exact GP regression of one output with the SE-ARD kernel.
 
     Model, for training inputs d_i (rows of D, n_d columns) and targets y_i::
@@ -75,12 +69,16 @@ class GaussianProcess(_ExactGP):
 
     Attributes
     ----------
+    kernel : SEKernel
+        The kernel with the current hyperparameters and ``bounds``: the initial values before
+        ``fit``, the fitted ones after it.
     sigma_f : float
-        Signal standard deviation (the fitted value after ``fit``).
+        Signal standard deviation (the fitted value after ``fit``; setting it on a fitted GP
+        refactors the model at the new value without optimising, as for ``theta``).
     lengthscales : float or ndarray of shape (n_d,)
-        Length-scales (an ndarray of shape (n_d,) after ``fit``).
+        Length-scales (an ndarray of shape (n_d,) after ``fit``); set as ``sigma_f``.
     sigma_eps : float
-        Noise standard deviation (the fitted value after ``fit``).
+        Noise standard deviation (the fitted value after ``fit``); set as ``sigma_f``.
     theta : ndarray of shape (n_d + 2,)
         log([sigma_f, lengthscales..., sigma_eps]); setting it on a fitted GP refactors the model
         at the new values without optimising.
@@ -94,7 +92,9 @@ class GaussianProcess(_ExactGP):
         log p(y | D, theta) at the current theta.
     dim : int
         Input dimension n_d of the fitted model.
-    optimizer, n_restarts, bounds, random_state, maxiter, mean, normalize, hyperprior
+    bounds : ndarray of shape (3, 2) or (n_d + 2, 2)
+        The bounds as given (those of ``kernel``).
+    optimizer, n_restarts, random_state, maxiter, mean, normalize, hyperprior
         The settings as given.
 
     Raises
@@ -133,8 +133,6 @@ class GaussianProcess(_ExactGP):
     """
 
     _kind = "GaussianProcess"
-    _target = "y"
-    _squeeze = True
 
     def __init__(
         self,
@@ -151,30 +149,6 @@ class GaussianProcess(_ExactGP):
         hyperprior: Any = None,
     ) -> None:
         super().__init__(sigma_f=sigma_f, lengthscales=lengthscales, sigma_eps=sigma_eps, optimizer=optimizer, n_restarts=n_restarts, bounds=bounds, random_state=random_state, maxiter=maxiter, mean=mean, normalize=normalize, hyperprior=hyperprior)
-
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d of the fitted model.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return super().dim
-
-    @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return super().D_train
-
-    @property
-    def y_train(self) -> np.ndarray:
-        """Training targets, shape (N,).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return super().y_train
 
     def predict(self, D: Any, return_std: bool = False):
         """Posterior mean, and optionally standard deviation, of the latent f at test points.
@@ -308,59 +282,6 @@ class GaussianProcess(_ExactGP):
         """
         return super().load(path)
 
-    def _check_hyperparameters(self, sigma_f: Any, lengthscales: Any, sigma_eps: Any) -> None:
-        self.sigma_f = positive_scalar("sigma_f", sigma_f)
-        ls = positive("lengthscales", lengthscales)
-        if ls.ndim > 1 or ls.size == 0:
-            raise ValueError("lengthscales: must be a positive scalar or a 1-D array")
-        self.lengthscales = ls.copy() if ls.ndim == 1 else float(ls)
-        self.sigma_eps = positive_scalar("sigma_eps", sigma_eps)
-
-    def _store(self, sigma_f: np.ndarray, lengthscales: np.ndarray, sigma_eps: np.ndarray) -> None:
-        self.sigma_f, self.lengthscales, self.sigma_eps = float(sigma_f[0]), lengthscales[0], float(sigma_eps[0])
-
-    # -- state -------------------------------------------------------------------------------
-
-    @property
-    def theta(self) -> np.ndarray:
-        """Log-hyperparameters log([sigma_f, lengthscales..., sigma_eps]), shape (n_d + 2,).
-
-        Setting it on a fitted GP refactors the model at the new values (no optimisation); on an
-        unfitted GP it sets the initial values ``sigma_f``, ``lengthscales`` and ``sigma_eps``.
-        """
-        if self._core_model is not None:
-            return self._core_model.thetas[0]
-        return _Theta.from_natural(self.sigma_f, self.lengthscales, self.sigma_eps, 1, np.size(self.lengthscales))[0]
-
-    @theta.setter
-    def theta(self, value: Any) -> None:
-        if self._core_model is not None:
-            self._refactor(value)
-            return
-        theta = float_array("theta", value, 1)
-        if theta.size < 3:
-            raise ValueError(f"theta: needs n_d + 2 >= 3 values, got {theta.size}")
-        p = np.exp(theta)
-        if not np.all(np.isfinite(p)):
-            raise ValueError("theta: exp(theta) overflows")
-        self._store(*_Theta.to_natural(theta[None, :]))
-
-    @property
-    def jitter(self) -> float:
-        """Diagonal jitter added to K + sigma_eps^2 I to factor it.
-
-        Normally 0; positive when the kernel matrix was numerically singular.
-        """
-        return float(self._model().jitters[0])
-
-    @property
-    def log_marginal_likelihood_value(self) -> float:
-        """Log marginal likelihood log p(y | D, theta) at the current theta.
-
-        Equal to ``log_marginal_likelihood()``; raises `NotFittedError` before ``fit``.
-        """
-        return float(self._model().log_marginal_likelihoods()[0])
-
     # -- fitting -----------------------------------------------------------------------------
 
     def fit(self, D: Any, y: Any) -> "GaussianProcess":
@@ -439,15 +360,10 @@ class GaussianProcess(_ExactGP):
         >>> bool(np.max(np.abs(grad)) < 1e-3), bool(lml > gp.log_marginal_likelihood([0, 0, -1]))
         (True, True)
         """
-        lml, grad = self._log_marginal_likelihood(theta, eval_gradient)
-        return (float(lml[0]), grad[0]) if eval_gradient else float(lml[0])
-
-    # -- prediction --------------------------------------------------------------------------
-
-    # -- persistence -------------------------------------------------------------------------
+        return self._lml_result(theta, eval_gradient)
 
     def __repr__(self) -> str:
-        state = "fitted" if self._core_model is not None else "not fitted"
+        state = "fitted" if self._fitted is not None else "not fitted"
         return (
             f"GaussianProcess(sigma_f={self.sigma_f:.4g}, lengthscales={np.round(self.lengthscales, 4)}, "
             f"sigma_eps={self.sigma_eps:.4g}, {state})"

@@ -1,9 +1,11 @@
 """Sparse (inducing-point) GP regression with the SE-ARD kernel, for thousands of training points.
 
 ``SparseGaussianProcess`` and ``SparseMultiOutputGP`` are the sparse counterparts of
-`gpmhe.GaussianProcess` and `gpmhe.MultiOutputGP` (and subclasses of them: they take the same
-arguments, have the same attributes and methods, and work wherever those do, in
-`gpmhe.LearnedModel`, `gpmhe.GPMHE` and the GP-EKF). Each output is summarised by m inducing
+`gpmhe.GaussianProcess` and `gpmhe.MultiOutputGP`: they take the same arguments, have the same
+attributes and methods, and work wherever those do in `gpmhe.LearnedModel`, `gpmhe.GPMHE` and
+the GP-EKF. They share the exact GPs' implementation (``base.py``'s `_GP`) and hand the fit and
+the model to the inducing-point approximation (``inducing.py``'s `Sparse`); they are not
+subclasses of the exact classes. Each output is summarised by m inducing
 inputs Z, chosen from the training inputs by greedy conditional-variance selection (or given),
 with the variational (VFE, Titsias 2009) or FITC approximation; the numerics are the Rust core's
 (``gpmhe._core.SparseMultiGP``). The user guide page *Gaussian processes* (section *Sparse GPs*)
@@ -21,20 +23,50 @@ mean k*^T P^-1 Kuf Lambda^-1 y, latent variance sigma_f^2 - k*^T (Kuu^-1 - P^-1)
 from __future__ import annotations
 
 import os
-from typing import Any, Optional, Tuple, Union
+from typing import Any, List, Optional, Tuple, Union
 
 import numpy as np
 
-from gpmhe.gp.multi import MultiOutputGP
-from gpmhe.gp.single import GaussianProcess
+from gpmhe.gp.inducing import Sparse, read_settings
 from gpmhe.gp.kernel import DEFAULT_BOUNDS
-
-from gpmhe.gp.sparse_base import _SparseGP
+from gpmhe.gp.outputs import _ManyOutputs, _OneOutput
 
 __all__ = ["SparseGaussianProcess", "SparseMultiOutputGP"]
 
 
-class SparseGaussianProcess(_SparseGP, GaussianProcess):
+class _Inducing:
+    """The sparse classes' own settings (placed before `_OneOutput` or `_ManyOutputs` in their
+    bases): the constructor's extra arguments, the approximation a fit hands the work to, the
+    file entries and the inducing points."""
+
+    def __init__(self, n_inducing: int, method: str, inducing: Any, optimize_inducing: bool, **settings: Any) -> None:
+        approx = Sparse(n_inducing, method, inducing, optimize_inducing, self._squeeze)
+        super().__init__(**settings)
+        self.n_inducing, self.method = approx.n_inducing, approx.method
+        self.inducing, self.optimize_inducing = approx.inducing, approx.optimize_inducing
+
+    def _approximation(self) -> Sparse:
+        # Built from the settings as they are now (validated again: they are plain attributes).
+        return Sparse(self.n_inducing, self.method, self.inducing, self.optimize_inducing, self._squeeze)
+
+    @classmethod
+    def _read_extra(cls, f: Any, nd: int, q: int) -> tuple:
+        return read_settings(f, nd, q, cls._squeeze)
+
+    @property
+    def inducing_points(self) -> Union[np.ndarray, List[np.ndarray]]:
+        """Inducing inputs of the fitted model.
+
+        An (m, n_d) array for `SparseGaussianProcess`; for `SparseMultiOutputGP` a list with one
+        (m_o, n_d) array per output (each output has its own, chosen under its own kernel). m can
+        be smaller than ``n_inducing``: see the user guide, *Sparse GPs*.
+        """
+        zs = self._model().inducing
+        return zs[0] if self._squeeze else zs
+
+
+
+class SparseGaussianProcess(_Inducing, _OneOutput):
     """Sparse GP regression of one output with the SE-ARD kernel and m inducing points.
 
     The model of `GaussianProcess` (y_i = f(d_i) + eps_i, f ~ GP(0, k)), approximated through the
@@ -50,8 +82,9 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
     returns to sigma_f^2 far from the inducing points (it does not collapse to 0 as DTC's
     does). With Z equal to the training inputs both methods reproduce `GaussianProcess`.
 
-    A subclass of `GaussianProcess`: every attribute and method of it is available, and it works
-    wherever the exact GP does.
+    It has every attribute and method of `GaussianProcess` and works wherever the exact GP does
+    in `LearnedModel`, `GPMHE` and the GP-EKF (it is not a subclass of it: test for a sparse GP
+    with ``isinstance(gp, SparseGaussianProcess)``).
 
     Parameters
     ----------
@@ -78,6 +111,8 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
 
     Attributes
     ----------
+    kernel : SEKernel
+        The kernel with the current hyperparameters and ``bounds`` (the fitted ones after ``fit``).
     inducing_points : ndarray of shape (m, n_d)
         The fitted inducing inputs.
     sigma_f, lengthscales, sigma_eps, theta, D_train, y_train, dim, jitter
@@ -191,7 +226,7 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
         >>> gp.inducing_points.shape
         (5, 1)
         """
-        return super().fit(D, y)
+        return self._fit(D, y, 1)
 
     def diagnostics(self) -> list:
         """Diagnostics of the fit, one `gpmhe.FitDiagnostics` per output.
@@ -257,7 +292,7 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
         >>> bool(np.allclose(sparse.log_marginal_likelihood(), exact.log_marginal_likelihood()))
         True
         """
-        return super().log_marginal_likelihood(theta, eval_gradient)
+        return self._lml_result(theta, eval_gradient)
 
     def predict(self, D: Any, return_std: bool = False):
         """Posterior mean, and optionally latent standard deviation, at test points.
@@ -384,8 +419,6 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
         """
         return super().load(path)
 
-    inducing_points = _SparseGP.inducing_points
-
     _kind = "SparseGaussianProcess"
 
     def __repr__(self) -> str:
@@ -395,12 +428,12 @@ class SparseGaussianProcess(_SparseGP, GaussianProcess):
         return f"SparseGaussianProcess(method={m.method!r}, m={len(m.inducing[0])}, N={m.n_train}, fitted)"
 
 
-class SparseMultiOutputGP(_SparseGP, MultiOutputGP):
+class SparseMultiOutputGP(_Inducing, _ManyOutputs):
     """Independent sparse SE-ARD GPs, one per output column, on shared inputs.
 
     Each output o is a `SparseGaussianProcess` of its own, with its own hyperparameters and its
-    own inducing points (chosen under its own kernel). A subclass of `MultiOutputGP`, so it can
-    serve as the f- and h-GPs of a `LearnedModel` (``LearnedModel.from_trajectories(...,
+    own inducing points (chosen under its own kernel). It has every attribute and method of
+    `MultiOutputGP` (it is not a subclass of it), so it can serve as the f- and h-GPs of a `LearnedModel` (``LearnedModel.from_trajectories(...,
     n_inducing=...)`` builds them), and `GPMHE` and the GP-EKF run on it unchanged.
 
     Parameters
@@ -428,6 +461,8 @@ class SparseMultiOutputGP(_SparseGP, MultiOutputGP):
 
     Attributes
     ----------
+    kernel : SEKernel
+        The kernel with the current hyperparameters and ``bounds`` (the fitted ones after ``fit``).
     inducing_points : list of ndarray of shape (m_o, n_d)
         The fitted inducing inputs of each output.
     sigma_f, lengthscales, sigma_eps, theta, n_outputs, dim, D_train, y_train, jitter
@@ -521,7 +556,7 @@ class SparseMultiOutputGP(_SparseGP, MultiOutputGP):
         >>> [z.shape for z in gp.inducing_points]
         [(5, 1), (5, 1)]
         """
-        return super().fit(D, Y)
+        return self._fit_targets(D, Y)
 
     def diagnostics(self) -> list:
         """Diagnostics of the fit, one `gpmhe.FitDiagnostics` per output.
@@ -587,7 +622,7 @@ class SparseMultiOutputGP(_SparseGP, MultiOutputGP):
         >>> bool(np.allclose(sparse.log_marginal_likelihood(), exact.log_marginal_likelihood()))
         True
         """
-        return super().log_marginal_likelihood(theta, eval_gradient)
+        return self._lml_result(theta, eval_gradient)
 
     def predict(self, D: Any, return_std: bool = False):
         """Posterior means, and optionally latent standard deviations, at test points.
@@ -713,8 +748,6 @@ class SparseMultiOutputGP(_SparseGP, MultiOutputGP):
         'fitc'
         """
         return super().load(path)
-
-    inducing_points = _SparseGP.inducing_points
 
     _kind = "SparseMultiOutputGP"
 

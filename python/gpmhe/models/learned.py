@@ -131,12 +131,13 @@ class LearnedModel(SharedOnCopy):
     """
 
     def __init__(self, f_gp, h_gp, dim_u=0, f_residual=False, nominal=None):
-        from gpmhe.gp import MultiOutputGP
+        from gpmhe.gp import MultiOutputGP, SparseMultiOutputGP
 
-        if not isinstance(f_gp, MultiOutputGP) or f_gp._core_model is None:
-            raise ValueError("f_gp: must be a fitted gpmhe.MultiOutputGP")
-        if h_gp is not None and (not isinstance(h_gp, MultiOutputGP) or h_gp._core_model is None):
-            raise ValueError("h_gp: must be a fitted gpmhe.MultiOutputGP or None")
+        gp_classes = (MultiOutputGP, SparseMultiOutputGP)
+        if not isinstance(f_gp, gp_classes) or f_gp._core_model is None:
+            raise ValueError("f_gp: must be a fitted gpmhe.MultiOutputGP or SparseMultiOutputGP")
+        if h_gp is not None and (not isinstance(h_gp, gp_classes) or h_gp._core_model is None):
+            raise ValueError("h_gp: must be a fitted gpmhe.MultiOutputGP, SparseMultiOutputGP or None")
         dim_u = integer("dim_u", dim_u)
         f_residual = boolean("f_residual", f_residual)
         n = f_gp.n_outputs
@@ -256,18 +257,16 @@ class LearnedModel(SharedOnCopy):
         >>> type(sparse.f_gp).__name__, [len(z) for z in sparse.f_gp.inducing_points]
         ('SparseMultiOutputGP', [6, 6])
         """
-        from gpmhe.gp import MultiOutputGP
-        from gpmhe.gp import SparseMultiOutputGP
+        from gpmhe.gp import MultiOutputGP, SparseMultiOutputGP
 
-        if _SPARSE_OPTIONS & set(gp_options):
-            MultiOutputGP = SparseMultiOutputGP  # noqa: N806 (the class both GPs are built with)
+        gp_class = SparseMultiOutputGP if _SPARSE_OPTIONS & set(gp_options) else MultiOutputGP
         f_residual, warn = boolean("f_residual", f_residual), boolean("warn", warn)
         max_points = training.check_max_points(max_points)
         has_nominal = f_nominal is not None or h_nominal is not None
         defaults = training.RESIDUAL_DEFAULTS if has_nominal else training.LEARNED_DEFAULTS
         gp_options = {**defaults, **gp_options}
         try:
-            MultiOutputGP(**gp_options)  # the options' own checks, before any fit
+            gp_class(**gp_options)  # the options' own checks, before any fit
         except TypeError as exc:
             raise ValueError(f"gp_options: {exc}") from None
         n, p, m = _dimensions(states, outputs, inputs)
@@ -281,8 +280,8 @@ class LearnedModel(SharedOnCopy):
         if nominal is not None:
             target_f = Xn - nominal._values(Df, nominal.f, n, "f")
             target_h = Yh - nominal._values(Dh, nominal.h, p, "h") if p else Yh
-        f_gp = MultiOutputGP(**gp_options).fit(Df, target_f)
-        h_gp = MultiOutputGP(**gp_options).fit(Dh, target_h) if p else None
+        f_gp = gp_class(**gp_options).fit(Df, target_f)
+        h_gp = gp_class(**gp_options).fit(Dh, target_h) if p else None
         model = cls(f_gp, h_gp, dim_u=m, f_residual=f_residual, nominal=nominal)
         if warn:
             model._warn_problems()
@@ -415,10 +414,10 @@ class LearnedModel(SharedOnCopy):
         """
         from gpmhe.gp.diagnostics import summary_table
 
-        parts = [summary_table(f'f-GPs (mean="{self.f_gp.mean}", N={self.f_gp._D.shape[0]})',
+        parts = [summary_table(f'f-GPs (mean="{self.f_gp.mean}", N={len(self.f_gp.D_train)})',
                                self.f_gp.diagnostics(), [f"x{i + 1}" for i in range(self.dim_x)])]
         if self.h_gp is not None:
-            parts.append(summary_table(f'h-GPs (mean="{self.h_gp.mean}", N={self.h_gp._D.shape[0]})',
+            parts.append(summary_table(f'h-GPs (mean="{self.h_gp.mean}", N={len(self.h_gp.D_train)})',
                                        self.h_gp.diagnostics(), [f"y{i + 1}" for i in range(self.dim_y)]))
         return "\n".join(parts)
 

@@ -11,8 +11,7 @@ from typing import Any, Sequence, Union
 import numpy as np
 
 from gpmhe._core import RecursiveGPCore
-from gpmhe.gp import GaussianProcess, MultiOutputGP
-from gpmhe.gp.sparse_base import _SparseGP
+from gpmhe.gp import GaussianProcess, MultiOutputGP, SparseGaussianProcess, SparseMultiOutputGP
 from gpmhe._validation import (
     boolean,
     finite_vector,
@@ -248,7 +247,7 @@ class RecursiveGP:
         >>> bool(np.allclose(mean, mean_s) and np.allclose(std, std_s))
         True
         """
-        if not isinstance(gp, _SparseGP):
+        if not isinstance(gp, (SparseGaussianProcess, SparseMultiOutputGP)):
             got = type(gp).__name__
             hint = (" (an exact GP has no inducing points: fit a SparseGaussianProcess, whose "
                     "inducing points become the basis vectors)" if isinstance(gp, _ExactGPs) else "")

@@ -11,6 +11,7 @@ import scipy.linalg
 import scipy.optimize
 
 from gpmhe import _core
+from gpmhe.gp import SparseGaussianProcess, SparseMultiOutputGP
 from gpmhe.theory.common import _is_learned
 from gpmhe.theory.constants import _EPS
 
@@ -58,7 +59,11 @@ class _SEPosterior:
 
 def _posteriors(gp):
     """The `_SEPosterior` of each output of a fitted MultiOutputGP (on the targets minus its prior
-    mean: an affine mean adds nothing to the Hessian and the variances)."""
+    mean: an affine mean adds nothing to the Hessian and the variances). Sparse GPs are refused:
+    these are the exact posterior's formulas, and a sparse GP's posterior differs from it."""
+    if isinstance(gp, (SparseGaussianProcess, SparseMultiOutputGP)):
+        raise ValueError(f"model: the bounds are derived for exact GPs; this model's GPs are a {type(gp).__name__} "
+                         f"(fit the LearnedModel without n_inducing to certify it)")
     D, Y = gp.D_train, gp._residuals()
     sf, ls, se, jit = (np.atleast_1d(gp.sigma_f), np.atleast_2d(gp.lengthscales),
                        np.atleast_1d(gp.sigma_eps), np.atleast_1d(gp.jitter))
