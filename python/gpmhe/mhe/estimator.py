@@ -619,11 +619,13 @@ class GPMHE:
         ------
         ValueError
             On bad input (shape, NaN or inf, a required u missing, u=None while h depends
-            on u) or bad output of a `KnownModel` callable; the estimator is then unchanged.
+            on u) or bad output of a `KnownModel` callable (a wrong shape anywhere; NaN, inf or
+            a ValueError at the window's start point); the estimator is then unchanged.
         Exception
             Any exception a `KnownModel` callable raises (``KeyboardInterrupt`` included) is
-            passed on with the estimator unchanged, except an ``ArithmeticError`` or
-            ``RuntimeError`` at a trial point of the solver, which only rejects that point.
+            passed on with the estimator unchanged, except a ``ValueError``,
+            ``ArithmeticError`` or ``RuntimeError`` (or NaN or inf) at a point the solver only
+            tries, which rejects that step.
         RuntimeError
             If the estimator is already being updated (from another thread, or from inside its
             own model callable).

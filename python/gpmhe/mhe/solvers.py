@@ -42,13 +42,64 @@ def gn_decrement(window, z, lb, ub):
     return max(cost - float(np.sum((r + jac @ step) ** 2)), 0.0), step, cost
 
 
+class _Trials:
+    """The staged window as SciPy's methods see it: at a point where the model cannot be
+    evaluated (it raised an ArithmeticError, such as `gpmhe.models.base.ModelDomainError` for
+    NaN output, or a RuntimeError, such as `gpmhe.NumericalError`) the values are non-finite
+    instead, and SciPy's trust-region methods reject that step and shrink the region, as the
+    Rust solver does. The start point is evaluated on the window itself (`solve`), where such a
+    failure is an error."""
+
+    _FAILED = (ArithmeticError, RuntimeError)
+
+    def __init__(self, window):
+        self.window = window
+        self._n_residuals = None  # known from the first evaluation (at the start point)
+
+    def cost(self, z):
+        try:
+            return self.window.cost(z)
+        except self._FAILED:
+            return np.inf
+
+    def cost_grad(self, z):
+        try:
+            return self.window.cost_grad(z)
+        except self._FAILED:
+            return np.inf, np.full(len(z), np.nan)
+
+    def residuals(self, z):
+        try:
+            r = self.window.residuals(z)
+        except self._FAILED:
+            if self._n_residuals is None:
+                raise
+            return np.full(self._n_residuals, np.nan)
+        self._n_residuals = len(r)
+        return r
+
+    def jacobian(self, z):
+        try:
+            return self.window.jacobian(z)
+        except self._FAILED:
+            if self._n_residuals is None:
+                raise
+            return np.full((self._n_residuals, len(z)), np.nan)
+
+    def gn_hessian(self, z):
+        try:
+            return self.window.gn_hessian(z)
+        except self._FAILED:
+            return np.full((len(z), len(z)), np.nan)
+
+
 def solve(solver, options, window, z0, lb, ub):
     """Solve the staged window with SciPy's ``solver`` from z0 and keep the better of the result
     and z0: returns (z, cost, success, nit, message)."""
     cost0 = window.cost(z0)
     method = _trust_constr if solver == "trust-constr" else _least_squares
     try:
-        z, nit, ok, message = method(options, window, z0, lb, ub)
+        z, nit, ok, message = method(options, _Trials(window), z0, lb, ub)
         z = np.clip(np.asarray(z, dtype=np.float64), lb, ub)
         cost = window.cost(z) if np.all(np.isfinite(z)) else np.inf
     except (ValueError, ArithmeticError, np.linalg.LinAlgError, RuntimeError) as e:

@@ -22,6 +22,7 @@ import threading
 import numpy as np
 
 from gpmhe._validation import MAX_ABS, within_limits
+from gpmhe.models.base import ModelDomainError
 
 __all__ = ["import_casadi", "CasadiModel"]
 
@@ -221,7 +222,7 @@ class CasadiModel:
 
     def _check(self, part, out):
         if not within_limits(out):
-            raise ValueError(f"{part}: returned NaN or inf or a value of magnitude > {MAX_ABS:g} "
+            raise ModelDomainError(f"{part}: returned NaN or inf or a value of magnitude > {MAX_ABS:g} "
                              f"(CasADi model)")
 
     def part(self, name, d):
@@ -286,7 +287,7 @@ class CasadiModel:
         ends = np.cumsum([k * n, k * n * nd, k * p, k * p * nd])
         for name, start, end in zip(("f", "f_jacobian", "h", "h_jacobian"), [0, *ends[:-1]], ends):
             if not within_limits(out[start:end]):
-                raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > "
+                raise ModelDomainError(f"{name}: returned NaN or inf or a value of magnitude > "
                                  f"{MAX_ABS:g} (CasADi model)")
 
     def predict_callback(self, x, u):

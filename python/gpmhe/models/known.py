@@ -21,9 +21,21 @@ from gpmhe._validation import (
     positive_scalar,
     within_limits,
 )
-from gpmhe.models.base import SharedOnCopy, check_picklable, point
+from gpmhe.models.base import ModelDomainError, SharedOnCopy, call_user, check_picklable, point
 
 __all__ = ["KnownModel"]
+
+
+def _floats(value, name):
+    """What a model function returned as a float64 array; anything but real numbers (strings,
+    None, complex values, ragged lists) is refused with a ValueError naming the function."""
+    if np.iscomplexobj(value):
+        raise ValueError(f"{name}: returned complex values (expected real numbers)")
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: returned {type(value).__name__} {str(value)[:60]!r}, not an array of "
+                         f"real numbers") from None
 
 
 class KnownModel(SharedOnCopy):
@@ -103,8 +115,10 @@ class KnownModel(SharedOnCopy):
 
     Every returned array is checked for its shape and for NaN or inf in both modes; a violation
     raises ValueError naming the callable. At the window's start point, `GPMHE.update` then
-    raises it and leaves the estimator's state unchanged; at a trial point of the Rust solver it
-    only rejects that step (the SciPy solvers stop there: ``success`` False and a warning).
+    raises it and leaves the estimator's state unchanged. NaN or inf (or a ValueError the
+    callable raises) at a point a solver only tries rejects that step, for every solver: the
+    model may be undefined outside the region the estimates lie in. A wrong shape is an error
+    wherever it happens.
 
     Gradients with respect to u are not needed by the estimator (u is data) and are reported as
     zero.
@@ -412,14 +426,14 @@ class KnownModel(SharedOnCopy):
 
     # ---- per point (vectorized=False) ------------------------------------------------------
     def _call(self, fn, x, u, size, name):
-        v = np.asarray(fn(x, u), dtype=np.float64).reshape(-1)
+        v = _floats(call_user(fn, name, x, u), name).reshape(-1)
         if v.size != size:
             raise ValueError(f"{name}: returned {v.size} values, expected {size}")
         return v
 
     def _jac(self, fn, jac, x, u, size, name):
         if jac is not None:
-            J = np.asarray(jac(x, u), dtype=np.float64)
+            J = _floats(call_user(jac, name + "_jacobian", x, u), name + "_jacobian")
             if J.shape != (size, self.dim_x):
                 raise ValueError(f"{name}_jacobian: returned shape {J.shape}, expected {(size, self.dim_x)}")
             return J
@@ -447,7 +461,7 @@ class KnownModel(SharedOnCopy):
 
     # ---- vectorised (vectorized=True) ------------------------------------------------------
     def _call_batch(self, fn, X, U, size, name, rows="one row per point"):
-        v = np.asarray(fn(X, U), dtype=np.float64)
+        v = _floats(call_user(fn, name, X, U), name)
         if v.shape != (X.shape[0], size):
             raise ValueError(f"{name}: returned shape {v.shape}, expected {(X.shape[0], size)} "
                              f"(vectorized=True: {rows})")
@@ -459,7 +473,7 @@ class KnownModel(SharedOnCopy):
         k, n = X.shape
         if jac is not None:
             v = self._call_batch(fn, X, U, size, name)
-            J = np.asarray(jac(X, U), dtype=np.float64)
+            J = _floats(call_user(jac, name + "_jacobian", X, U), name + "_jacobian")
             if J.shape != (k, size, n):
                 raise ValueError(f"{name}_jacobian: returned shape {J.shape}, expected "
                                  f"{(k, size, n)} (vectorized=True: one matrix per point)")
@@ -485,14 +499,14 @@ class KnownModel(SharedOnCopy):
         else:
             v = np.array([self._call(fn, di[:n].copy(), di[n:].copy(), size, name) for di in d])
         if not within_limits(v):
-            raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
+            raise ModelDomainError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         return v.reshape(d.shape[0], size)
 
     def _points_batch(self, d):
         n, p = self.dim_x, self.dim_y
         X, U = d[:, :n].copy(), d[:, n:].copy()  # contiguous; shared by the calls below
         if self._f_joint is not None:  # an integrator: values and Jacobian in one pass
-            mx, jx = self._f_joint(X, U)
+            mx, jx = call_user(self._f_joint, "f", X, U)
         else:
             mx, jx = self._value_and_jac_batch(self.f, self.f_jacobian, X, U, n, "f")
         if p:
@@ -547,7 +561,7 @@ class KnownModel(SharedOnCopy):
         else:
             v = self._call(self.f, x, u, self.dim_x, "f")
         if not within_limits(v):
-            raise ValueError(f"f: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
+            raise ModelDomainError(f"f: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         return v
 
     def stage_eval(self, d):
@@ -612,7 +626,7 @@ class KnownModel(SharedOnCopy):
                         (jx, "f_jacobian" if self.f_jacobian is not None else "f" + fd),
                         (jy, "h_jacobian" if self.h_jacobian is not None else "h" + fd)):
             if not within_limits(a):
-                raise ValueError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
+                raise ModelDomainError(f"{name}: returned NaN or inf or a value of magnitude > {MAX_ABS:g}")
         if m:
             dmx, dmy = np.zeros((k, n, nd)), np.zeros((k, p, nd))
             dmx[:, :, :n], dmy[:, :, :n] = jx, jy
