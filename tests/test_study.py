@@ -209,3 +209,72 @@ def test_missing_extra_names_the_install_line(monkeypatch, module, kwargs):
     monkeypatch.setitem(sys.modules, module, None)  # `import module` raises ImportError
     with pytest.raises(ImportError, match=r"pip install 'gpmhe\[distributed\]'"):
         gpmhe.monte_carlo({"MHE": mhe}, simulate, [0], progress=False, **kwargs)
+
+
+# ------------------------------------------------------------------------ every run accounted
+
+
+class _Diverging:
+    """An estimator whose estimate turns NaN at its third update."""
+
+    def __init__(self):
+        self.t, self.x = 0, np.zeros(2)
+
+    def update(self, u, y):
+        self.t += 1
+        self.x = np.full(2, np.nan) if self.t >= 3 else np.ones(2)
+
+
+def diverging():
+    return _Diverging()
+
+
+def exits_on_2(seed):
+    if seed == 2:
+        sys.exit("seed 2 gives up")
+    return mhe()
+
+
+def test_a_nan_estimate_fails_its_run():
+    r = gpmhe.monte_carlo({"NaN": diverging}, simulate, [0, 1], progress=False)
+    assert list(r.table.error) == ["FloatingPointError: the estimate at t=2 is not finite: [nan nan]"] * 2
+    assert list(r.summary()[("failed", "")]) == [2]
+
+
+def test_sys_exit_fails_its_row_only(serial):
+    r = gpmhe.monte_carlo({"MHE": exits_on_2}, simulate, SEEDS, progress=False)
+    assert list(r.table.error.notna()) == [False, False, True, False]
+    assert "seed 2 gives up" in r.table.error[2]
+    ok = r.table.error.isna()
+    expected = serial.table[serial.table.estimator == "MHE"].reset_index(drop=True)
+    pd.testing.assert_frame_equal(r.table[METRIC_COLUMNS][ok], expected[METRIC_COLUMNS][ok])
+
+
+def test_sys_exit_on_a_cluster_fails_its_row_only(client):
+    r = gpmhe.monte_carlo({"MHE": exits_on_2}, simulate, SEEDS, client=client, progress=False,
+                          chunk_size=4)
+    assert list(r.table.error.notna()) == [False, False, True, False]
+
+
+def simulate_kills_on_1(seed):
+    if seed == 1:
+        os._exit(1)  # kills the worker process every time
+    return simulate(seed)
+
+
+def test_a_seed_that_kills_its_worker_fails_alone(client):
+    """A chunk of four seeds whose seed 1 kills every worker that runs it: the chunk is split
+    into single seeds and only seed 1 fails."""
+    r = gpmhe.monte_carlo({"MHE": mhe}, simulate_kills_on_1, SEEDS, client=client, progress=False,
+                          chunk_size=4, retries=0)
+    assert list(r.table.error.notna()) == [False, True, False, False]
+    assert r.table.error[1].startswith("task failed")
+
+
+def test_a_cluster_without_workers_is_an_early_clear_error(monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(gpmhe.study, "WORKER_WAIT", 1.0)
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+        with distributed.Client(cluster) as c:
+            with pytest.raises(ValueError, match="^client: the cluster has no workers"):
+                gpmhe.monte_carlo({"MHE": mhe}, simulate, [0], client=c, progress=False)

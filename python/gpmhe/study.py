@@ -225,6 +225,8 @@ def _run_one(factory, simulate, metrics, seed):
             est.update(u, y)
             times[t] = time.perf_counter() - t0
             xs[t] = np.asarray(est.x, dtype=float).ravel()
+            if not np.all(np.isfinite(xs[t])):
+                raise FloatingPointError(f"the estimate at t={t} is not finite: {xs[t]}")
             unconverged += getattr(est, "success", True) is False
     truth = X[1:] if form == "prediction" else X[:-1]
     values = {name: float(fn(xs, truth, times)) for name, fn in metrics.items()}
@@ -232,14 +234,18 @@ def _run_one(factory, simulate, metrics, seed):
 
 
 def _run_chunk(payload, name, seeds):
-    """Runs of one estimator over some seeds; a failing run becomes its row's error message."""
+    """Runs of one estimator over some seeds; a failing run becomes its row's error message.
+
+    A run that raises SystemExit (``sys.exit`` in a user's function) is a failed run too: on a
+    cluster it would otherwise end the worker process and lose the other seeds of its task.
+    KeyboardInterrupt still stops the study."""
     estimators, simulate, metrics = payload
     out = []
     for seed in seeds:
         try:
             values, unconverged, times = _run_one(estimators[name], simulate, metrics, seed)
             out.append((name, seed, values, unconverged, times, None))
-        except Exception as exc:  # reported in the row: one bad run must not end the study
+        except (Exception, SystemExit) as exc:  # reported in the row: one bad run must not end the study
             out.append((name, seed, {}, None, None, _message(exc)))
     return out
 
@@ -368,20 +374,23 @@ def monte_carlo(estimators: Mapping[str, Callable], simulate: Callable[[int], tu
     retries : int, default 2
         On a cluster, how often a task whose worker failed is retried (a task whose worker died
         is also rescheduled by Dask, up to ``distributed.scheduler.allowed-failures`` times);
-        a task that still fails reports its message in the rows of its seeds.
+        a task of several seeds that still fails is split into one task per seed, so that only
+        a seed whose run kills its worker fails, with the message in its row.
 
     Returns
     -------
     StudyResult
-        ``table`` (one row per run; the failure message in ``error`` when a run raised), update
-        ``times`` and ``summary()``. The metrics are the same serially and on any cluster (only
+        ``table`` (one row per run; the failure message in ``error`` when a run raised, called
+        ``sys.exit``, or produced an estimate that is not finite), update ``times`` and
+        ``summary()``. The metrics are the same serially and on any cluster (only
         times differ).
 
     Raises
     ------
     ValueError
-        Bad arguments (an error naming the argument). Errors inside a run do not raise: they
-        are reported in its row.
+        Bad arguments (an error naming the argument), among them a ``client`` whose cluster has
+        no workers and gets none within `WORKER_WAIT` seconds. Errors inside a run do not
+        raise: they are reported in its row.
     ImportError
         pandas (or, with a client, dask.distributed) is not installed:
         ``pip install 'gpmhe[distributed]'``.
@@ -492,6 +501,7 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
         raise ImportError(f"gpmhe.monte_carlo(client=...) needs dask.distributed: {_EXTRA}") from exc
     if not callable(getattr(client, "submit", None)) or not callable(getattr(client, "scatter", None)):
         raise ValueError(f"client: must be a dask.distributed.Client or None, got {client!r}")
+    _wait_for_workers(client)
     if chunk_size is None:
         threads = max(1, sum(client.nthreads().values()))
         chunk_size = max(1, math.ceil(len(names) * len(seeds) / (8 * threads)))
@@ -499,7 +509,10 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
     try:
         [shared] = client.scatter([payload], broadcast=True, hash=False)
     except Exception as exc:
-        raise ValueError(f"{_unpicklable(payload)}: must pickle to be sent to the cluster "
+        culprit = _unpicklable(payload)
+        if culprit is None:  # it pickles: the cluster refused it for another reason
+            raise RuntimeError(f"client: sending the study to the cluster failed: {_message(exc)}") from exc
+        raise ValueError(f"{culprit}: must pickle to be sent to the cluster "
                          f"(module-level functions, or closures over picklable objects): "
                          f"{_message(exc)}") from exc
     futures = {}
@@ -510,12 +523,22 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
             futures[fut] = (name, chunk)
     rows = []
     bar = _Progress(len(names) * len(seeds), progress)
+    running = as_completed(futures)
     try:
-        for fut in as_completed(futures):
+        for fut in running:
             name, chunk = futures[fut]
             try:
                 rows.extend(fut.result())
             except Exception as exc:  # the task failed for good (e.g. KilledWorker)
+                if len(chunk) > 1:
+                    # Run its seeds one per task: only the seed that kills a worker fails. Each
+                    # task carries the study itself: the workers that die may take every
+                    # scattered copy with them.
+                    for seed in chunk:
+                        single = client.submit(_run_chunk, payload, name, [seed], retries=retries, pure=False)
+                        futures[single] = (name, [seed])
+                        running.add(single)
+                    continue
                 msg = f"task failed: {_message(exc)}"
                 rows.extend((name, seed, {}, None, None, msg) for seed in chunk)
             bar.update(len(chunk))
@@ -525,8 +548,24 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
     return rows
 
 
+#: How long `monte_carlo` waits for a cluster without workers to get one (seconds).
+WORKER_WAIT = 10.0
+
+
+def _wait_for_workers(client):
+    """Fail early and clearly when the cluster has no workers (the tasks would wait forever, and
+    sending the study would time out with a misleading message)."""
+    if client.nthreads():
+        return
+    try:
+        client.wait_for_workers(1, timeout=WORKER_WAIT)
+    except Exception as exc:  # TimeoutError (asyncio's or dask's), or a closed client
+        raise ValueError(f"client: the cluster has no workers (none joined within {WORKER_WAIT:g} s); "
+                         f"start workers or check the scheduler address ({_message(exc)})") from None
+
+
 def _unpicklable(payload):
-    """The name of the first argument of the payload that cloudpickle cannot pickle."""
+    """The name of the first argument of the payload that cloudpickle cannot pickle, or None."""
     import cloudpickle
 
     for name, obj in zip(("estimators", "simulate", "metrics"), payload):
@@ -534,7 +573,7 @@ def _unpicklable(payload):
             cloudpickle.dumps(obj)
         except Exception:
             return name
-    return "estimators, simulate, metrics"
+    return None
 
 
 class _Progress:
