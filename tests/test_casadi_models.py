@@ -5,6 +5,7 @@ reactor, cart-pole), the signature checks, pickling, copying, saving and the err
 import copy
 import io
 import pickle
+import pathlib
 import shutil
 import warnings
 
@@ -231,6 +232,7 @@ def test_signature_errors_name_the_argument():
     x, u, X = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("X", 2, 2)
     f = ca.Function("f", [x, u], [x])
     h = ca.Function("h", [x, u], [x[0]])
+    x3 = ca.SX.sym("x", 3)
     cases = [
         (dict(f=lambda x, u: x, h=h), r"^f: must be a casadi.Function"),
         (dict(f=f, h=br.h), r"^h: must be a casadi.Function"),
@@ -240,7 +242,7 @@ def test_signature_errors_name_the_argument():
         (dict(f=ca.Function("f", [X, u], [X[:, 0]]), h=h),
          r"^f: input 0 \('i0'\) must be a vector, got shape \(2, 2\)"),
         (dict(f=ca.Function("f", [x, u], [ca.vertcat(x, u)]), h=h), r"^f: returns 3 values, expected"),
-        (dict(f=f, h=ca.Function("h", [ca.SX.sym("x", 3), u], [x[0]], {"allow_free": True})),
+        (dict(f=f, h=ca.Function("h", [x3, u], [x3[0]])),
          r"^h: its input x has 3 values"),
         (dict(f=f, h=ca.Function("h", [x, ca.SX.sym("u", 2)], [x[0]])), r"^h: its input u has 2 values"),
         (dict(f=ca.Function("f", [x], [x]), h=h), r"^h: its input u has 1 values, f's has 0"),
@@ -324,3 +326,46 @@ def test_jit_compiled_model_matches_and_pickles():
     restored = pickle.loads(pickle.dumps(model))
     assert restored._casadi.jit
     np.testing.assert_allclose(restored.stage_eval(d)[0], ref[0], rtol=1e-14)
+
+
+# ---------------------------------------------------------------------- validation at construction
+
+
+def test_free_symbols_are_refused_at_construction():
+    x, free = ca.MX.sym("x", 2), ca.MX.sym("k")
+    f = ca.Function("f", [x], [free * x], {"allow_free": True})
+    h = ca.Function("h", [x], [x[0]])
+    with pytest.raises(ValueError, match=r"^f: depends on symbols that are not its inputs \(k\)"):
+        KnownModel.from_casadi(f, h)
+    with pytest.raises(ValueError, match=r"^h: depends on symbols"):
+        KnownModel.from_casadi(ca.Function("g", [x], [0.5 * x]), ca.Function("h", [x], [free * x[0]],
+                                                                            {"allow_free": True}))
+
+
+def test_parameter_sizes_of_f_and_h_must_agree():
+    x, u, p, q = ca.SX.sym("x", 1), ca.SX.sym("u", 1), ca.SX.sym("p", 1), ca.SX.sym("q", 2)
+    f = ca.Function("f", [x, u, p], [p * x + u])
+    h = ca.Function("h", [x, u, q], [x + q[0]])
+    with pytest.raises(ValueError, match=r"^h: its input p has 2 values, f's has 1"):
+        KnownModel.from_casadi(f, h)
+
+
+def test_jit_compiles_outside_the_working_directory(tmp_path, monkeypatch):
+    import glob
+    import tempfile
+
+    pattern = str(pathlib.Path(tempfile.gettempdir()) / "gpmhe-jit-*")
+    before = set(glob.glob(pattern))
+    monkeypatch.chdir(tmp_path)
+    model = reactor_casadi(jit=True)
+    est = GPMHE(model, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    est.update(None, [4.0])
+    assert np.all(np.isfinite(est.x))
+    assert list(tmp_path.iterdir()) == []
+    assert set(glob.glob(pattern)) == before
+
+
+def test_jit_without_a_compiler_is_refused_at_construction(tmp_path, monkeypatch):
+    monkeypatch.setenv("PATH", str(tmp_path))  # no gcc, no cc
+    with pytest.raises(ValueError, match=r"^jit: CasADi could not compile"):
+        reactor_casadi(jit=True)

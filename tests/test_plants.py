@@ -13,6 +13,7 @@ from scipy.integrate import solve_ivp
 from gpmhe import GPMHE
 from gpmhe.systems import cart_pole as cp
 from gpmhe.systems import rotating_masses as rm
+from gpmhe.systems import batch_reactor as br
 
 PLANTS = {"rotating_masses": rm, "cart_pole": cp}
 
@@ -176,3 +177,15 @@ def test_physics_models_guide_runs_as_written(capsys):
     assert np.linalg.norm(ns["mhe"].x - ns["xs"][-1]) < 0.15  # angle noise 0.05
     np.testing.assert_allclose(ns["pendulum_casadi"].predict([1.0, 0.0], [0.5]),
                                ns["pendulum_model"].predict([1.0, 0.0], [0.5]), rtol=1e-12)
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: br.simulate(np.zeros(3), 5, np.random.default_rng(0)), "x0"),
+    (lambda: br.simulate([np.nan, 1.0], 5, np.random.default_rng(0)), "x0"),
+    (lambda: br.simulate(br.X_TRUE0, 2.5, np.random.default_rng(0)), "steps"),
+    (lambda: cp.simulate(5, np.random.default_rng(0), x0=np.zeros(5)), "x0"),
+    (lambda: rm.simulate(5, np.random.default_rng(0), x0="abc"), "x0"),
+])
+def test_simulators_name_a_bad_argument(call, name):
+    with pytest.raises(ValueError, match=f"^{name}:"):
+        call()

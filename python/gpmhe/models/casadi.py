@@ -17,6 +17,10 @@ n + m) array the estimator's core reads.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import tempfile
 import threading
 
 import numpy as np
@@ -55,11 +59,21 @@ def _vector_size(fn, name, kind, i):
     return rows * cols
 
 
+def check_no_free(ca, name, fn):
+    """A CasADi Function must not depend on symbols that are not among its inputs (CasADi builds
+    such a function with ``allow_free``, and only evaluating it fails)."""
+    if not isinstance(fn, ca.Function):
+        raise ValueError(f"{name}: must be a casadi.Function, got {type(fn).__name__}")
+    if fn.has_free():
+        free = ", ".join(str(v) for v in fn.get_free())
+        raise ValueError(f"{name}: depends on symbols that are not its inputs ({free}) in {fn}; "
+                         f"make them inputs or substitute values for them")
+
+
 def signature(ca, name, fn):
     """(size of x, size of u or None without u, size of the output) of ``fn``, a CasADi Function
     fn(x) or fn(x, u) with one output, all dense vectors; ValueError naming ``name`` otherwise."""
-    if not isinstance(fn, ca.Function):
-        raise ValueError(f"{name}: must be a casadi.Function, got {type(fn).__name__}")
+    check_no_free(ca, name, fn)
     if fn.n_in() not in (1, 2):
         raise ValueError(f"{name}: must take x or (x, u) (or (x, u, p) for a model with "
                          f"parameters), got {fn.n_in()} inputs in {fn}")
@@ -103,6 +117,38 @@ def _padded_transpose(ca, J, m):
     return ca.densify(ca.vertcat(J.T, ca.MX(m, J.shape[0])))
 
 
+@contextlib.contextmanager
+def _jit_directory():
+    """A fresh directory for CasADi's generated C file and compiled library, removed afterwards
+    (the library is loaded by then; nothing is left in the working directory)."""
+    directory = tempfile.mkdtemp(prefix="gpmhe-jit-")
+    try:
+        yield directory
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+def _jit_options(directory):
+    # cleanup False (both levels): the directory goes as a whole once the library is loaded;
+    # CasADi would otherwise try to delete its files again when the function is freed
+    return {"jit": True, "compiler": "shell", "jit_cleanup": False,
+            "jit_options": {"flags": ["-O2"], "verbose": False, "cleanup": False,
+                            "directory": directory + os.sep}}
+
+
+def check_compiler(ca):
+    """``jit=True`` needs a C compiler that CasADi's shell compiler can run: compile a tiny
+    function now, so that its absence is an error at construction, not at the first update."""
+    x = ca.SX.sym("x")
+    with _jit_directory() as directory:
+        try:
+            ca.Function("gpmhe_jit_probe", [x], [2 * x], _jit_options(directory))
+        except RuntimeError as e:
+            last = str(e).strip().splitlines()[-1] if str(e).strip() else ""
+            raise ValueError(f"jit: CasADi could not compile a test function with its shell compiler "
+                             f"(is a C compiler such as gcc installed and on PATH?): {last}") from None
+
+
 class CasadiModel:
     """The CasADi functions of a `KnownModel` and their evaluation at k points d (k, n + m).
 
@@ -118,6 +164,8 @@ class CasadiModel:
         ca = import_casadi("KnownModel.from_casadi")
         self.dims = dimensions(ca, f, h)
         self.f, self.h, self.jit = f, h, bool(jit)
+        if self.jit:
+            check_compiler(ca)
         self._setup()
 
     # ---- pickling: the user's functions (CasADi pickles them serialised) ---------------------
@@ -183,14 +231,17 @@ class CasadiModel:
         xd, ud = (ca.vertsplit(d, [0, n, n + m]) if m else (d, ca.MX(0, 1)))
         outer = ca.Function(part, [d], inner.call([xd, ud]))
         opts = {"cse": True}  # common subexpressions once (about 20% fewer operations for RK4)
-        if self.jit:
-            opts.update(jit=True, compiler="shell", jit_options={"flags": ["-O2"], "verbose": False})
-        try:
-            return outer.expand(part, opts)
-        except RuntimeError:  # not expandable (an MX-only operation inside): MX
-            if not self.jit:
+        if not self.jit:
+            try:
+                return outer.expand(part, opts)
+            except RuntimeError:  # not expandable (an MX-only operation inside): MX
                 return outer
-        return ca.Function(part, [d], outer.call([d]), opts)
+        with _jit_directory() as directory:
+            opts.update(_jit_options(directory))
+            try:
+                return outer.expand(part, opts)
+            except RuntimeError:
+                return ca.Function(part, [d], outer.call([d]), opts)
 
     def _map(self, part, k):
         entry = self._maps.get((part, k))

@@ -188,8 +188,10 @@ class KnownModel(SharedOnCopy):
             for no outputs (p = 0).
         jit : bool, default False
             Compile the functions to machine code with CasADi's JIT (needs a C compiler on the
-            PATH; about a second per function when first used, and again after unpickling):
-            several times faster evaluations for larger models.
+            PATH, checked here by compiling a test function; about a second per function when
+            first used, and again after unpickling): several times faster evaluations for
+            larger models. The generated files go to a temporary directory of their own, removed
+            once the code is loaded: nothing is written to the working directory.
 
         Returns
         -------
@@ -201,7 +203,8 @@ class KnownModel(SharedOnCopy):
         ------
         ValueError
             If f or h is not a ``casadi.Function`` of one or two dense vector inputs and one
-            vector output of matching sizes (the message names the argument).
+            vector output of matching sizes, depends on free symbols (not among its inputs), or
+            ``jit`` is True and no C compiler works (the message names the argument).
         ImportError
             If CasADi (>= 3.6) is not installed.
 

@@ -73,7 +73,15 @@ def augment_casadi(f, h, n, n_p, scale, continuous):
     (x, u) or (x, u, p); or None)."""
     import casadi as ca
 
-    n_u = f.size1_in(1) * f.size2_in(1)
+    from gpmhe.models.casadi import check_no_free
+
+    check_no_free(ca, "f", f)
+    n_u = f.numel_in(1)
+    if h is not None:
+        check_no_free(ca, "h", h)
+        for i, (label, size) in enumerate((("x", n), ("u", n_u), ("p", n_p))[:h.n_in()]):
+            if h.numel_in(i) != size:
+                raise ValueError(f"h: its input {label} has {h.numel_in(i)} values, f's has {size} in {h}")
     xa, u = ca.SX.sym("x", n + n_p), ca.SX.sym("u", n_u)
     x, pt = xa[:n], xa[n:]
     p = pt * ca.DM(np.asarray(scale, dtype=np.float64))
