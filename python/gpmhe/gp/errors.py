@@ -7,11 +7,13 @@ from __future__ import annotations
 __all__ = ["ConvergenceWarning", "NotFittedError"]
 
 class ConvergenceWarning(UserWarning):
-    """The hyperparameter optimiser stopped without reporting convergence.
+    """The hyperparameter optimiser stopped where the fit has not converged.
 
-    Issued by `GaussianProcess.fit` and `MultiOutputGP.fit` when the best L-BFGS-B run (over the
-    start and the random restarts) hit its iteration limit or failed its line search with a
-    projected gradient that is not small. The best hyperparameters found are still used.
+    Issued by the GPs' ``fit`` when the best L-BFGS-B run (over the start and the random
+    restarts), a second run from it and a derivative-free polish all stopped without reaching a
+    point whose projected gradient is small (an iteration limit, badly scaled data, or an
+    inaccurate gradient). The message says which and what to try. The best hyperparameters found
+    are still used.
 
     See Also
     --------

@@ -1,0 +1,83 @@
+"""A fit is called converged only where it is: whatever status SciPy's L-BFGS-B reports, the
+projected gradient at the result must be small; otherwise the fit runs again from there and then
+polishes without the gradient, and warns (ConvergenceWarning, with what to do) if that does not
+converge either. Checked with a gradient that is made wrong on purpose (as a sparse GP's is when
+K(Z, Z) is ill-conditioned) and with an iteration limit."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import gpmhe.gp.exact
+from gpmhe import ConvergenceWarning, GaussianProcess, SparseGaussianProcess
+from gpmhe import _core
+
+RNG = np.random.default_rng(4)
+D = RNG.uniform(-3.0, 3.0, (60, 2))
+Y = np.sin(D[:, 0]) * np.cos(0.5 * D[:, 1]) + 0.05 * RNG.standard_normal(60)
+
+
+def _fit(**kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = GaussianProcess(**kw).fit(D, Y)
+    return gp, [w for w in caught if issubclass(w.category, ConvergenceWarning)]
+
+
+def test_a_wrong_gradient_does_not_stop_the_fit_short(monkeypatch):
+    """With the gradient's sign flipped in two components L-BFGS-B cannot make progress and
+    stops at once; the polish still reaches the optimum the true gradient finds."""
+    good, caught = _fit()
+    assert not caught
+    true = _core.log_marginal_likelihood
+
+    def wrong(D_, y_, theta, eval_gradient):
+        value, grad = true(D_, y_, theta, eval_gradient)
+        return value, grad * np.array([1.0, -1.0, -1.0, 1.0])
+
+    monkeypatch.setattr(gpmhe.gp.exact._core, "log_marginal_likelihood", wrong)
+    bad, caught = _fit()
+    monkeypatch.setattr(gpmhe.gp.exact._core, "log_marginal_likelihood", true)
+    assert bad.log_marginal_likelihood() >= good.log_marginal_likelihood() - 1e-4
+    np.testing.assert_allclose(bad.theta, good.theta, atol=2e-2)
+
+
+def test_an_iteration_limit_warns_with_advice():
+    gp, caught = _fit(maxiter=1)
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    assert "projected gradient is still large" in message and "raise maxiter" in message
+    assert caught[0].filename == __file__  # points at the caller's fit
+
+
+def test_a_converged_fit_has_a_small_projected_gradient():
+    gp, caught = _fit(n_restarts=2, random_state=0)
+    assert not caught
+    lml, grad = gp.log_marginal_likelihood(eval_gradient=True)
+    assert np.max(np.abs(grad)) <= 1e-3 * max(1.0, abs(lml))
+
+
+def test_sparse_fits_reach_at_least_what_the_gradient_alone_reached(monkeypatch):
+    """Smooth data, many inducing points (an ill-conditioned K(Z, Z)): the fit with the polish is
+    never below the fit without it, on several seeds."""
+    import gpmhe.gp.fit as fit
+
+    gains = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        X = rng.uniform(-2.0, 2.0, (300, 2))
+        y = np.sin(X[:, 0]) + np.cos(X[:, 1]) + 0.01 * rng.standard_normal(300)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            polished = SparseGaussianProcess(n_inducing=60, method="fitc").fit(X, y)
+            with monkeypatch.context() as m:
+                m.setattr(fit, "_polish", lambda f, x0, b, n: _NoPolish(x0))
+                plain = SparseGaussianProcess(n_inducing=60, method="fitc").fit(X, y)
+        gains.append(polished.log_marginal_likelihood() - plain.log_marginal_likelihood())
+    assert min(gains) >= -1e-9 and max(gains) > 0.0
+
+
+class _NoPolish:
+    def __init__(self, x0):
+        self.x, self.fun, self.success, self.message = x0, np.inf, True, "skipped"
