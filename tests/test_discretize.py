@@ -7,6 +7,7 @@ import pickle
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 from scipy.integrate import solve_ivp
 
 from gpmhe import DiscreteDynamics, KnownModel, NumericalError, discretize
@@ -248,3 +249,42 @@ def test_cart_pole_model_pickles_without_casadi():
     d = np.array([[0.1, 0.2, 0.3, 0.4, 0.5]])
     for a, b in zip(model.stage_eval(d), restored.stage_eval(d)):
         np.testing.assert_array_equal(a, b)
+
+
+# ------------------------------------------------------------- CasADi's implicit steps converge
+
+
+def stiff_numpy(k):
+    def rhs(X, U):
+        return np.column_stack([-k * (X[:, 0] - np.cos(X[:, 1])), -0.1 * X[:, 1] + U[:, 0]])
+    return rhs
+
+
+def stiff_casadi(k):
+    ca = pytest.importorskip("casadi")
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    return ca.Function("stiff", [x, u], [ca.vertcat(-k * (x[0] - ca.cos(x[1])), -0.1 * x[1] + u[0])])
+
+
+@pytest.mark.parametrize("method", ["backward-euler", "implicit-midpoint"])
+@settings(max_examples=25, deadline=None)
+@given(k=st.sampled_from([1e1, 1e3, 1e4, 1e6]), x0=st.floats(-3.0, 3.0), x1=st.floats(-3.0, 3.0),
+       u=st.floats(-1.0, 1.0))
+def test_casadi_implicit_steps_converge_where_numpy_does(method, k, x0, x1, u):
+    """The stiff model [-k (x0 - cos x1), -0.1 x1 + u]: the numpy scheme's Newton converges in a
+    few steps; CasADi's rootfinder (plain Newton, as numpy's) reaches the same point."""
+    fn = discretize(stiff_numpy(k), 0.1, method=method)
+    fc = discretize(stiff_casadi(k), 0.1, method=method)
+    X, U = np.array([[x0, x1]]), np.array([[u]])
+    np.testing.assert_allclose(casadi_eval(fc, X, U), fn(X, U), rtol=1e-9, atol=1e-9)
+
+
+def test_a_casadi_step_that_does_not_converge_names_itself():
+    ca = pytest.importorskip("casadi")
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    rhs = ca.Function("cubic", [x, u], [ca.vertcat(-50 * x[0] ** 3, -x[1])])
+    h = ca.Function("h", [x, u], [x[1]])
+    model = KnownModel.from_ode(rhs, h, 0.1, method="backward-euler", newton_max_iter=1)
+    with pytest.raises(NumericalError, match=r"^cubic_backward_euler: the implicit step's Newton "
+                                             r"iteration did not converge"):
+        model.predict([3.0, 1.0], [0.0])

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
 import threading
 
 import numpy as np
 
+from gpmhe._core import NumericalError
 from gpmhe._validation import MAX_ABS, within_limits
 from gpmhe.models.base import ModelDomainError
 
@@ -115,6 +117,23 @@ def _padded_transpose(ca, J, m):
     """[J, 0]ᵀ, dense: the rows' Jacobian in d = [x; u] (u-columns zero), transposed so that
     CasADi's column-major storage is numpy's row-major (rows, n + m)."""
     return ca.densify(ca.vertcat(J.T, ca.MX(m, J.shape[0])))
+
+
+def _run(trigger):
+    """Evaluate through a buffer's trigger. CasADi reports a failed evaluation as a RuntimeError
+    with its own text; a rootfinder that did not converge (an implicit integration step of
+    `gpmhe.discretize`) becomes a `gpmhe.NumericalError` naming the step and what to change. Both
+    are RuntimeErrors: at a trial point of the window solver they only reject the step."""
+    try:
+        trigger()
+    except RuntimeError as e:
+        text = str(e)
+        found = re.search(r"for '([^']+)' \[Newton\]", text)
+        if found is None or "rootfinder process failed" not in text:
+            raise
+        raise NumericalError(f"{found.group(1)}: the implicit step's Newton iteration did not converge "
+                             f"within newton_max_iter iterations to newton_tol (CasADi rootfinder); "
+                             f"try more substeps or a larger newton_max_iter") from None
 
 
 @contextlib.contextmanager
@@ -268,7 +287,7 @@ class CasadiModel:
                 if size:
                     buf.set_res(i, memoryview(out[start:start + k * size]))
                 start += k * size
-            trigger()
+            _run(trigger)
         return out
 
     def _check(self, part, out):
@@ -317,7 +336,7 @@ class CasadiModel:
             entry = self._callback_entry(key)
         buf, trigger, out, arrays = entry
         buf.set_arg(0, memoryview(d))
-        trigger()
+        _run(trigger)
         if not within_limits(out):
             self._raise_bad(out, d.shape[0])
         return arrays
@@ -358,7 +377,7 @@ class CasadiModel:
         n = self.dims[0]
         point[:n] = x
         point[n:] = u
-        trigger()
+        _run(trigger)
         self._check("f", result)
         return result
 

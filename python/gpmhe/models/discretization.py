@@ -162,7 +162,10 @@ def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter):
             pass
         step = ca.rootfinder(f"{rhs.name()}_{method.replace('-', '_')}", "newton", residual,
                              {"abstol": newton_tol, "abstolStep": newton_tol,
-                              "max_iter": newton_max_iter, "error_on_fail": True})
+                              "max_iter": newton_max_iter, "error_on_fail": True,
+                              # plain Newton from z = x, as the numpy scheme: CasADi's line search
+                              # stalls on stiff steps (steps of 1e-2 where one full step converges)
+                              "line_search": False})
         for _ in range(substeps):
             z = step(z, z, u)
     inputs, names = ([x, u], ["x", "u"]) if m is not None else ([x], ["x"])
