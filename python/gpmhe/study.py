@@ -374,8 +374,8 @@ def monte_carlo(estimators: Mapping[str, Callable], simulate: Callable[[int], tu
     retries : int, default 2
         On a cluster, how often a task whose worker failed is retried (a task whose worker died
         is also rescheduled by Dask, up to ``distributed.scheduler.allowed-failures`` times);
-        a task of several seeds that still fails is split into one task per seed, so that only
-        a seed whose run kills its worker fails, with the message in its row.
+        a task of several seeds that still fails is split into single seeds run one at a time,
+        so that only a seed whose run kills its worker fails, with the message in its row.
 
     Returns
     -------
@@ -524,24 +524,34 @@ def _on_cluster(client, payload, names, seeds, chunk_size, retries, progress):
     rows = []
     bar = _Progress(len(names) * len(seeds), progress)
     running = as_completed(futures)
+    # Seeds of chunks that failed for good, run one task at a time: a seed that kills its worker
+    # then fails alone (Dask also blames the tasks queued on a dying worker).
+    alone, split = [], set()
+
+    def run_next_alone():
+        if alone and not split:
+            name, seed = alone.pop(0)
+            # The task carries the study itself: dead workers may take every scattered copy.
+            single = client.submit(_run_chunk, payload, name, [seed], retries=retries, pure=False)
+            futures[single] = (name, [seed])
+            split.add(single)
+            running.add(single)
+
     try:
         for fut in running:
             name, chunk = futures[fut]
+            split.discard(fut)
             try:
                 rows.extend(fut.result())
             except Exception as exc:  # the task failed for good (e.g. KilledWorker)
                 if len(chunk) > 1:
-                    # Run its seeds one per task: only the seed that kills a worker fails. Each
-                    # task carries the study itself: the workers that die may take every
-                    # scattered copy with them.
-                    for seed in chunk:
-                        single = client.submit(_run_chunk, payload, name, [seed], retries=retries, pure=False)
-                        futures[single] = (name, [seed])
-                        running.add(single)
+                    alone.extend((name, seed) for seed in chunk)
+                    run_next_alone()
                     continue
                 msg = f"task failed: {_message(exc)}"
                 rows.extend((name, seed, {}, None, None, msg) for seed in chunk)
             bar.update(len(chunk))
+            run_next_alone()
     finally:
         bar.close()
         client.cancel(list(futures) + [shared])
