@@ -216,3 +216,21 @@ def test_input_error_in_the_fit_is_raised_not_counted_as_a_bad_theta(data, monke
     monkeypatch.setattr(gpmhe.gp.exact._core, "log_marginal_likelihood", refuses("theta: exp(theta[0]) overflows"))
     with pytest.raises(NumericalError, match="fit"):
         GaussianProcess().fit(D, y)
+
+
+def test_extreme_length_scales_are_refused_or_handled():
+    """Length-scales whose inverse square overflows are refused naming the argument; a finite
+    objective never comes with a NaN gradient; the smallest accepted length-scale still
+    predicts the targets at the training inputs (k(d, d) = sigma_f^2, not 0 * inf)."""
+    rng = np.random.default_rng(0)
+    D = rng.uniform(-1.0, 1.0, (20, 2))
+    y = np.sin(D[:, 0])
+    gp = GaussianProcess(optimizer=None).fit(D, y)
+    with pytest.raises(ValueError, match=r"^theta: length-scale exp\(theta\[1\]\)"):
+        gp.log_marginal_likelihood([0.0, -400.0, -400.0, -2.0], eval_gradient=True)
+    lml, grad = gp.log_marginal_likelihood([0.0, -300.0, -300.0, -2.0], eval_gradient=True)
+    assert np.isfinite(lml) and np.all(np.isfinite(grad))
+    with pytest.raises(ValueError, match=r"^lengthscales: .* too small"):
+        GaussianProcess(lengthscales=1e-200, optimizer=None)
+    tiny = GaussianProcess(lengthscales=1e-150, sigma_eps=1e-3, optimizer=None).fit(D, y)
+    np.testing.assert_allclose(tiny.predict(D), y, rtol=1e-5, atol=1e-5)

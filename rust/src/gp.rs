@@ -130,6 +130,16 @@ pub(crate) fn hyperparameters(theta: &[f64]) -> Result<(SeArd, f64)> {
         ));
     }
     let nd = theta.len() - 2;
+    if let Some(l) = (1..=nd).find(|&l| !crate::kernel::inverse_square_finite(p[l])) {
+        return Err(Error::invalid(
+            "theta",
+            format!(
+                "length-scale exp(theta[{l}]) = exp({}) is too small: 1/lengthscale^2 overflows \
+                 (theta[{l}] must be above about -354)",
+                theta[l]
+            ),
+        ));
+    }
     if !((p[0] * p[0]).is_finite() && (p[nd + 1] * p[nd + 1]).is_finite()) {
         return Err(Error::invalid(
             "theta",
@@ -348,6 +358,10 @@ impl Gp {
                 let kf = self.kernel.eval(xi, xj);
                 // Both (i, j) and (j, i): factor 2.
                 let wij = 2.0 * (a[i] * a[j] - kinv[(i, j)]) * kf;
+                if wij == 0.0 {
+                    // kf = 0 (points far apart in length-scales): no term, and d² w may overflow
+                    continue;
+                }
                 g[0] += wij;
                 for l in 0..nd {
                     let d = xi[l] - xj[l];

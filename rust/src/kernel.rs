@@ -10,6 +10,12 @@ use faer::{Mat, MatMut, MatRef};
 
 use crate::error::{check_finite, Error, Result};
 
+/// Whether 1/φ² is a finite number (φ > 0): below about 1.5e-154 it overflows, and the kernel
+/// would be 0 · ∞ at coinciding points.
+pub(crate) fn inverse_square_finite(phi: f64) -> bool {
+    (1.0 / (phi * phi)).is_finite()
+}
+
 /// SE-ARD kernel with signal std `sigma_f` and one length-scale per input dimension.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SeArd {
@@ -38,6 +44,12 @@ impl SeArd {
             return Err(Error::invalid(
                 "lengthscales",
                 format!("must be finite and > 0, got {l}"),
+            ));
+        }
+        if let Some(l) = lengthscales.iter().find(|l| !inverse_square_finite(**l)) {
+            return Err(Error::invalid(
+                "lengthscales",
+                format!("{l:e} is too small: 1/lengthscale^2 overflows (at least about 1.5e-154)"),
             ));
         }
         Ok(Self {
@@ -168,7 +180,9 @@ impl SeArd {
             let xj = x[j * nd + l];
             for i in 0..n {
                 let d = x[i * nd + l] - xj;
-                out[(i, j)] = k_gram[(i, j)] * d * d * w;
+                let k = k_gram[(i, j)];
+                // k = 0 where d²/φ² is huge: the product's limit is 0 (d² w may overflow).
+                out[(i, j)] = if k == 0.0 { 0.0 } else { k * d * d * w };
             }
         }
     }
@@ -189,6 +203,20 @@ mod tests {
         let r2 = (0.8f64 / 0.8).powi(2) + (1.4f64 / 2.5).powi(2);
         assert!((k.eval(&a, &b) - 1.7f64.powi(2) * (-0.5 * r2).exp()).abs() < 1e-14);
         assert_eq!(k.eval(&a, &a), k.variance());
+    }
+
+    #[test]
+    fn tiny_lengthscales_are_refused_and_far_points_have_zero_derivatives() {
+        assert!(SeArd::new(1.0, &[1e-160]).is_err());
+        let k = SeArd::new(1.0, &[1e-150]).unwrap();
+        // coinciding points: σ_f², not 0 · ∞
+        assert_eq!(k.eval(&[0.3], &[0.3]), 1.0);
+        // far apart: k = 0, and its log-length-scale derivative 0 (d² w overflows)
+        let x = [0.0, 1e10];
+        let gram = k.gram(&x);
+        let mut g = Mat::zeros(2, 2);
+        k.gram_grad_log_lengthscale(&x, gram.as_ref(), 0, g.as_mut());
+        assert_eq!((gram[(0, 1)], g[(0, 1)], g[(0, 0)]), (0.0, 0.0, 0.0));
     }
 
     #[test]

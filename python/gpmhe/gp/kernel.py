@@ -93,6 +93,10 @@ class SEKernel:
             raise ValueError("sigma_f, lengthscales, sigma_eps: must not be empty")
         if sf.ndim > 1 or se.ndim > 1 or ls.ndim > 2:
             raise ValueError("sigma_f, sigma_eps: scalar or (q,); lengthscales: scalar, (n_d,) or (q, n_d)")
+        with np.errstate(over="ignore", divide="ignore"):
+            if not np.all(np.isfinite(1.0 / (ls * ls))):
+                raise ValueError(f"lengthscales: {float(ls.min()):g} is too small: 1/lengthscale^2 overflows "
+                                 f"(at least about 1.5e-154)")
         self._sigma_f, self._lengthscales, self._sigma_eps = sf, ls, se
         self._bounds = _check_bounds(bounds, None).copy()
         for a in (sf, ls, se, self._bounds):
