@@ -12,15 +12,20 @@
 //! working precision even when Kuu is ill-conditioned; forming Kuf Λ⁻¹ Kfu first and whitening
 //! afterwards does not.
 //!
-//! **Backward pass** (the gradient): with the adjoints G_uf = ∂F/∂Kuf, G_uu = ∂F/∂Kuu and the
-//! mean weights t = P⁻¹ r (P = Kuu + Kuf Λ⁻¹ Kfu), α = Λ⁻¹ (y − Kfu t):
-//! G_uf = t αᵀ − P⁻¹ Kuf Λ⁻¹ + Kuu⁻¹ Kuf diag(c_j), with c_j = 1/σ_ε² (VFE) or −2 g_j (FITC),
-//! g_j = ½ (α_j² − 1/Λ_j + Kuf_jᵀ P⁻¹ Kuf_j / Λ_j²) = ∂F/∂Λ_j;
-//! G_uu = −½ (t tᵀ − Kuu⁻¹ + P⁻¹) − ½ Kuu⁻¹ S Kuu⁻¹ (VFE) or + Kuu⁻¹ Kuf diag(g) Kfu Kuu⁻¹ (FITC).
-//! Each θ_k and z_il enters through Kuf, Kuu and diag Kff, so ∂F/∂θ_k = Σ G_uf ∘ ∂Kuf/∂θ_k +
-//! Σ G_uu ∘ ∂Kuu/∂θ_k + Σ_j ∂F/∂Kff_jj ∂Kff_jj/∂θ_k (+ ∂F/∂σ_ε² ∂σ_ε²/∂θ_k). Blocks of G_uf are
-//! formed (one matrix product each, two for FITC) and contracted at once, never stored whole.
-//! Cost per evaluation with gradient: about 2.5 N m² multiply-adds for VFE, 5.5 N m² for FITC.
+//! **Backward pass** (the gradient), in the whitened quantities, with no explicit inverse of Kuu
+//! or P: with β = B⁻¹ V Λ⁻¹ y and the adjoint Ā = ∂F/∂A = −½ (B⁻¹ + β βᵀ) (B ⪰ I is well
+//! conditioned), each block gives
+//! ∂F/∂Λ⁻¹_j = V_jᵀ Ā V_j + (V_jᵀ β) y_j − ½ y_j², ∂F/∂Λ_j = −½/Λ_j − Λ_j⁻² ∂F/∂Λ⁻¹_j and
+//! V̄_j = ∂F/∂V_j = 2 Ā V_j / Λ_j + β y_j / Λ_j + [VFE] V_j/σ_ε² − [FITC] 2 (∂F/∂Λ_j) V_j.
+//! Through V = L⁻¹ Kuf and L = chol(Kuu + δI): G_uf = ∂F/∂Kuf = L⁻ᵀ V̄ (one triangular solve per
+//! block) and G_uu = ∂F/∂Kuu = −L⁻ᵀ Φ(V̄ Vᵀ) L⁻¹, symmetrised, where Φ keeps the lower triangle
+//! and halves the diagonal (the adjoint of a Cholesky factor). Each θ_k and z_il enters through
+//! Kuf, Kuu and diag Kff, so ∂F/∂θ_k = Σ G_uf ∘ ∂Kuf/∂θ_k + Σ G_uu ∘ ∂Kuu/∂θ_k +
+//! Σ_j ∂F/∂Kff_jj ∂Kff_jj/∂θ_k (+ ∂F/∂σ_ε² ∂σ_ε²/∂θ_k). Forming Kuu⁻¹ and P⁻¹ instead and
+//! subtracting them loses the gradient when Kuu is ill-conditioned (errors of order one at
+//! cond(Kuu) ≈ 1e10) while the objective stays accurate. Blocks of G_uf are formed and
+//! contracted at once, never stored whole. Cost per evaluation with gradient: about 3.5 N m²
+//! multiply-adds.
 //!
 //! Blocks run in parallel (rayon) in waves of [`WAVE`]; their sums are added in block order, so
 //! results are identical whatever the number of threads. An interrupt check runs between waves.
@@ -60,13 +65,13 @@ pub struct SparseObjective {
 pub(crate) struct Fit {
     pub value: f64,
     pub jitter: f64,
-    /// chol(Kuu + δI), chol(B), and t = P⁻¹ r (all as in the module docs).
+    /// chol(Kuu + δI), chol(B), t = P⁻¹ r (as in the module docs) and β = B⁻¹ V Λ⁻¹ y = Lᵀ t.
     pub l: Mat<f64>,
     pub lb: Mat<f64>,
     pub t: Vec<f64>,
-    /// K(Z, Z) without jitter, A = L⁻¹ Kuf Λ⁻¹ Kfu L⁻ᵀ and Σ_j q_j.
+    beta: Vec<f64>,
+    /// K(Z, Z) without jitter and Σ_j q_j.
     kuu: Mat<f64>,
-    a: Mat<f64>,
     sum_q: f64,
 }
 
@@ -270,8 +275,9 @@ pub(crate) fn fit(p: &Problem) -> Result<Fit> {
             "the sparse GP's training objective is not finite (ill-conditioned Kuu or data)",
         ));
     }
-    let mut t = c;
-    solve_upper_triangular_in_place(lb.transpose(), col_mut(&mut t), Par::Seq);
+    let mut beta = c;
+    solve_upper_triangular_in_place(lb.transpose(), col_mut(&mut beta), Par::Seq);
+    let mut t = beta.clone();
     solve_upper_triangular_in_place(l.transpose(), col_mut(&mut t), Par::Seq);
     Ok(Fit {
         value,
@@ -279,8 +285,8 @@ pub(crate) fn fit(p: &Problem) -> Result<Fit> {
         l,
         lb,
         t,
+        beta,
         kuu,
-        a,
         sum_q,
     })
 }
@@ -346,108 +352,103 @@ pub(super) fn factor_kuu(kuu: &Mat<f64>, signal_var: f64) -> Result<(Mat<f64>, f
 
 /// One block's share of the backward pass: contractions of G_uf with ∂Kuf.
 struct Backward {
-    /// Σ G∘K, Σ G∘K∘(z_l − x_l)² per l, ∂F/∂Z through Kuf (m × n_d), Σ α², Σ g_j.
+    /// Σ G∘K, Σ G∘K∘(z_l − x_l)² per l, ∂F/∂Z through Kuf (m × n_d).
     gk: f64,
     gl: Vec<f64>,
     gz: Vec<f64>,
-    sum_alpha2: f64,
-    sum_g: f64,
-    /// FITC: Kuf diag(g) Kfu.
-    u: Option<Mat<f64>>,
+    /// Σ_j ∂F/∂Λ_j, and the same over the points where FITC's Λ_j is not clipped at σ_ε².
+    sum_lambar: f64,
+    sum_lambar_open: f64,
+    /// V̄ Vᵀ of the block (m × m), for G_uu.
+    vbar_vt: Mat<f64>,
 }
 
-/// The m × m matrices of the backward pass.
-struct Adjoint {
-    linv: Mat<f64>,
-    kinv: Mat<f64>,
-    pinv: Mat<f64>,
-    /// VFE: (Kuu⁻¹ − P⁻¹)/σ_ε²; FITC: [P⁻¹; Kuu⁻¹] (2m × m).
-    lhs: Mat<f64>,
-}
-
-fn adjoint(p: &Problem, fit: &Fit) -> Adjoint {
-    let m = p.m();
-    let mut linv = Mat::<f64>::identity(m, m);
-    solve_lower_triangular_in_place(fit.l.as_ref(), linv.as_mut(), Par::Seq);
-    let mut e = linv.clone();
+/// Ā = −½ (B⁻¹ + β βᵀ) (module docs).
+fn abar(fit: &Fit) -> Mat<f64> {
+    let m = fit.lb.nrows();
+    let mut e = Mat::<f64>::identity(m, m);
     solve_lower_triangular_in_place(fit.lb.as_ref(), e.as_mut(), Par::Seq);
-    let kinv = linv.transpose() * &linv;
-    let pinv = e.transpose() * &e;
-    let lhs = match p.method {
-        SparseMethod::Vfe => {
-            let sig2 = p.sigma_eps * p.sigma_eps;
-            Mat::from_fn(m, m, |i, j| (kinv[(i, j)] - pinv[(i, j)]) / sig2)
-        }
-        SparseMethod::Fitc => Mat::from_fn(2 * m, m, |i, j| {
-            if i < m {
-                pinv[(i, j)]
-            } else {
-                kinv[(i - m, j)]
-            }
-        }),
-    };
-    Adjoint {
-        linv,
-        kinv,
-        pinv,
-        lhs,
-    }
+    let binv = e.transpose() * &e;
+    Mat::from_fn(m, m, |i, j| -0.5 * (binv[(i, j)] + fit.beta[i] * fit.beta[j]))
 }
 
-fn backward_block(p: &Problem, fit: &Fit, adj: &Adjoint, cols: Range<usize>) -> Backward {
+fn backward_block(p: &Problem, fit: &Fit, abar: &Mat<f64>, cols: Range<usize>) -> Backward {
     let (m, nd, b) = (p.m(), p.kernel.dim(), cols.len());
     let mut k = vec![0.0; m * b];
     kernel_block(p, &cols, &mut k);
-    let (_, _, lam) = whiten(p, fit.l.as_ref(), &k);
+    let (v, q, lam) = whiten(p, fit.l.as_ref(), &k);
     let y = &p.y[cols.clone()];
-    let alpha: Vec<f64> = k
-        .chunks_exact(m)
-        .zip(y.iter().zip(&lam))
-        .map(|(c, (yj, lj))| (yj - c.iter().zip(&fit.t).map(|(a, b)| a * b).sum::<f64>()) / lj)
-        .collect();
-    let rows = adj.lhs.nrows();
-    let mut prod = vec![0.0; rows * b];
+    let sig2 = p.sigma_eps * p.sigma_eps;
+    let s2 = p.kernel.variance();
+    let mut av = vec![0.0; m * b];
     matmul(
-        MatMut::from_column_major_slice_mut(&mut prod[..], rows, b),
+        MatMut::from_column_major_slice_mut(&mut av[..], m, b),
         Accum::Replace,
-        adj.lhs.as_ref(),
-        MatRef::from_column_major_slice(&k, m, b),
+        abar.as_ref(),
+        MatRef::from_column_major_slice(&v, m, b),
         1.0,
         Par::Seq,
     );
-    // G (m × b) and g_j.
-    let mut g = vec![0.0; m * b];
-    let mut gj = vec![0.0; b];
+    // V̄ (m × b), column by column.
+    let mut vbar = vec![0.0; m * b];
+    let (mut sum_lambar, mut sum_lambar_open) = (0.0, 0.0);
     for j in 0..b {
-        let (kc, pc, gc) = (
-            &k[j * m..(j + 1) * m],
-            &prod[j * rows..(j + 1) * rows],
-            &mut g[j * m..(j + 1) * m],
-        );
-        match p.method {
-            SparseMethod::Vfe => {
-                for i in 0..m {
-                    gc[i] = pc[i] + fit.t[i] * alpha[j];
-                }
-            }
-            SparseMethod::Fitc => {
-                let (y1, y2) = pc.split_at(m);
-                let quad: f64 = kc.iter().zip(y1).map(|(a, b)| a * b).sum();
-                let lj = lam[j];
-                gj[j] = 0.5 * (alpha[j] * alpha[j] - 1.0 / lj + quad / (lj * lj));
-                for i in 0..m {
-                    gc[i] = fit.t[i] * alpha[j] - y1[i] / lj - 2.0 * gj[j] * y2[i];
-                }
-            }
+        let (vc, ac) = (&v[j * m..(j + 1) * m], &av[j * m..(j + 1) * m]);
+        let il = 1.0 / lam[j];
+        let u: f64 = vc.iter().zip(&fit.beta).map(|(a, c)| a * c).sum();
+        let s: f64 = vc.iter().zip(ac).map(|(a, c)| a * c).sum();
+        let ilbar = s + u * y[j] - 0.5 * y[j] * y[j];
+        let lambar = -0.5 * il - ilbar * il * il;
+        sum_lambar += lambar;
+        let open = s2 - q[j] > 0.0;
+        if open {
+            sum_lambar_open += lambar;
+        }
+        let own = match p.method {
+            SparseMethod::Vfe => 1.0 / sig2,
+            SparseMethod::Fitc if open => -2.0 * lambar,
+            SparseMethod::Fitc => 0.0,
+        };
+        let vb = &mut vbar[j * m..(j + 1) * m];
+        for i in 0..m {
+            vb[i] = 2.0 * ac[i] * il + fit.beta[i] * (y[j] * il) + own * vc[i];
         }
     }
-    let mut out = contract(p, &k, &g, &cols, nd);
-    out.sum_alpha2 = alpha.iter().map(|a| a * a).sum();
-    out.sum_g = gj.iter().sum();
-    if p.method == SparseMethod::Fitc {
-        out.u = Some(weighted_gram(&k, &gj, m));
-    }
+    let mut vbar_vt = Mat::<f64>::zeros(m, m);
+    matmul(
+        vbar_vt.as_mut(),
+        Accum::Replace,
+        MatRef::from_column_major_slice(&vbar, m, b),
+        MatRef::from_column_major_slice(&v, m, b).transpose(),
+        1.0,
+        Par::Seq,
+    );
+    // G_uf = L⁻ᵀ V̄.
+    solve_upper_triangular_in_place(
+        fit.l.transpose(),
+        MatMut::from_column_major_slice_mut(&mut vbar[..], m, b),
+        Par::Seq,
+    );
+    let mut out = contract(p, &k, &vbar, &cols, nd);
+    out.sum_lambar = sum_lambar;
+    out.sum_lambar_open = sum_lambar_open;
+    out.vbar_vt = vbar_vt;
     out
+}
+
+/// G_uu = −L⁻ᵀ Φ(V̄ Vᵀ) L⁻¹, symmetrised (module docs).
+fn guu(fit: &Fit, vbar_vt: &Mat<f64>) -> Mat<f64> {
+    let m = vbar_vt.nrows();
+    let mut x = Mat::from_fn(m, m, |i, j| match i.cmp(&j) {
+        std::cmp::Ordering::Greater => vbar_vt[(i, j)],
+        std::cmp::Ordering::Equal => 0.5 * vbar_vt[(i, j)],
+        std::cmp::Ordering::Less => 0.0,
+    });
+    // X ← L⁻ᵀ Φ, then X ← (L⁻ᵀ Xᵀ)ᵀ = X L⁻¹.
+    solve_upper_triangular_in_place(fit.l.transpose(), x.as_mut(), Par::Seq);
+    let mut xt = x.transpose().to_owned();
+    solve_upper_triangular_in_place(fit.l.transpose(), xt.as_mut(), Par::Seq);
+    Mat::from_fn(m, m, |i, j| -0.5 * (xt[(j, i)] + xt[(i, j)]))
 }
 
 /// The contractions Σ G∘K, Σ G∘K∘(z_l − x_l)² and ∂F/∂Z = Σ_j G_ij K_ij (−w_l)(z_il − x_jl) of a
@@ -467,9 +468,9 @@ fn contract_impl(p: &Problem, k: &[f64], g: &[f64], cols: &Range<usize>, nd: usi
         gk: 0.0,
         gl: vec![0.0; nd],
         gz: vec![0.0; m * nd],
-        sum_alpha2: 0.0,
-        sum_g: 0.0,
-        u: None,
+        sum_lambar: 0.0,
+        sum_lambar_open: 0.0,
+        vbar_vt: Mat::new(),
     };
     let x = &p.x[cols.start * nd..cols.end * nd];
     for (j, xj) in x.chunks_exact(nd).enumerate() {
@@ -512,69 +513,42 @@ fn contract_uu(p: &Problem, guu: &Mat<f64>, kuu: &Mat<f64>, gz: &mut [f64]) -> (
 /// ∂F/∂θ and ∂F/∂Z from a forward pass (module docs).
 fn gradient(p: &Problem, fit: &Fit) -> Result<(Vec<f64>, Vec<f64>)> {
     let (n, m, nd) = (p.n(), p.m(), p.kernel.dim());
-    let adj = adjoint(p, fit);
-    let mut acc = Backward {
-        gk: 0.0,
-        gl: vec![0.0; nd],
-        gz: vec![0.0; m * nd],
-        sum_alpha2: 0.0,
-        sum_g: 0.0,
-        u: None,
-    };
-    let mut u = Mat::<f64>::zeros(m, m);
+    let abar = abar(fit);
+    let (mut gk, mut gl, mut gz) = (0.0, vec![0.0; nd], vec![0.0; m * nd]);
+    let (mut sum_lambar, mut sum_lambar_open) = (0.0, 0.0);
+    let mut vbar_vt = Mat::<f64>::zeros(m, m);
     for_blocks(
         n,
-        |cols| backward_block(p, fit, &adj, cols),
+        |cols| backward_block(p, fit, &abar, cols),
         |b| {
-            acc.gk += b.gk;
-            acc.gl.iter_mut().zip(&b.gl).for_each(|(a, v)| *a += v);
-            acc.gz.iter_mut().zip(&b.gz).for_each(|(a, v)| *a += v);
-            acc.sum_alpha2 += b.sum_alpha2;
-            acc.sum_g += b.sum_g;
-            if let Some(ub) = &b.u {
-                u += ub;
-            }
+            gk += b.gk;
+            gl.iter_mut().zip(&b.gl).for_each(|(a, v)| *a += v);
+            gz.iter_mut().zip(&b.gz).for_each(|(a, v)| *a += v);
+            sum_lambar += b.sum_lambar;
+            sum_lambar_open += b.sum_lambar_open;
+            vbar_vt += &b.vbar_vt;
         },
     )?;
-    mirror_lower(&mut u);
+    let guu = guu(fit, &vbar_vt);
     let sig2 = p.sigma_eps * p.sigma_eps;
     let s2 = p.kernel.variance();
     let nf = n as f64;
-    // G_uu, and the derivatives of F through diag Kff and σ_ε².
-    let extra = match p.method {
-        SparseMethod::Vfe => {
-            // Kuu⁻¹ (Kuf Λ⁻¹ Kfu) Kuu⁻¹ = L⁻ᵀ A L⁻¹.
-            let mut e = adj.linv.transpose() * &fit.a * &adj.linv;
-            e.col_iter_mut()
-                .for_each(|c| c.iter_mut().for_each(|v| *v *= -0.5));
-            e
-        }
-        SparseMethod::Fitc => &adj.kinv * &u * &adj.kinv,
-    };
-    let t = &fit.t;
-    let guu = Mat::from_fn(m, m, |i, j| {
-        -0.5 * (t[i] * t[j] - adj.kinv[(i, j)] + adj.pinv[(i, j)]) + extra[(i, j)]
-    });
+    // The derivatives of F through diag Kff (= σ_f²) and σ_ε².
     let (g_kdiag, g_sig2) = match p.method {
-        SparseMethod::Vfe => {
-            // Σ_j Kuf_jᵀ P⁻¹ Kuf_j / σ_ε⁴ = tr(P⁻¹ Kuf Kfu)/σ_ε⁴ = tr(B⁻¹ A)/σ_ε².
-            let mut binv_a = fit.a.clone();
-            solve_lower_triangular_in_place(fit.lb.as_ref(), binv_a.as_mut(), Par::Seq);
-            solve_upper_triangular_in_place(fit.lb.transpose(), binv_a.as_mut(), Par::Seq);
-            let tr_ps: f64 = (0..m).map(|i| binv_a[(i, i)]).sum();
-            let g_lam = 0.5 * (acc.sum_alpha2 - nf / sig2 + tr_ps / sig2);
-            let trace = (nf * s2 - fit.sum_q) / (2.0 * sig2 * sig2);
-            (-nf / (2.0 * sig2), g_lam + trace)
-        }
-        SparseMethod::Fitc => (acc.sum_g, acc.sum_g),
+        SparseMethod::Vfe => (
+            -nf / (2.0 * sig2),
+            sum_lambar + (nf * s2 - fit.sum_q) / (2.0 * sig2 * sig2),
+        ),
+        SparseMethod::Fitc => (sum_lambar_open, sum_lambar),
     };
     let w = p.kernel.inv_lengthscales_sq();
-    let mut gz = acc.gz;
     let (gk_uu, gl_uu) = contract_uu(p, &guu, &fit.kuu, &mut gz);
     let mut grad = vec![0.0; nd + 2];
-    grad[0] = 2.0 * (acc.gk + gk_uu) + 2.0 * s2 * g_kdiag;
+    // The jitter δ is a multiple of σ_f² (module `sparse`): ∂(Kuu + δI)/∂log σ_f = 2 Kuu + 2δ I.
+    let trace_guu: f64 = (0..m).map(|i| guu[(i, i)]).sum();
+    grad[0] = 2.0 * (gk + gk_uu) + 2.0 * s2 * g_kdiag + 2.0 * fit.jitter * trace_guu;
     for l in 0..nd {
-        grad[1 + l] = w[l] * (acc.gl[l] + gl_uu[l]);
+        grad[1 + l] = w[l] * (gl[l] + gl_uu[l]);
     }
     grad[nd + 1] = 2.0 * sig2 * g_sig2;
     if grad.iter().chain(&gz).any(|v| !v.is_finite()) {
