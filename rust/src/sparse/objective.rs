@@ -369,7 +369,9 @@ fn abar(fit: &Fit) -> Mat<f64> {
     let mut e = Mat::<f64>::identity(m, m);
     solve_lower_triangular_in_place(fit.lb.as_ref(), e.as_mut(), Par::Seq);
     let binv = e.transpose() * &e;
-    Mat::from_fn(m, m, |i, j| -0.5 * (binv[(i, j)] + fit.beta[i] * fit.beta[j]))
+    Mat::from_fn(m, m, |i, j| {
+        -0.5 * (binv[(i, j)] + fit.beta[i] * fit.beta[j])
+    })
 }
 
 fn backward_block(p: &Problem, fit: &Fit, abar: &Mat<f64>, cols: Range<usize>) -> Backward {
