@@ -24,7 +24,7 @@
 //! Σ_j ∂F/∂Kff_jj ∂Kff_jj/∂θ_k (+ ∂F/∂σ_ε² ∂σ_ε²/∂θ_k). Forming Kuu⁻¹ and P⁻¹ instead and
 //! subtracting them loses the gradient when Kuu is ill-conditioned (errors of order one at
 //! cond(Kuu) ≈ 1e10) while the objective stays accurate. Blocks of G_uf are formed and
-//! contracted at once, never stored whole. Cost per evaluation with gradient: about 3.5 N m²
+//! contracted at once, never stored whole. Cost per evaluation with gradient: about 4 N m²
 //! multiply-adds.
 //!
 //! Blocks run in parallel (rayon) in waves of [`WAVE`]; their sums are added in block order, so
