@@ -1,6 +1,6 @@
 """Benchmark: GP-MHE with sparse GPs against exact GPs on the batch reactor, as the training set grows.
 
-    python benches/bench_sparse.py [--seeds 20] [--big-seeds 2] [--steps 100] [--quick]
+    python benches/bench_sparse.py [--seeds 20] [--big-seeds 2] [--steps 100] [--quick] [--rows 3,15]
 
 One table, one run. Each row is a kind of GP model (exact, or sparse VFE with m inducing points
 asked for) learned from the batch reactor's simulated trajectories with N points per GP
@@ -127,9 +127,14 @@ def main(argv=None):
     ap.add_argument("--big-seeds", type=int, default=2)
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--quick", action="store_true", help="2 seeds, 40 steps, N <= 10^4")
+    ap.add_argument("--rows", default=None,
+                    help="only these rows of the table, 1-based and comma-separated (e.g. 3,15,16): "
+                         "each row's numbers are the same as in the whole table")
     args = ap.parse_args(argv)
     seeds, big, steps = (2, 1, 40) if args.quick else (args.seeds, args.big_seeds, args.steps)
     rows = [r for r in ROWS if not (args.quick and r[1] > 10000)]
+    if args.rows:
+        rows = [rows[int(i) - 1] for i in args.rows.split(",")]
     t_start = time.perf_counter()
     print(f"\n## GP-MHE on the batch reactor with exact and sparse GPs ({steps} steps per run; "
           f"{seeds} seeds, {big} for the large rows)\n")

@@ -1,8 +1,8 @@
 """A fit is called converged only where it is: whatever status SciPy's L-BFGS-B reports, the
-projected gradient at the result must be small; otherwise the fit runs again from there and then
-polishes without the gradient, and warns (ConvergenceWarning, with what to do) if that does not
-converge either. Checked with a gradient that is made wrong on purpose (as a sparse GP's is when
-K(Z, Z) is ill-conditioned) and with an iteration limit."""
+projected gradient at the result must be small; otherwise the fit runs again from there, and
+warns (ConvergenceWarning, with what to do) if that does not converge either. Checked with a
+gradient that is made wrong on purpose (as a sparse GP's was when K(Z, Z) was ill-conditioned)
+and with an iteration limit."""
 
 import warnings
 
@@ -25,9 +25,9 @@ def _fit(**kw):
     return gp, [w for w in caught if issubclass(w.category, ConvergenceWarning)]
 
 
-def test_a_wrong_gradient_does_not_stop_the_fit_short(monkeypatch):
+def test_a_wrong_gradient_is_not_called_converged(monkeypatch):
     """With the gradient's sign flipped in two components L-BFGS-B cannot make progress and
-    stops at once; the polish still reaches the optimum the true gradient finds."""
+    stops (SciPy may call that converged): the fit says so with a ConvergenceWarning."""
     good, caught = _fit()
     assert not caught
     true = _core.log_marginal_likelihood
@@ -39,8 +39,8 @@ def test_a_wrong_gradient_does_not_stop_the_fit_short(monkeypatch):
     monkeypatch.setattr(gpmhe.gp.exact._core, "log_marginal_likelihood", wrong)
     bad, caught = _fit()
     monkeypatch.setattr(gpmhe.gp.exact._core, "log_marginal_likelihood", true)
-    assert bad.log_marginal_likelihood() >= good.log_marginal_likelihood() - 1e-4
-    np.testing.assert_allclose(bad.theta, good.theta, atol=2e-2)
+    assert len(caught) == 1 and "projected gradient is still large" in str(caught[0].message)
+    assert bad.log_marginal_likelihood() < good.log_marginal_likelihood() - 1e-3  # it did stop short
 
 
 def test_an_iteration_limit_warns_with_advice():

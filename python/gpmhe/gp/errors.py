@@ -10,10 +10,10 @@ class ConvergenceWarning(UserWarning):
     """The hyperparameter optimiser stopped where the fit has not converged.
 
     Issued by the GPs' ``fit`` when the best L-BFGS-B run (over the start and the random
-    restarts), a second run from it and a derivative-free polish all stopped without reaching a
-    point whose projected gradient is small (an iteration limit, badly scaled data, or an
-    inaccurate gradient). The message says which and what to try. The best hyperparameters found
-    are still used.
+    restarts) and a second run from it both stopped without reaching a point whose projected
+    gradient is small, whatever status SciPy reported (an iteration limit, badly scaled data, or
+    a kernel matrix whose jitter changes between trial points). The message says what to try.
+    The best hyperparameters found are still used.
 
     See Also
     --------

@@ -131,34 +131,18 @@ def _maximise(
         if np.isfinite(again.fun) and again.fun <= best.fun:
             best = again
     pg = _projected_gradient(best, log_bounds)
-    x, fun = np.asarray(best.x, dtype=np.float64), float(best.fun)
     if pg > _gradient_tolerance(best):
-        # Still stuck: the gradient itself may be wrong (a sparse GP's, when K(Z, Z) is
-        # ill-conditioned). Polish without it; its own test decides whether the fit converged.
-        polish = _polish(lambda t: negated(t)[0], x, log_bounds, maxiter)
-        values.append(-float(polish.fun))
-        if np.isfinite(polish.fun) and polish.fun <= fun:
-            x, fun = np.asarray(polish.x, dtype=np.float64), float(polish.fun)
-        if not polish.success:
-            warnings.warn(
-                f"fit: the optimiser stopped where the objective's projected gradient is still "
-                f"large ({pg:.3g}; L-BFGS-B: {best.message}) and a derivative-free polish did "
-                f"not converge either ({polish.message}); the best hyperparameters found are "
-                f"used. Typical causes: an iteration limit (raise maxiter), badly scaled data "
-                f"(try normalize=True), or an ill-conditioned kernel matrix (for a sparse GP: "
-                f"fewer or better spread inducing points, or larger length-scale bounds)",
-                ConvergenceWarning,
-                stacklevel=_user_stacklevel(),
-            )
-    return x, -fun, np.array(values)
-
-
-def _polish(fun: Callable[[np.ndarray], float], x0: np.ndarray, log_bounds: np.ndarray, maxiter: int) -> Any:
-    """Powell's derivative-free method from x0 within the log-bounds (SciPy), to at most
-    ``maxiter`` iterations and 200 evaluations per parameter."""
-    return scipy.optimize.minimize(fun, x0, method="Powell", bounds=log_bounds,
-                                   options={"xtol": 1e-6, "ftol": 1e-12, "maxiter": maxiter,
-                                            "maxfev": 200 * len(x0)})
+        warnings.warn(
+            f"fit: L-BFGS-B stopped, twice, where the objective's projected gradient is still large "
+            f"({pg:.3g}; status {best.status}: {best.message}); the best hyperparameters found are "
+            f"used. Typical causes: an iteration limit (raise maxiter), badly scaled data (try "
+            f"normalize=True), or a kernel matrix so ill-conditioned that the jitter changes from "
+            f"one trial point to the next (fewer or less clustered training points, for a sparse GP "
+            f"fewer inducing points, or a larger lower bound on sigma_eps)",
+            ConvergenceWarning,
+            stacklevel=_user_stacklevel(),
+        )
+    return np.asarray(best.x, dtype=np.float64), -float(best.fun), np.array(values)
 
 
 def _projected_gradient(res: Any, log_bounds: np.ndarray) -> float:
