@@ -7,7 +7,6 @@ and with an iteration limit."""
 import warnings
 
 import numpy as np
-import pytest
 
 import gpmhe.gp.exact
 from gpmhe import ConvergenceWarning, GaussianProcess

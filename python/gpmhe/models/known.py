@@ -450,7 +450,7 @@ class KnownModel(SharedOnCopy):
         return J
 
     def _points_loop(self, d, k):
-        n, m, p = self.dim_x, self.dim_u, self.dim_y
+        n, p = self.dim_x, self.dim_y
         mx, jx = np.empty((k, n)), np.empty((k, n, n))
         my, jy = np.empty((k, p)), np.empty((k, p, n))
         for i in range(k):
