@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmhe._validation import finite_vector, integer
+from gpmhe._validation import finite_vector as _finite_vector, integer as _integer
 
 T = 0.1
 K1 = 0.16
@@ -292,9 +292,9 @@ def simulate(x0, steps, rng, sigma_w=SIGMA_W, sigma_v=SIGMA_V):
     >>> print(x[1], y[0])
     [2.71328 1.14336] [4.]
     """
-    steps = integer("steps", steps, low=1)
+    steps = _integer("steps", steps, low=1)
     x = np.empty((steps + 1, DIM_X))
-    x[0] = finite_vector("x0", x0, DIM_X)
+    x[0] = _finite_vector("x0", x0, DIM_X)
     for t in range(steps):
         x[t + 1] = f(x[t]) + sigma_w * rng.standard_normal(DIM_X)
     y = x.sum(axis=1, keepdims=True) + sigma_v * rng.standard_normal((steps + 1, DIM_Y))

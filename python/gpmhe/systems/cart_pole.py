@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmhe._validation import finite_vector, integer
+from gpmhe._validation import finite_vector as _finite_vector, integer as _integer
 
 __all__ = ["rhs", "rhs_jacobian", "h_batch", "h_jacobian_batch", "casadi_functions",
            "known_model", "simulate"]
@@ -313,7 +313,7 @@ def simulate(steps, rng, x0=X0, sigma_w=SIGMA_W, sigma_v=SIGMA_V, substeps=SUBST
     >>> bool(np.abs(u).max() <= cp.F_MAX)
     True
     """
-    steps = integer("steps", steps, low=1)
+    steps = _integer("steps", steps, low=1)
     from gpmhe.models.discretization import discretize
 
     rng = np.random.default_rng(rng)
@@ -321,7 +321,7 @@ def simulate(steps, rng, x0=X0, sigma_w=SIGMA_W, sigma_v=SIGMA_V, substeps=SUBST
     levels = rng.uniform(-F_MAX, F_MAX, size=steps // U_HOLD + 1)
     u = np.repeat(levels, U_HOLD)[:steps + 1, None]
     x = np.empty((steps + 1, DIM_X))
-    x[0] = finite_vector("x0", x0, DIM_X)
+    x[0] = _finite_vector("x0", x0, DIM_X)
     for t in range(steps):
         x[t + 1] = f(x[t], u[t]) + sigma_w * rng.standard_normal(DIM_X)
     y = x + sigma_v * rng.standard_normal(x.shape)

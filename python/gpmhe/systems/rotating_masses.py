@@ -29,7 +29,7 @@ import functools
 
 import numpy as np
 
-from gpmhe._validation import finite_vector, integer
+from gpmhe._validation import finite_vector as _finite_vector, integer as _integer
 
 __all__ = ["rhs", "rhs_jacobian", "h_batch", "h_jacobian_batch", "casadi_functions",
            "known_model", "random_inputs", "simulate", "initial_estimate"]
@@ -406,14 +406,14 @@ def simulate(steps=STEPS, rng=None, x0=X0, theta1=THETA1, sigma_v=SIGMA_V, subst
     >>> x.shape, u.shape, y.shape
     ((51, 8), (51, 2), (51, 3))
     """
-    steps = integer("steps", steps, low=1)
+    steps = _integer("steps", steps, low=1)
     from gpmhe.models.discretization import discretize
 
     rng = np.random.default_rng(rng)
     u = random_inputs(steps, rng)
     f = discretize(functools.partial(rhs, theta1=theta1), T, substeps=substeps)
     x = np.empty((steps + 1, DIM_X))
-    x[0] = finite_vector("x0", x0, DIM_X)
+    x[0] = _finite_vector("x0", x0, DIM_X)
     for t in range(steps):
         x[t + 1] = f(x[t], u[t])
     y = x[:, :DIM_Y] + sigma_v * rng.standard_normal((steps + 1, DIM_Y))
