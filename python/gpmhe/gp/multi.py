@@ -64,13 +64,10 @@ class MultiOutputGP(_ManyOutputs):
     kernel : SEKernel
         The kernel with the current hyperparameters and ``bounds`` (the fitted ones after
         ``fit``).
-    sigma_f : ndarray of shape (q,)
-        Signal standard deviations (fitted after ``fit``; setting it on a fitted model refactors
-        it at the new values without optimising, as for ``theta``).
-    lengthscales : ndarray of shape (q, n_d)
-        Length-scales (fitted after ``fit``); set as ``sigma_f``.
-    sigma_eps : ndarray of shape (q,)
-        Noise standard deviations (fitted after ``fit``); set as ``sigma_f``.
+    sigma_f, lengthscales, sigma_eps : ndarray of shapes (q,), (q, n_d), (q,)
+        Signal standard deviations, length-scales and noise standard deviations (the fitted
+        ones after ``fit``). Setting one on a fitted model refactors it at the new values without
+        optimising, as for ``theta``.
     theta : ndarray of shape (q, n_d + 2)
         One row log([sigma_f, lengthscales..., sigma_eps]) per output; settable on a fitted
         model.

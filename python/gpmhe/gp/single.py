@@ -72,13 +72,11 @@ class GaussianProcess(_OneOutput):
     kernel : SEKernel
         The kernel with the current hyperparameters and ``bounds``: the initial values before
         ``fit``, the fitted ones after it.
-    sigma_f : float
-        Signal standard deviation (the fitted value after ``fit``; setting it on a fitted GP
-        refactors the model at the new value without optimising, as for ``theta``).
-    lengthscales : float or ndarray of shape (n_d,)
-        Length-scales (an ndarray of shape (n_d,) after ``fit``); set as ``sigma_f``.
-    sigma_eps : float
-        Noise standard deviation (the fitted value after ``fit``); set as ``sigma_f``.
+    sigma_f, lengthscales, sigma_eps : float, float or ndarray of shape (n_d,), float
+        Signal standard deviation, length-scales and noise standard deviation: the initial
+        values before ``fit``, the fitted ones after it (the length-scales then of shape
+        (n_d,)). Setting one on a fitted GP refactors the model at the new value without
+        optimising, as for ``theta``.
     theta : ndarray of shape (n_d + 2,)
         log([sigma_f, lengthscales..., sigma_eps]); setting it on a fitted GP refactors the model
         at the new values without optimising.
