@@ -225,6 +225,22 @@ class _GP:
         model = fit.approx.rebuild(fit.model, fit.D, self._residuals(), np.ascontiguousarray(rows))
         self._fitted = _Fit(model, fit.D, fit.Y, fit.approx, None)
 
+    @property
+    def dim(self) -> int:
+        """Input dimension n_d of the fitted model.
+
+        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
+        """
+        return self._model().dim
+
+    @property
+    def D_train(self) -> np.ndarray:
+        """Training inputs, shape (N, n_d).
+
+        Those of the last successful ``fit``; raises `NotFittedError` before it.
+        """
+        return self._fit_state().D.copy()
+
     def _out(self, a: np.ndarray) -> np.ndarray:
         """A per-point result (k, q, ...) as it is returned: (k, ...) for one output."""
         return a.reshape(a.shape[:1] + a.shape[2:]) if self._squeeze else a

@@ -4,7 +4,7 @@ log marginal likelihood), its fit, and its leave-one-out errors.
 
 An approximation has the methods ``fit``, ``rebuild``, ``objective``, ``loo``, ``save_entries``
 and ``load_model``; the GP classes (``base.py``) hold the data, the kernel and the settings, and
-never look inside the core model themselves."""
+leave building, refactoring and scoring the core model to them."""
 
 from __future__ import annotations
 

@@ -83,22 +83,6 @@ class _OneOutput(_GP):
         self._kernel = self._kernel.with_theta(theta)
 
     @property
-    def dim(self) -> int:
-        """Input dimension n_d of the fitted model.
-
-        The number of columns of the training inputs; raises `NotFittedError` before ``fit``.
-        """
-        return self._model().dim
-
-    @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d).
-
-        Those of the last successful ``fit``; raises `NotFittedError` before it.
-        """
-        return self._fit_state().D.copy()
-
-    @property
     def y_train(self) -> np.ndarray:
         """Training targets, shape (N,).
 
@@ -188,16 +172,6 @@ class _ManyOutputs(_GP):
     @theta.setter
     def theta(self, value: Any) -> None:
         self._refactor(value)
-
-    @property
-    def dim(self) -> int:
-        """Input dimension n_d; raises `NotFittedError` before ``fit``."""
-        return self._model().dim
-
-    @property
-    def D_train(self) -> np.ndarray:
-        """Training inputs, shape (N, n_d); raises `NotFittedError` before ``fit``."""
-        return self._fit_state().D.copy()
 
     @property
     def y_train(self) -> np.ndarray:

@@ -19,23 +19,12 @@ from gpmhe._validation import (
     integer,
     points,
     positive_scalar,
+    real_array,
     within_limits,
 )
 from gpmhe.models.base import ModelDomainError, SharedOnCopy, call_user, check_picklable, point
 
 __all__ = ["KnownModel"]
-
-
-def _floats(value, name):
-    """What a model function returned as a float64 array; anything but real numbers (strings,
-    None, complex values, ragged lists) is refused with a ValueError naming the function."""
-    if np.iscomplexobj(value):
-        raise ValueError(f"{name}: returned complex values (expected real numbers)")
-    try:
-        return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: returned {type(value).__name__} {str(value)[:60]!r}, not an array of "
-                         f"real numbers") from None
 
 
 class KnownModel(SharedOnCopy):
@@ -429,14 +418,14 @@ class KnownModel(SharedOnCopy):
 
     # ---- per point (vectorized=False) ------------------------------------------------------
     def _call(self, fn, x, u, size, name):
-        v = _floats(call_user(fn, name, x, u), name).reshape(-1)
+        v = real_array(name, call_user(fn, name, x, u)).reshape(-1)
         if v.size != size:
             raise ValueError(f"{name}: returned {v.size} values, expected {size}")
         return v
 
     def _jac(self, fn, jac, x, u, size, name):
         if jac is not None:
-            J = _floats(call_user(jac, name + "_jacobian", x, u), name + "_jacobian")
+            J = real_array(name + "_jacobian", call_user(jac, name + "_jacobian", x, u))
             if J.shape != (size, self.dim_x):
                 raise ValueError(f"{name}_jacobian: returned shape {J.shape}, expected {(size, self.dim_x)}")
             return J
@@ -464,7 +453,7 @@ class KnownModel(SharedOnCopy):
 
     # ---- vectorised (vectorized=True) ------------------------------------------------------
     def _call_batch(self, fn, X, U, size, name, rows="one row per point"):
-        v = _floats(call_user(fn, name, X, U), name)
+        v = real_array(name, call_user(fn, name, X, U))
         if v.shape != (X.shape[0], size):
             raise ValueError(f"{name}: returned shape {v.shape}, expected {(X.shape[0], size)} "
                              f"(vectorized=True: {rows})")
@@ -476,7 +465,7 @@ class KnownModel(SharedOnCopy):
         k, n = X.shape
         if jac is not None:
             v = self._call_batch(fn, X, U, size, name)
-            J = _floats(call_user(jac, name + "_jacobian", X, U), name + "_jacobian")
+            J = real_array(name + "_jacobian", call_user(jac, name + "_jacobian", X, U))
             if J.shape != (k, size, n):
                 raise ValueError(f"{name}_jacobian: returned shape {J.shape}, expected "
                                  f"{(k, size, n)} (vectorized=True: one matrix per point)")
