@@ -1,7 +1,7 @@
 //! Sparse GPs (`crate::sparse`): `SparseMultiGP` (gpmhe.SparseGaussianProcess and
 //! gpmhe.SparseMultiOutputGP are its q = 1 and general cases), `sparse_objective` and
 //! `select_inducing`; and the conversions between the core's [`GpModel`] and the two Python GP
-//! classes, for `StageModel.gp`. Inputs must be C-contiguous float64 (gpmhe/gp/sparse_base.py converts
+//! classes, for `StageModel.gp`. Inputs must be C-contiguous float64 (gpmhe/gp/inducing.py converts
 //! and validates first); the numerics run without the GIL.
 
 use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
