@@ -55,3 +55,55 @@ def test_a_converged_fit_has_a_small_projected_gradient():
     assert not caught
     lml, grad = gp.log_marginal_likelihood(eval_gradient=True)
     assert np.max(np.abs(grad)) <= 1e-3 * max(1.0, abs(lml))
+
+
+def _smooth_2d(seed, n=500, m=20):
+    """bench_sparse_fit.py's data: N noisy samples of a smooth function, m inducing inputs."""
+    rng = np.random.default_rng(seed)
+    D_ = rng.uniform(-2.0, 2.0, (n, 2))
+    y = np.sin(2.0 * D_[:, 0]) + 0.5 * D_[:, 0] * np.cos(1.5 * D_[:, 1]) + 0.1 * rng.standard_normal(n)
+    return D_, y, D_[rng.choice(n, m, replace=False)]
+
+
+def test_a_first_step_into_the_noise_only_corner_is_taken_again_with_short_steps():
+    """From sigma_f = 1, l = 1, sigma_eps = 0.1 the gradient on this data set is ~1e4 and plain
+    L-BFGS-B's first step lands in the corner sigma_f = lower bound, l = upper bounds (bound
+    -581, the data explained as noise, a KKT point it then calls converged). The fit repeats
+    from the start with short steps and reaches the signal (a bound near 215)."""
+    from scipy.optimize import minimize
+
+    from gpmhe import SparseGaussianProcess
+
+    D_, y, Z = _smooth_2d(8)
+    start = dict(sigma_f=1.0, lengthscales=1.0, sigma_eps=0.1)
+    gp = SparseGaussianProcess(n_inducing=20, inducing=Z, **start)
+    t0, log_bounds = gp.kernel.theta(1, 2)[0], gp.kernel.log_bounds(2)
+
+    def negated(t):
+        value, grad, _ = _core.sparse_objective(D_, y, Z, t, "vfe", True)
+        return -value, -grad
+
+    plain = minimize(negated, t0, jac=True, method="L-BFGS-B", bounds=log_bounds)
+    assert -plain.fun < -500 and plain.x[0] == log_bounds[0][0]  # what the fit must not keep
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # the optimum is ill-conditioned
+        gp.fit(D_, y)
+    assert gp.log_marginal_likelihood_value > 200
+    assert gp.theta[0] > log_bounds[0][0] + 1
+
+
+def test_a_fit_left_in_the_corner_says_so(monkeypatch):
+    """If the repeat also ends in the noise-only corner (here: made to repeat the plain run),
+    the fit warns instead of returning the corner silently."""
+    import gpmhe.gp.fit
+    from gpmhe import SparseGaussianProcess
+
+    monkeypatch.setattr(gpmhe.gp.fit, "_short_steps", lambda run, t0, log_bounds: run(t0))
+    D_, y, Z = _smooth_2d(8)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gp = SparseGaussianProcess(n_inducing=20, inducing=Z, sigma_f=1.0, lengthscales=1.0,
+                                   sigma_eps=0.1).fit(D_, y)
+    messages = [str(w.message) for w in caught if issubclass(w.category, ConvergenceWarning)]
+    assert any("explains the data as noise" in m for m in messages), messages
+    assert gp.log_marginal_likelihood_value < -500

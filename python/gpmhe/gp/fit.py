@@ -98,13 +98,13 @@ def _maximise(
             raise
         return -value, -grad
 
-    def run(t0: np.ndarray) -> Any:
+    def run(t0: np.ndarray, box: np.ndarray = log_bounds) -> Any:
         return scipy.optimize.minimize(
             negated,
             t0,
             jac=True,
             method="L-BFGS-B",
-            bounds=log_bounds,
+            bounds=box,
             # Tighter than SciPy's defaults: the LML is flat near its optimum.
             options={"maxiter": maxiter, "ftol": 1e-12, "gtol": 1e-9},
         )
@@ -123,6 +123,15 @@ def _maximise(
             "fit: no optimiser run reached a finite log marginal likelihood; "
             "check the data scaling and the bounds"
         )
+    if _degenerate(best, log_bounds):
+        # The data explained as noise (sigma_f pinned at its lower bound, or every length-scale
+        # at its upper one): often reached because L-BFGS-B's first steps, scaled by a large
+        # gradient, jump to the box's corner. Again from the start with steps of at most one
+        # log-unit; the better result is kept.
+        again = _short_steps(run, starts[0], log_bounds)
+        values.append(-float(again.fun))
+        if np.isfinite(again.fun) and again.fun < best.fun:
+            best = again
     if _projected_gradient(best, log_bounds) > _gradient_tolerance(best):
         # L-BFGS-B can stop (even with status 0, "relative reduction small") where the gradient
         # is not small: a fresh run from there, without the old curvature pairs, often goes on.
@@ -142,7 +151,46 @@ def _maximise(
             ConvergenceWarning,
             stacklevel=_user_stacklevel(),
         )
+    if _degenerate(best, log_bounds):
+        warnings.warn(
+            "fit: the fitted GP explains the data as noise (sigma_f at its lower bound, or every "
+            "length-scale at its upper one), also when the fit was repeated with short steps "
+            "from the start. If the data are not pure noise this is a poor local optimum: try "
+            "other initial values, n_restarts > 0, normalize=True or other bounds, and compare "
+            "log_marginal_likelihood_value",
+            ConvergenceWarning,
+            stacklevel=_user_stacklevel(),
+        )
     return np.asarray(best.x, dtype=np.float64), -float(best.fun), np.array(values)
+
+
+def _degenerate(res: Any, log_bounds: np.ndarray) -> bool:
+    """Whether an L-BFGS-B result (of the negated objective, in [log sigma_f, log lengthscales...,
+    log sigma_eps]) is pinned in the noise-only corner: sigma_f at its lower bound or every
+    length-scale at its upper one, with the objective pushing against the bound."""
+    if res.jac is None or not np.all(np.isfinite(res.jac)):
+        return False
+    x, g, tol = np.asarray(res.x), np.asarray(res.jac), 1e-8 * (1.0 + np.abs(log_bounds))
+    low = (x <= log_bounds[:, 0] + tol[:, 0]) & (g > 0)
+    high = (x >= log_bounds[:, 1] - tol[:, 1]) & (g < 0)
+    return bool(low[0] or high[1:-1].all())
+
+
+def _short_steps(run: Callable, t0: np.ndarray, log_bounds: np.ndarray, radius: float = 1.0) -> Any:
+    """L-BFGS-B from t0 inside boxes of half-width ``radius`` around the current point, moved
+    while the result sits on an edge of its box that is not a bound, then once in the whole box."""
+    t = np.asarray(t0, dtype=np.float64)
+    for _ in range(50):
+        box = np.column_stack([np.maximum(log_bounds[:, 0], t - radius), np.minimum(log_bounds[:, 1], t + radius)])
+        res = run(t, box)
+        if not np.isfinite(res.fun):
+            break
+        edge = ((box[:, 0] > log_bounds[:, 0]) & (res.x <= box[:, 0])) | \
+            ((box[:, 1] < log_bounds[:, 1]) & (res.x >= box[:, 1]))
+        t = np.asarray(res.x, dtype=np.float64)
+        if not edge.any():
+            break
+    return run(t)
 
 
 def _projected_gradient(res: Any, log_bounds: np.ndarray) -> float:
