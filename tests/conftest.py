@@ -73,6 +73,21 @@ def h3_no_feedthrough(x, u):
     return np.array([x[0], x[0] * x[1]])
 
 
+def check_window_derivatives(win, z, h=1e-6):
+    """A core window's gradient and Jacobian at z against central differences of its cost and
+    residuals (step h), and the gradient against 2 Jᵀr."""
+    r, (_, g), jac = win.residuals(z), win.cost_grad(z), win.jacobian(z)
+    np.testing.assert_allclose(g, 2 * jac.T @ r, rtol=1e-12, atol=1e-12)
+    fd_g, fd_J = np.empty_like(z), np.empty_like(jac)
+    for c in range(z.size):
+        e = np.zeros_like(z)
+        e[c] = h
+        fd_g[c] = (win.cost(z + e) - win.cost(z - e)) / (2 * h)
+        fd_J[:, c] = (win.residuals(z + e) - win.residuals(z - e)) / (2 * h)
+    np.testing.assert_allclose(g, fd_g, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(jac, fd_J, rtol=1e-5, atol=1e-5)
+
+
 def synthetic_learned_model(n_points, f_residual=False):
     """GPs (fixed hyperparameters, no optimisation) on n_points random inputs of the f3/h3
     system (2 states, 1 input, 2 outputs)."""

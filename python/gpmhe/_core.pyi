@@ -387,11 +387,14 @@ class MovingHorizon:
         solver: WindowSolver | None = None,
         arrival_mean: ArrivalMean = ...,
         arrival_weight: ArrivalWeight = ...,
+        loss: str = "squared",
+        loss_scale: float = 1.0,
     ) -> None:
         """`q0`, `r0`: Q0, R0 as diagonals or flattened matrices; `p2_sqrt`: S with P2 = SᵀS;
         `filtering`: the form; `horizon`: M; `x0`: x̂(0) (zeros if None); `lower`, `upper`: the
         state box (±inf if None); `solver`: the solver settings (defaults if None); the arrival
-        cost (defaults: the paper's, `ArrivalMean.Estimate`, `ArrivalWeight.Constant`)."""
+        cost (defaults: the paper's, `ArrivalMean.Estimate`, `ArrivalWeight.Constant`); the
+        output penalty `loss` ("squared", "huber" or "cauchy") with scale `loss_scale`."""
         ...
     def reset(self, x0: _F) -> None:
         """Forget every step: t = 0, x̂(0) = x0 with covariance P2⁻¹."""

@@ -24,7 +24,7 @@ __all__ = ["EstimatorBank"]
 
 #: The keyword settings of GPMHE the bank takes (x0 is its own argument).
 _SETTINGS = ("horizon", "eta", "P2", "Q0", "R0", "x_bounds", "form", "solver", "solver_options",
-             "arrival_mean", "arrival_weight")
+             "arrival_mean", "arrival_weight", "loss", "loss_scale")
 
 #: The most estimators in one bank (a guard against a mistyped n, not a limit of the method).
 _MAX_ESTIMATORS = 10_000_000
@@ -193,6 +193,8 @@ class EstimatorBank:
         self.P2, self.solver_options = template.P2, template.solver_options
         self.solver = "gauss-newton"
         self.arrival_mean, self.arrival_weight = template.arrival_mean, template.arrival_weight
+        self.loss = template.loss
+        self.loss_scale = template.loss_scale if template.loss != "squared" else None
         self.x0, self.Q0, self.R0, self.x_bounds = x0, q0, r0, (lb, ub)
 
     # ---- the estimates and what the last update reported: read from the core ---------------
@@ -352,7 +354,7 @@ class EstimatorBank:
                      Q0=self.Q0[i], R0=self.R0[i] if self.dim_y else None,
                      x_bounds=(lb[i], ub[i]), form=self.form, solver="gauss-newton",
                      solver_options=self.solver_options, arrival_mean=self.arrival_mean,
-                     arrival_weight=self.arrival_weight)
+                     arrival_weight=self.arrival_weight, loss=self.loss, loss_scale=self.loss_scale)
 
     def __getitem__(self, i):
         """Estimator i as a standalone `GPMHE`: an independent copy with its settings, history
@@ -375,7 +377,9 @@ class EstimatorBank:
         settings = dict(horizon=self.horizon, eta=self.eta, P2=self.P2,
                         Q0=self.Q0[:, :, None] * np.eye(self.dim_x),
                         R0=self.R0[:, :, None] * np.eye(self.dim_y) if self.dim_y else None,
-                        x_bounds=(lb, ub), form=self.form, solver_options=self.solver_options)
+                        x_bounds=(lb, ub), form=self.form, solver_options=self.solver_options,
+                        arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight,
+                        loss=self.loss, loss_scale=self.loss_scale)
         return dict(model=self.model, n=len(self), x0=self.x0, settings=settings,
                     cores=[self._core.member_state(i) for i in range(len(self))])
 

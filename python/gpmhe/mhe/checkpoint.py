@@ -14,8 +14,9 @@ from gpmhe.mhe.settings import MHESettings
 __all__ = ["FORMAT_VERSION", "save", "load"]
 
 # 2: arrival cost, full weights, parameters, pending input; 3: the estimate and the last update's
-# report only in the core's state (core_outcome_*), not also as attributes.
-FORMAT_VERSION = 3
+# report only in the core's state (core_outcome_*), not also as attributes; 4: the output loss
+# (loss, loss_scale).
+FORMAT_VERSION = 4
 
 _CACHE_PARTS = ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y",
                 "dvar_y")

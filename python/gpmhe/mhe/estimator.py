@@ -127,6 +127,14 @@ class GPMHE:
     p_drift : float or array_like of shape (dim_p,) or None, default None
         Standard deviation of a random walk of p per step (p is estimated as a state with
         p(t+1) = p(t) plus this drift); None: 1e-4 · abs(p0), constant for any practical purpose.
+    loss : {"squared", "huber", "cauchy"}, default "squared"
+        The penalty ρ of each whitened output residual e (a row of R(d̄)^{-1/2} v̄, in standard
+        deviations): v̄ᵀR⁻¹v̄ = Σ e² becomes Σ ρ(e). "huber": ρ = e² for abs(e) <= k,
+        2k·abs(e) − k² beyond; "cauchy": ρ = k² log(1 + e²/k²). Both equal e² for small abs(e) and bound the pull
+        of an outlier; see the user guide, *Data as plants send it*. "squared" is the cost above.
+    loss_scale : float or None, default None
+        The scale k of "huber" or "cauchy", in standard deviations; None: 1.345 (Huber) or
+        2.385 (Cauchy). Not accepted with "squared".
 
     Attributes
     ----------
@@ -168,6 +176,7 @@ class GPMHE:
         "ekf" arrival weight; Q0, R0 and eta leave it as it is). Other names are rejected
         (``est.R = ...`` raises AttributeError).
     model, horizon, form, solver, solver_options, arrival_mean, arrival_weight, x_bounds
+    loss, loss_scale
         The settings as given, read-only (``x_bounds`` as a (lower, upper) pair of arrays, ±inf
         where unbounded).
     p0, P_p0, p_bounds, p_drift
@@ -249,7 +258,7 @@ class GPMHE:
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
                  x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None,
                  P0=None, arrival_mean="smoothed", arrival_weight="ekf", p0=None, P_p0=None,
-                 p_bounds=None, p_drift=None):
+                 p_bounds=None, p_drift=None, loss="squared", loss_scale=None):
         from gpmhe.models import KnownModel, LearnedModel
 
         if not isinstance(model, (KnownModel, LearnedModel)):
@@ -259,7 +268,8 @@ class GPMHE:
         settings = MHESettings.build(
             dims, horizon=horizon, eta=eta, P2=P2, Q0=Q0, R0=R0, x_bounds=x_bounds, form=form,
             solver=solver, solver_options=solver_options, P0=P0, arrival_mean=arrival_mean,
-            arrival_weight=arrival_weight, p0=p0, P_p0=P_p0, p_bounds=p_bounds, p_drift=p_drift)
+            arrival_weight=arrival_weight, p0=p0, P_p0=P_p0, p_bounds=p_bounds, p_drift=p_drift,
+            loss=loss, loss_scale=loss_scale)
         self._init(model, settings, x0)
 
     @classmethod
@@ -398,6 +408,16 @@ class GPMHE:
     def arrival_weight(self):
         """The arrival weight, "ekf" or "constant"."""
         return self._settings.arrival_weight
+
+    @property
+    def loss(self):
+        """The output penalty, "squared", "huber" or "cauchy"."""
+        return self._settings.loss
+
+    @property
+    def loss_scale(self):
+        """The penalty's scale k (1.0 for "squared")."""
+        return self._settings.loss_scale
 
     @property
     def x_bounds(self):

@@ -51,6 +51,10 @@ SOLVERS = {
     },
 }
 
+#: The output penalties and their default scales k (in standard deviations of the whitened
+#: residual): the usual 95 %-efficiency constants of Huber's and Cauchy's M-estimators.
+LOSS_SCALES = {"squared": 1.0, "huber": 1.345, "cauchy": 2.385}
+
 #: The settings a user may change between updates (each takes effect from the next one).
 WEIGHTS = ("Q0", "R0", "P2", "eta")
 
@@ -100,6 +104,8 @@ class MHESettings:
     solver_options: Dict[str, Any]
     arrival_mean: str
     arrival_weight: str
+    loss: str
+    loss_scale: float
     # the unknown parameters (dim_p > 0): guess, prior covariance, bounds, drift per step, and
     # the scale s of p = s ⊙ p̃
     p0: np.ndarray
@@ -113,7 +119,7 @@ class MHESettings:
     def build(cls, dims, horizon=15, eta=0.91, P2=None, Q0=None, R0=None, x_bounds=None,
               form="prediction", solver="gauss-newton", solver_options=None, P0=None,
               arrival_mean="smoothed", arrival_weight="ekf", p0=None, P_p0=None, p_bounds=None,
-              p_drift=None):
+              p_drift=None, loss="squared", loss_scale=None):
         """The validated settings of an estimator on a model of dimensions ``dims`` = (n, p, m,
         k); ValueError naming the first invalid argument."""
         n, p, _, k = dims
@@ -131,7 +137,21 @@ class MHESettings:
             solver_options=dict(options("solver_options", solver_options, SOLVERS[solver])),
             arrival_mean=one_of("arrival_mean", arrival_mean, ("estimate", "smoothed")),
             arrival_weight=one_of("arrival_weight", arrival_weight, ("constant", "ekf")),
-            **cls._parameters(k, p0, P_p0, p_bounds, p_drift))
+            **cls._loss(loss, loss_scale), **cls._parameters(k, p0, P_p0, p_bounds, p_drift))
+
+    @staticmethod
+    def _loss(loss, loss_scale):
+        """The output penalty and its scale (None: the loss's default, `LOSS_SCALES`)."""
+        loss = one_of("loss", loss, tuple(LOSS_SCALES))
+        if loss == "squared":
+            if loss_scale is not None:
+                raise ValueError("loss_scale: the squared loss has no scale (give loss='huber' "
+                                 "or 'cauchy')")
+            return dict(loss=loss, loss_scale=1.0)
+        scale = LOSS_SCALES[loss] if loss_scale is None else positive_scalar("loss_scale", loss_scale)
+        if not 0.0 < scale < np.inf:
+            raise ValueError(f"loss_scale: must be positive and finite, got {loss_scale!r}")
+        return dict(loss=loss, loss_scale=scale)
 
     @staticmethod
     def _parameters(k, p0, P_p0, p_bounds, p_drift):
@@ -225,7 +245,8 @@ class MHESettings:
                     filtering=self.form == "filtering", horizon=self.horizon, lower=lb,
                     upper=ub, solver=self.core_solver(),
                     arrival_mean=_core.ArrivalMean.from_name(self.arrival_mean),
-                    arrival_weight=_core.ArrivalWeight.from_name(self.arrival_weight))
+                    arrival_weight=_core.ArrivalWeight.from_name(self.arrival_weight),
+                    loss=self.loss, loss_scale=self.loss_scale)
 
     def check_state(self, x0, p0=None):
         """x0 (and p0) validated against the bounds, as new arrays."""
@@ -253,7 +274,8 @@ class MHESettings:
         out = dict(horizon=self.horizon, eta=self.eta, P2=self.P2, Q0=self.Q0, R0=self.R0,
                    x_lower=lb, x_upper=ub, form=self.form, solver=self.solver,
                    solver_options=options_json, arrival_mean=self.arrival_mean,
-                   arrival_weight=self.arrival_weight)
+                   arrival_weight=self.arrival_weight, loss=self.loss,
+                   loss_scale=self.loss_scale)
         if self.dims[3]:
             out.update(p0=self.p0, P_p0=self.P_p0, p_lower=self.p_bounds[0],
                        p_upper=self.p_bounds[1], p_drift=self.p_drift)
@@ -274,6 +296,10 @@ class MHESettings:
                        arrival_weight=f.string("arrival_weight"))
         else:  # format 1 ran the paper's arrival cost
             raw.update(arrival_mean="estimate", arrival_weight="constant")
+        if f.version >= 4:  # earlier formats had the squared loss only
+            raw["loss"], scale = f.string("loss"), f.float("loss_scale")
+            if raw["loss"] != "squared":  # the squared loss's saved scale is always 1
+                raw["loss_scale"] = scale
         if k:
             raw.update(p0=f.floats("p0", (k,)), P_p0=f.floats("P_p0", (k, k)),
                        p_bounds=(f.floats("p_lower", (k,)), f.floats("p_upper", (k,))),

@@ -9,7 +9,7 @@
 //!   filter step of the arrival covariance Π = P⁻¹ over the node that leaves the window
 //!   ([`ArrivalWeight::Ekf`], [`ekf_step`]).
 
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DVector};
 
 use super::problem::WindowProblem;
 use super::stage::{StageEval, StageModel};
@@ -55,7 +55,8 @@ pub fn evaluate_at(model: &mut dyn StageModel, x: &[f64], u: &[f64]) -> Result<S
 /// Π' = A (W⁺)⁻¹ Aᵀ + Q, with A = ∂m_x/∂x, C = ∂m_y/∂x, Q = diag σ²_x + Q0, R = diag σ²_y + R0
 /// at d̄_0 = [x̄_0; u_0], read from the first point of `st` (the model's values there: the
 /// window's last evaluation, or [`evaluate_at`]). Returns S' (n × n, row-major) with
-/// S'ᵀS' = Π'⁻¹; a numerical error if a matrix is not positive definite (the caller keeps the
+/// S'ᵀS' = Π'⁻¹ (with a robust penalty, each whitened output row of y_0 weighted by ψ′ of its
+/// residual, `loss.rs`); a numerical error if a matrix is not positive definite (the caller keeps the
 /// old weight).
 pub fn ekf_step(
     st: &StageEval,
@@ -87,7 +88,20 @@ pub fn ekf_step(
         );
         let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
         let rc = r.cholesky().ok_or_else(not_pd)?;
-        let whitened = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
+        let mut whitened = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
+        let loss = problem.loss();
+        if let (false, Some(y)) = (loss.is_squared(), y0) {
+            // A robust penalty: each whitened row's information times ψ′(e)², as in the window.
+            let e = DVector::from_iterator(
+                measured.len(),
+                measured.iter().map(|&k| y[k] - st.mean_y[k]),
+            );
+            let e = rc.l().solve_lower_triangular(&e).ok_or_else(not_pd)?;
+            for (i, &ei) in e.iter().enumerate() {
+                let slope = loss.psi(ei).1;
+                whitened.row_mut(i).scale_mut(slope);
+            }
+        }
         info += whitened.transpose() * whitened;
     }
     let pi_plus = info.cholesky().ok_or_else(not_pd)?.inverse();

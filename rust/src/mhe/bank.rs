@@ -112,7 +112,7 @@ pub struct EstimatorBank<M> {
 
 impl<M: Clone + ModelState> EstimatorBank<M> {
     /// One estimator per entry of `settings`, each with `template`'s horizon, weights η, P2,
-    /// form, arrival cost and solver settings (its history is not used) and a clone of `model`.
+    /// form, output loss, arrival cost and solver settings (its history is not used) and a clone of `model`.
     pub fn new(template: &MovingHorizon, model: &M, settings: &[MemberSettings]) -> Result<Self> {
         if settings.is_empty() {
             return Err(Error::invalid("n", "must be at least 1"));
@@ -122,7 +122,7 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         let members = settings
             .iter()
             .map(|s| {
-                let problem = WindowProblem::new(
+                let mut problem = WindowProblem::new(
                     p.dim_x(),
                     p.dim_u(),
                     p.dim_y(),
@@ -132,6 +132,7 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
                     p.p2_sqrt(),
                     p.form(),
                 )?;
+                problem.set_loss(p.loss());
                 let mut estimator = MovingHorizon::new(
                     problem,
                     horizon,

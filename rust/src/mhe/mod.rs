@@ -3,7 +3,8 @@
 //!
 //! * [`stage`]: what a model provides at a batch of points ([`StageModel`]), and the learned
 //!   model [`GpStageModel`];
-//! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]);
+//! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]),
+//!   its output rows through the penalty of [`loss`];
 //! * [`history`]: the last M + 1 steps, the arrival priors, the previous window and what the
 //!   last update reported ([`outcome`]);
 //! * [`lsq`]: the window as the solver's least-squares problem ([`WindowLsq`]);
@@ -14,6 +15,7 @@ pub mod arrival;
 pub mod bank;
 pub mod estimator;
 pub mod history;
+pub mod loss;
 pub mod lsq;
 pub mod outcome;
 pub mod problem;
@@ -24,6 +26,7 @@ pub use arrival::{Arrival, ArrivalMean, ArrivalWeight};
 pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings, ModelState};
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
+pub use loss::Loss;
 pub use lsq::WindowLsq;
 pub use outcome::{Outcome, Solved};
 pub use problem::{Form, WindowEval, WindowProblem};

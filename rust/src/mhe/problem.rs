@@ -21,6 +21,7 @@
 // Index loops mirror the block formulas of docs/user_guide/window.rst and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
+use super::loss::Loss;
 use super::stage::{StageEval, StageModel};
 use super::weights::{whiten, Block, Covariance};
 use crate::error::{check_finite, check_len, Error, Result};
@@ -54,6 +55,8 @@ pub struct WindowProblem {
     y: Vec<f64>,
     y_present: Vec<bool>,
     x_prior: Vec<f64>,
+    /// The penalty of the whitened output residuals (`loss.rs`).
+    loss: Loss,
 }
 
 /// The settings a problem was built with (for copies and checkpoints of an estimator).
@@ -77,6 +80,13 @@ impl WindowProblem {
     /// S with P2 = SᵀS (n × n row-major).
     pub fn p2_sqrt(&self) -> &[f64] {
         &self.p2_sqrt
+    }
+    pub fn loss(&self) -> Loss {
+        self.loss
+    }
+    /// Sets the penalty of the output residuals from the next evaluation on.
+    pub fn set_loss(&mut self, loss: Loss) {
+        self.loss = loss;
     }
 }
 
@@ -114,6 +124,7 @@ impl WindowProblem {
             y: vec![0.0; p],
             y_present: vec![false],
             x_prior: vec![0.0; n],
+            loss: Loss::Squared,
         })
     }
 
@@ -279,7 +290,11 @@ impl WindowProblem {
         for i in 0..nodes {
             let a = self.stage_weight(i);
             if self.measured(i).next().is_some() {
+                let first = row;
                 row = self.write_output_rows(i, a, row, want_jacobian, out)?;
+                if !self.loss.is_squared() {
+                    out.robust_rows(self.loss, a, first..row);
+                }
             }
             if i < self.m_t {
                 row = self.write_process_rows(i, a, z, row, want_jacobian, out)?;
@@ -612,6 +627,22 @@ impl WindowEval {
             }
         }
         row + k
+    }
+
+    /// Rows `rows` (output rows of weight a) through the robust penalty: r ↦ a ψ(r / a), their
+    /// derivatives and roundings times ψ′ (`loss.rs`).
+    fn robust_rows(&mut self, loss: Loss, a: f64, rows: std::ops::Range<usize>) {
+        let n = self.n;
+        for k in rows {
+            let (r, slope) = loss.row(a, self.r[k]);
+            self.r[k] = r;
+            self.dr[k] *= slope;
+            if self.has_jacobian {
+                self.ja[k * n..(k + 1) * n]
+                    .iter_mut()
+                    .for_each(|v| *v *= slope);
+            }
+        }
     }
 
     /// The cost's rounding noise, and an error if a residual is not finite.

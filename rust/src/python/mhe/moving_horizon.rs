@@ -12,7 +12,7 @@ use super::pickle;
 use super::stage_model::{CallbackModel, Model, PyStageModel};
 use super::window_solver::PyWindowSolver;
 use crate::error::{check_finite, check_len};
-use crate::mhe::{Arrival, Form, MovingHorizon, Solved, StageModel, WindowProblem};
+use crate::mhe::{Arrival, Form, Loss, MovingHorizon, Solved, StageModel, WindowProblem};
 use crate::python::convert::{array2, slice1, slice2};
 use crate::python::error::{detach_interruptible, interruptible};
 use crate::solver::{BoxLsqSolver, SolverOptions};
@@ -84,12 +84,13 @@ impl PyMovingHorizon {
     /// flattened matrices; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form; `horizon`: M;
     /// `x0`: x̂(0) (zeros if None); `lower`, `upper`: the state box (±inf if None); `solver`: the
     /// solver settings; `arrival_mean` and `arrival_weight`
-    /// ("constant" or "ekf"): the arrival cost.
+    /// ("constant" or "ekf"): the arrival cost; `loss` ("squared", "huber", "cauchy") and
+    /// `loss_scale`: the penalty of the whitened output residuals.
     #[new]
     #[allow(clippy::too_many_arguments)]
     #[pyo3(signature = (model, eta, q0, r0, p2_sqrt, filtering, horizon=1, x0=None, lower=None,
                         upper=None, solver=None, arrival_mean=PyArrivalMean::Estimate,
-                        arrival_weight=PyArrivalWeight::Constant))]
+                        arrival_weight=PyArrivalWeight::Constant, loss="squared", loss_scale=1.0))]
     fn new(
         py: Python<'_>,
         model: PyRef<'_, PyStageModel>,
@@ -105,6 +106,8 @@ impl PyMovingHorizon {
         solver: Option<PyRef<'_, PyWindowSolver>>,
         arrival_mean: PyArrivalMean,
         arrival_weight: PyArrivalWeight,
+        loss: &str,
+        loss_scale: f64,
     ) -> PyResult<Self> {
         let arrival = Arrival {
             mean: arrival_mean.into(),
@@ -117,7 +120,8 @@ impl PyMovingHorizon {
         };
         let (p2, _, _) = slice2("P2", &p2_sqrt)?;
         let (q0, r0) = (slice1("Q0", &q0)?, slice1("R0", &r0)?);
-        let problem = WindowProblem::new(n, m, p, eta, q0, r0, p2, form)?;
+        let mut problem = WindowProblem::new(n, m, p, eta, q0, r0, p2, form)?;
+        problem.set_loss(Loss::from_name(loss, loss_scale)?);
         let or = |a: &Option<PyReadonlyArray1<'_, f64>>, name: &str, fill: f64| {
             a.as_ref()
                 .map_or(Ok(vec![fill; n]), |a| slice1(name, a).map(<[f64]>::to_vec))
@@ -540,6 +544,8 @@ impl PyMovingHorizon {
                 (
                     PyArrivalMean::from(self.core.arrival().mean),
                     PyArrivalWeight::from(self.core.arrival().weight),
+                    p.loss().name_and_scale().0,
+                    p.loss().name_and_scale().1,
                 )
                     .into_pyobject(py)?,
             )?;
