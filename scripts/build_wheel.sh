@@ -7,6 +7,7 @@
 #   bash scripts/build_wheel.sh                      # wheel in dist/, checked with python3
 #   bash scripts/build_wheel.sh --python python3.9 --python python3.13   # checked with each
 #   bash scripts/build_wheel.sh --no-check           # wheel only
+#   bash scripts/build_wheel.sh --tests "test_gp.py test_bank.py"   # the check runs these only
 #
 # Needs: python3 (3.9+) and a Rust toolchain to build; the check needs neither cargo nor rustc.
 set -euo pipefail
@@ -14,10 +15,12 @@ cd "$(dirname "$0")/.."
 root=$PWD
 check=1
 pythons=()
+tests=.
 while [ $# -gt 0 ]; do
     case "$1" in
         --no-check) check=0 ;;
         --python) shift; pythons+=("${1:?--python needs an interpreter}") ;;
+        --tests) shift; tests="${1:?--tests needs test files}" ;;
         *) echo "unknown argument: $1 (see the comment at the top of $0)" >&2; exit 2 ;;
     esac
     shift
@@ -55,7 +58,8 @@ check_with() {  # $1: the interpreter that creates the check's virtualenv
         pip install --quiet --only-binary=gpmhe "$wheel[test]"
         cd "$root/tests"
         python -c "import gpmhe, sys; print('gpmhe', gpmhe.__version__, 'on Python', sys.version.split()[0], 'from', gpmhe.__file__)"
-        python -m pytest -q .
+        # shellcheck disable=SC2086  # the files are separate words
+        python -m pytest -q $tests
     )
 }
 for py in "${pythons[@]}"; do
