@@ -149,8 +149,6 @@ class MHESettings:
                                  "or 'cauchy')")
             return dict(loss=loss, loss_scale=1.0)
         scale = LOSS_SCALES[loss] if loss_scale is None else positive_scalar("loss_scale", loss_scale)
-        if not 0.0 < scale < np.inf:
-            raise ValueError(f"loss_scale: must be positive and finite, got {loss_scale!r}")
         return dict(loss=loss, loss_scale=scale)
 
     @staticmethod
