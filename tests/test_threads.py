@@ -67,8 +67,8 @@ class RecordingCore:
     def __init__(self, core):
         self.core, self.ys = core, []
 
-    def update(self, u, y=None):
-        rep = self.core.update(u, y)
+    def update(self, u, y=None, r=None):
+        rep = self.core.update(u, y, r)
         self.ys.append(y)
         return rep
 

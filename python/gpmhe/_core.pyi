@@ -424,12 +424,21 @@ class MovingHorizon:
     def arrival_weight(self) -> _F:
         """The next window's arrival weight SᵀS (n, n)."""
         ...
-    def update(self, u: _F | None, y: _F | None = None) -> None:
-        """One whole update (u None: not known yet, filtering form or no input), recorded with
-        what it reports (the properties below) in one step; on error nothing changes."""
+    def update(self, u: _F | None, y: _F | None = None, r: _F | None = None) -> None:
+        """One whole update (u None: not known yet, filtering form or no input; r: the
+        covariance of y, p or p² values, None for R0), recorded with what it reports (the
+        properties below) in one step; on error nothing changes."""
         ...
-    def prepare(self, u: _F | None, y: _F | None = None) -> tuple[_F, _F, _F]:
+    def prepare(self, u: _F | None, y: _F | None = None, r: _F | None = None) -> tuple[_F, _F, _F]:
         """Stage the next window without recording it: (z0, lower, upper)."""
+        ...
+    def add_delayed(self, y: _F, age: int, r: _F | None = None) -> None:
+        """Record an output measured `age` steps before the newest one (NaN: channels not in
+        it; r: its covariance, None for R0) for the windows from the next update on."""
+        ...
+    @property
+    def max_delay(self) -> int:
+        """The largest age `add_delayed` accepts now."""
         ...
     def commit(
         self,
@@ -561,6 +570,13 @@ class EstimatorBank:
         ...
     def member_state(self, i: int) -> dict[str, Any]:
         """Estimator i's `MovingHorizon.__getstate__`."""
+        ...
+    def add_delayed(self, i: int, y: _F, age: int, r: _F | None = None) -> None:
+        """Record a late output for estimator i (`MovingHorizon.add_delayed`)."""
+        ...
+    @property
+    def max_delay(self) -> int:
+        """The largest age `add_delayed` accepts now."""
         ...
     def set_member_state(self, i: int, state: dict[str, Any]) -> None:
         """Restore estimator i from `member_state` (checked; nothing changes on error)."""

@@ -16,9 +16,10 @@ import numpy as np
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import (MAX_ABS, box, float_array, integer, positive_diagonal, real_array,
-                               within_limits)
+from gpmhe._validation import (MAX_ABS, box, float_array, integer, output_sample,
+                               positive_diagonal, real_array, within_limits)
 from gpmhe.mhe.estimator import GPMHE
+from gpmhe.mhe.settings import sample_covariance
 
 __all__ = ["EstimatorBank"]
 
@@ -336,6 +337,58 @@ class EstimatorBank:
         self._step(U, Y, present)
         return self.x
 
+    def add_delayed(self, i, y, age, R=None):
+        """Add a late output for estimator i, as `GPMHE.add_delayed` (used from the next
+        `update` on).
+
+        Parameters
+        ----------
+        i : int
+            The estimator.
+        y : array_like of shape (dim_y,)
+            The output, NaN for channels not in it.
+        age : int
+            Steps before the newest output it was measured, 1 <= age <= ``max_delay``.
+        R : float, array_like of shape (dim_y,) or (dim_y, dim_y), or None, default None
+            Its covariance (None: estimator i's ``R0``).
+
+        Raises
+        ------
+        ValueError
+            On bad input (as `GPMHE.add_delayed`); the bank is then unchanged.
+        IndexError
+            If there is no estimator i.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import EstimatorBank, KnownModel
+        >>> model = KnownModel(lambda x, u: x, lambda x, u: x, dim_x=1, dim_y=1)
+        >>> bank = EstimatorBank(model, 2, [0.0], horizon=4, form="filtering")
+        >>> for t in range(3):
+        ...     _ = bank.update(None, [[1.0], [np.nan]])  # estimator 1 measures nothing
+        >>> bank.add_delayed(1, [1.0], age=1)
+        >>> print(np.round(bank.update(None, [[1.0], [np.nan]]), 3))  # estimator 1 was at 0
+        [[0.932]
+         [0.698]]
+        """
+        i = self._index(i)
+        y, present = output_sample("y", y, self.dim_y)
+        if not present:
+            raise ValueError("y: has no measured channel (all NaN)")
+        age = integer("age", age, low=1)
+        r = None if R is None else sample_covariance(R, self.dim_y)
+        self._add_delayed(i, y, age, r)
+
+    @exclusive
+    def _add_delayed(self, i, y, age, r):
+        self._core.add_delayed(i, y, age, r)
+
+    @property
+    def max_delay(self):
+        """The largest ``age`` `add_delayed` accepts now (the same for every estimator)."""
+        return self._core.max_delay
+
     @exclusive  # one update at a time per bank (gpmhe/_threads.py)
     def _step(self, U, Y, present):
         self._core.update(U, Y, present)
@@ -356,14 +409,18 @@ class EstimatorBank:
                      solver_options=self.solver_options, arrival_mean=self.arrival_mean,
                      arrival_weight=self.arrival_weight, loss=self.loss, loss_scale=self.loss_scale)
 
-    def __getitem__(self, i):
-        """Estimator i as a standalone `GPMHE`: an independent copy with its settings, history
-        and attributes, which continues exactly (bit for bit) as estimator i would."""
+    def _index(self, i):
+        """Estimator i's position (negative i counts from the end); IndexError if none."""
         k = len(self)
         i = operator.index(i)
         if not -k <= i < k:
             raise IndexError(f"i: the bank has {k} estimators, got {i}")
-        i %= k
+        return i % k
+
+    def __getitem__(self, i):
+        """Estimator i as a standalone `GPMHE`: an independent copy with its settings, history
+        and attributes, which continues exactly (bit for bit) as estimator i would."""
+        i = self._index(i)
         mhe = self._gpmhe(i)
         mhe._core.__setstate__(self._core.member_state(i))  # the history and the last report
         return mhe

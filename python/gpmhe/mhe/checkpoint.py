@@ -15,8 +15,9 @@ __all__ = ["FORMAT_VERSION", "save", "load"]
 
 # 2: arrival cost, full weights, parameters, pending input; 3: the estimate and the last update's
 # report only in the core's state (core_outcome_*), not also as attributes; 4: the output loss
-# (loss, loss_scale).
-FORMAT_VERSION = 4
+# (loss, loss_scale); 5: the output covariance given with each sample in the history (core_r_given,
+# core_r).
+FORMAT_VERSION = 5
 
 _CACHE_PARTS = ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y",
                 "dvar_y")
@@ -70,6 +71,9 @@ def _core_state(f, na, m, p, kind):
         state[key] = f.floats("core_" + key, (None, cols))
     if f.version >= 2:
         state["arrival_sqrt"] = f.floats("core_arrival_sqrt", (na, na))
+    if f.version >= 5:  # earlier files: every sample with R0
+        state["r_given"] = f.array("core_r_given", "b", (None,))
+        state["r"] = f.floats("core_r", (None, p * p))
     if kind == "LearnedModel":
         for key in _CACHE_PARTS:
             state["cache_" + key] = f.floats("core_cache_" + key, (None,))

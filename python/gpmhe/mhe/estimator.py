@@ -17,9 +17,9 @@ import numpy as np
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import finite_vector, output_sample, sequence_rows
+from gpmhe._validation import finite_vector, integer, output_sample, sequence_rows
 from gpmhe.mhe import checkpoint, solvers
-from gpmhe.mhe.settings import WEIGHTS, MHESettings
+from gpmhe.mhe.settings import WEIGHTS, MHESettings, sample_covariance
 
 __all__ = ["GPMHE"]
 
@@ -549,11 +549,15 @@ class GPMHE:
         """The solver's message for the last window."""
         return self._core.message
 
-    def _check_step(self, u, y):
-        """The validated (u, y, whether y holds a measured channel): u None stays None when
-        the core may stand in for it (no input, or the filtering form; the core refuses it
-        while an earlier update still waits for its input)."""
+    def _check_step(self, u, y, R=None):
+        """The validated (u, y, whether y holds a measured channel, R as the core takes it or
+        None): u None stays None when the core may stand in for it (no input, or the filtering
+        form; the core refuses it while an earlier update still waits for its input)."""
         m, p = self.dim_u, self.dim_y
+        if R is not None:
+            if y is None:
+                raise ValueError("R: given without an output y")
+            R = sample_covariance(R, p)
         if u is None:
             if m and self.form != "filtering":
                 raise ValueError(f"u: required (dim_u = {m}; only the filtering form accepts "
@@ -561,12 +565,12 @@ class GPMHE:
         else:
             u = finite_vector("u", u, m, flatten=True)
         if y is None:
-            return u, np.zeros(p), False
+            return u, np.zeros(p), False, None
         y, present = output_sample("y", y, p)
         if u is None and m and present and self._output_uses_input(self._core.last_input):
             raise ValueError("u: required, the model's output h depends on u (u=None is for "
                              "models whose h(x, u) does not use u)")
-        return u, y, present
+        return u, y, present, R
 
     def _output_uses_input(self, u):
         """Whether the model's output mean h depends on u: probed once, at the current estimate
@@ -611,7 +615,7 @@ class GPMHE:
         u = finite_vector("u", u, self.dim_u, flatten=True)
         self._core.set_last_input(u)  # refused unless an update waits for its input
 
-    def update(self, u, y):
+    def update(self, u, y, R=None):
         """Add the input and output of the next step, solve the window and update the estimate.
 
         The t-th call appends (u(t), y(t)), slides the window (it grows until it holds M stages),
@@ -629,6 +633,11 @@ class GPMHE:
         y : array_like of shape (dim_y,) or None
             Output y(t); None when there is no measurement at this step, NaN entries for
             channels not measured.
+        R : float, array_like of shape (dim_y,) or (dim_y, dim_y), or None, default None
+            This sample's output-noise covariance, as ``R0`` (a scalar times I, the diagonal or
+            the matrix; the entries of channels not measured are not used), in place of ``R0``
+            for as long as the sample is in the window (kept by copies and checkpoints). None:
+            ``R0``; ``R=R0`` gives exactly the result without ``R``. Only with an output y.
 
         Returns
         -------
@@ -667,9 +676,77 @@ class GPMHE:
         [1.]
         >>> print(np.round(mhe.update([0.0], None), 3))  # x̂(1) = x̂(0) + u(0): no measurement
         [2.]
+        >>> import copy
+        >>> same = copy.deepcopy(mhe)
+        >>> print(np.round(mhe.update([0.0], [4.0]), 3))  # y(2) with R0 = 1
+        [3.468]
+        >>> print(np.round(same.update([0.0], [4.0], R=3.0), 3))  # a noisier sample moves x̂ less
+        [2.968]
         """
-        self._step(*self._check_step(u, y))
+        self._step(*self._check_step(u, y, R))
         return self.x
+
+    def add_delayed(self, y, age, R=None):
+        """Add an output that was measured ``age`` steps before the newest one and arrives late.
+
+        A lab assay, an analyser with a dead time: y belongs to time t_last − age, where t_last
+        is the time of the output of the last `update`. It is written into the window's data at
+        that time (next to the output already there, if any) and used from the next `update` on,
+        as if it had arrived on time; ``x`` and the other attributes do not change now.
+
+        Parameters
+        ----------
+        y : array_like of shape (dim_y,)
+            The late output, NaN for channels not in it (at least one channel measured). A
+            channel already measured at that time is refused.
+        age : int
+            How many steps before the newest output it was measured: 1 <= age <= ``max_delay``
+            (older samples have left the window; they are refused, not folded into the arrival
+            cost).
+        R : float, array_like of shape (dim_y,) or (dim_y, dim_y), or None, default None
+            Its output-noise covariance, as in `update` (None: ``R0``). Its channels are
+            uncorrelated with those measured at that time before.
+
+        Raises
+        ------
+        ValueError
+            On bad input (shape, inf, no channel measured, a channel already measured at that
+            time, an age outside 1 … ``max_delay``, R not symmetric positive definite); the
+            estimator is then unchanged.
+
+        Examples
+        --------
+        A concentration measured two steps ago arrives now:
+
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> model = KnownModel(lambda x, u: x, lambda x, u: x, dim_x=2, dim_y=2)
+        >>> mhe = GPMHE(model, x0=[0.0, 0.0], horizon=5, Q0=1e-4, R0=1.0, form="filtering")
+        >>> for t in range(4):
+        ...     _ = mhe.update(None, [1.0, np.nan])  # only the first channel, every step
+        >>> mhe.max_delay
+        3
+        >>> mhe.add_delayed([np.nan, 2.0], age=2)
+        >>> print(np.round(mhe.update(None, [1.0, np.nan]), 2))  # x_2 was 0 before the assay
+        [0.87 1.09]
+        """
+        p = self.dim_y
+        y, present = output_sample("y", y, p)
+        if not present:
+            raise ValueError("y: has no measured channel (all NaN)")
+        age = integer("age", age, low=1)
+        r = None if R is None else sample_covariance(R, p)
+        self._add_delayed(y, age, r)
+
+    @exclusive
+    def _add_delayed(self, y, age, r):
+        self._core.add_delayed(y, age, r)
+
+    @property
+    def max_delay(self):
+        """The largest ``age`` `add_delayed` accepts now (0 before the window holds an
+        older output)."""
+        return self._core.max_delay
 
     def batch_filter(self, ys, us=None):
         """Run `update` over a sequence of outputs (and inputs), as filterpy's ``batch_filter``.
@@ -724,7 +801,7 @@ class GPMHE:
                 raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
         xs = np.empty((len(steps), self.dim_x))
         Ps = np.empty((len(steps), self.dim_x, self.dim_x))
-        if self.dim_u and any(u is None for u, _, _ in steps):
+        if self.dim_u and any(step[0] is None for step in steps):
             raise ValueError("us: batch_filter needs every input (u=None is for update and "
                              "set_input)")
         for i, step in enumerate(steps):
@@ -734,19 +811,19 @@ class GPMHE:
 
     # ----------------------------------------------------------------------------------------
     @exclusive  # one update at a time per estimator (gpmhe/_threads.py)
-    def _step(self, u, y, present):
+    def _step(self, u, y, present, R=None):
         """One update with validated input, recorded by the core in one step with everything it
         reports: the Rust solver in one call ("gauss-newton"), or a SciPy solver between the
         core's ``prepare`` and ``commit``. Nothing changes unless the core records the step."""
         core = self._core
-        y = y if present else None
+        y, R = (y, R) if present else (None, None)
         if self.solver == "gauss-newton":
-            core.update(u, y)
+            core.update(u, y, R)
             if not core.success:  # (after the step is recorded: the warning may be an error)
                 self._warn(core.message, core.t - 1, stacklevel=5)  # 5: past `exclusive`
             return
         try:
-            z0, lb, ub = core.prepare(u, y)
+            z0, lb, ub = core.prepare(u, y, R)
             z, cost, success, nit, message = solvers.solve(
                 self.solver, self._settings.solver_options, core, z0, lb, ub)
             if not success:  # (before the record: as an error it leaves nothing changed)

@@ -75,6 +75,12 @@ def _covariance(name, value, n):
                             vector_is_diagonal=True)
 
 
+def sample_covariance(R, p):
+    """The covariance ``R`` given with one output sample (as ``R0``: a scalar, the diagonal or
+    the matrix), validated, in the core's form (see `_flat`)."""
+    return _flat(_covariance("R", R, p))
+
+
 def _frozen(a):
     a = np.array(a, dtype=np.float64)
     a.flags.writeable = False

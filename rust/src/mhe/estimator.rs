@@ -15,6 +15,7 @@ use super::lsq::WindowLsq;
 use super::outcome::Solved;
 use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
+use super::weights::Covariance;
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::solver::{BoxLsqSolver, SolveReport, SolverOptions};
 
@@ -301,7 +302,19 @@ impl MovingHorizon {
         u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<UpdateReport> {
-        let report = self.update_staged(model, u, y);
+        self.update_with(model, u, y, None)
+    }
+
+    /// [`MovingHorizon::update`] with the covariance `r` of y(t) (p or p² values, as R0; None:
+    /// R0), which the sample keeps while it is in the window.
+    pub fn update_with(
+        &mut self,
+        model: &mut dyn StageModel,
+        u: Option<&[f64]>,
+        y: Option<&[f64]>,
+        r: Option<&[f64]>,
+    ) -> Result<UpdateReport> {
+        let report = self.update_staged(model, u, y, r);
         if report.is_err() {
             self.staged = None;
         }
@@ -313,8 +326,9 @@ impl MovingHorizon {
         model: &mut dyn StageModel,
         u: Option<&[f64]>,
         y: Option<&[f64]>,
+        r: Option<&[f64]>,
     ) -> Result<UpdateReport> {
-        let z0 = self.prepare(model, u, y)?;
+        let z0 = self.prepare_with(model, u, y, r)?;
         let mut z = z0.clone();
         self.evaluated_at.clear();
         let solve = {
@@ -365,10 +379,24 @@ impl MovingHorizon {
         u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<Vec<f64>> {
+        self.prepare_with(model, u, y, None)
+    }
+
+    /// [`MovingHorizon::prepare`] with the covariance `r` of y(t) (see
+    /// [`MovingHorizon::update_with`]).
+    pub fn prepare_with(
+        &mut self,
+        model: &mut dyn StageModel,
+        u: Option<&[f64]>,
+        y: Option<&[f64]>,
+        r: Option<&[f64]>,
+    ) -> Result<Vec<f64>> {
         self.staged = None;
-        let data = self.next_window(u, y)?;
+        let r = self.sample_covariance(y, r)?;
+        let data = self.next_window(u, y, r)?;
         self.problem
             .set_data(&data.u, &data.y, &data.present, &data.x_prior)?;
+        self.problem.set_output_covariances(&data.r)?;
         let weight = match self.arrival.weight {
             ArrivalWeight::Constant => self.problem.p2_sqrt().to_vec(),
             ArrivalWeight::Ekf => self.history.arrival_sqrt().to_vec(),
@@ -388,8 +416,38 @@ impl MovingHorizon {
         Ok(z0)
     }
 
+    /// The covariance given with an output sample (p or p² values), checked; None for R0.
+    fn sample_covariance(
+        &self,
+        y: Option<&[f64]>,
+        r: Option<&[f64]>,
+    ) -> Result<Option<Covariance>> {
+        match (y, r) {
+            (_, None) => Ok(None),
+            (None, Some(_)) => Err(Error::invalid("R", "given without an output y")),
+            (Some(_), Some(r)) => Covariance::new("R", r, self.problem.dim_y()).map(Some),
+        }
+    }
+
+    /// Records an output measured `age` steps before the newest one, with its covariance `r`
+    /// (None: R0), for the windows from the next update on ([`History::add_delayed`]). Drops any
+    /// staged window; on error nothing changes.
+    pub fn add_delayed(&mut self, y: &[f64], age: usize, r: Option<&[f64]>) -> Result<()> {
+        let r = self.sample_covariance(Some(y), r)?;
+        self.history.add_delayed(y, age, r, self.problem.r0_cov())?;
+        self.staged = None;
+        self.has_window = false;
+        self.evaluated_at.clear();
+        Ok(())
+    }
+
     /// The next window's data, with the placeholder input when `u` is None (see `prepare`).
-    fn next_window(&self, u: Option<&[f64]>, y: Option<&[f64]>) -> Result<WindowData> {
+    fn next_window(
+        &self,
+        u: Option<&[f64]>,
+        y: Option<&[f64]>,
+        r: Option<Covariance>,
+    ) -> Result<WindowData> {
         let m = self.problem.dim_u();
         if self.history.outcome().input_pending {
             return Err(Error::invalid(
@@ -399,8 +457,8 @@ impl MovingHorizon {
             ));
         }
         match u {
-            Some(u) => self.history.next_window(u, y),
-            None if m == 0 => self.history.next_window(&[], y),
+            Some(u) => self.history.next_window(u, y, r),
+            None if m == 0 => self.history.next_window(&[], y, r),
             None if self.problem.form() == Form::Prediction => Err(Error::invalid(
                 "u",
                 format!(
@@ -410,7 +468,7 @@ impl MovingHorizon {
             None => {
                 let zeros = vec![0.0; m];
                 let last = self.history.last_input().unwrap_or(&zeros);
-                let mut data = self.history.next_window(last, y)?;
+                let mut data = self.history.next_window(last, y, r)?;
                 data.input_pending = true;
                 Ok(data)
             }

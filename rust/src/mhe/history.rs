@@ -11,6 +11,7 @@ use std::collections::VecDeque;
 
 use super::outcome::Outcome;
 use super::problem::Form;
+use super::weights::Covariance;
 use crate::error::{check_finite, check_len, Error, Result};
 
 /// The data of one window, cut from the history and the new step.
@@ -20,14 +21,17 @@ pub struct WindowData {
     pub u: Vec<f64>,
     pub y: Vec<f64>,
     pub present: Vec<bool>,
+    /// The output covariance given with each node's sample (None: R0).
+    pub r: Vec<Option<Covariance>>,
     /// The arrival prior x̂(s0) for the first node.
     pub x_prior: Vec<f64>,
     /// Time of the first node.
     pub s0: usize,
     /// Number of nodes M_t + 1.
     pub nodes: usize,
-    /// The new step (u(t), y(t), whether y(t) was measured), recorded by [`History::push`].
-    step: (Vec<f64>, Vec<f64>, bool),
+    /// The new step (u(t), y(t), whether y(t) was measured, its covariance), recorded by
+    /// [`History::push`].
+    step: (Vec<f64>, Vec<f64>, bool, Option<Covariance>),
     /// Whether u(t) is a placeholder the caller will replace (`set_last_input`).
     pub input_pending: bool,
 }
@@ -43,6 +47,8 @@ pub struct History {
     u: Vec<f64>,
     y: Vec<f64>,
     present: Vec<bool>,
+    /// The output covariance given with each row's sample (None: R0).
+    r: Vec<Option<Covariance>>,
     /// Arrival priors of the last ≤ M + 2 times, the newest (for time t) last.
     priors: VecDeque<Vec<f64>>,
     /// The last optimal window (rows × n), oldest first, and the time of its first row.
@@ -78,6 +84,7 @@ impl History {
             u: Vec::new(),
             y: Vec::new(),
             present: Vec::new(),
+            r: Vec::new(),
             priors: VecDeque::with_capacity(horizon + 2),
             x_window: Vec::new(),
             window_t0: 0,
@@ -98,6 +105,7 @@ impl History {
         self.u.clear();
         self.y.clear();
         self.present.clear();
+        self.r.clear();
         self.priors.clear();
         self.priors.push_back(x0.to_vec());
         self.x_window = x0.to_vec();
@@ -178,9 +186,15 @@ impl History {
         }
     }
 
-    /// The window of the t-th update with the new step (u(t), y(t)) (`y` None: not measured).
-    /// Only the lengths are checked here; the window problem checks the values it is given.
-    pub fn next_window(&self, u: &[f64], y: Option<&[f64]>) -> Result<WindowData> {
+    /// The window of the t-th update with the new step (u(t), y(t)) (`y` None: not measured)
+    /// and the covariance `r` given with y(t) (None: R0). Only the lengths are checked here; the
+    /// window problem checks the values it is given.
+    pub fn next_window(
+        &self,
+        u: &[f64],
+        y: Option<&[f64]>,
+        r: Option<Covariance>,
+    ) -> Result<WindowData> {
         let (_, m, p) = self.dims;
         check_len("u", u, m)?;
         if let Some(y) = y {
@@ -201,20 +215,23 @@ impl History {
             u: last_rows(&self.u, m, old),
             y: last_rows(&self.y, p, old),
             present: self.present[self.present.len() - old..].to_vec(),
+            r: self.r[self.r.len() - old..].to_vec(),
             x_prior: self.priors[self.priors.len() - 1 - (t - s0)].clone(),
             s0,
             nodes,
-            step: (u.to_vec(), y_t.clone(), y.is_some()),
+            step: (u.to_vec(), y_t.clone(), y.is_some(), r.clone()),
             input_pending: false,
         };
         data.u.extend_from_slice(u);
         data.y.extend_from_slice(&y_t);
         data.present.push(y.is_some());
+        data.r.push(r);
         if nodes > k {
             // Prediction form: the last node x̄(t+1) carries no data.
             data.u.resize(nodes * m, 0.0);
             data.y.resize(nodes * p, 0.0);
             data.present.push(false);
+            data.r.push(None);
         }
         Ok(data)
     }
@@ -229,14 +246,16 @@ impl History {
         outcome: Outcome,
     ) {
         let (_, m, p) = self.dims;
-        let (u, y, present) = data.step;
+        let (u, y, present, r) = data.step;
         let keep = self.horizon + 1;
         self.u.extend_from_slice(&u);
         self.y.extend_from_slice(&y);
         self.present.push(present);
+        self.r.push(r);
         if self.present.len() > keep {
             let drop = self.present.len() - keep;
             self.present.drain(..drop);
+            self.r.drain(..drop);
             self.u.drain(..drop * m);
             self.y.drain(..drop * p);
         }
@@ -248,6 +267,69 @@ impl History {
         self.window_t0 = data.s0;
         self.outcome = outcome;
         self.t += 1;
+    }
+
+    /// The largest age a late output can have to enter the next window: the age of the
+    /// window's first node with an output (age 0 is the newest recorded output, of time t − 1).
+    pub fn max_delay(&self) -> Option<usize> {
+        (self.t > 0).then(|| self.t - 1 - self.window_start(self.t).min(self.t - 1))
+    }
+
+    /// Records an output `y` (p values, NaN for channels not in it) measured `age` steps before
+    /// the newest recorded one (1 ≤ age ≤ [`History::max_delay`]), with its covariance `r`
+    /// (None: `r0`), into the row of its time: it enters every window from the next update on.
+    /// A channel already measured at that time is refused. The row's covariance keeps the
+    /// measured channels' block and takes the new channels' block from `r`, uncorrelated with
+    /// the others. On error nothing changes.
+    pub fn add_delayed(
+        &mut self,
+        y: &[f64],
+        age: usize,
+        r: Option<Covariance>,
+        r0: &Covariance,
+    ) -> Result<()> {
+        let p = self.dims.2;
+        check_len("y", y, p)?;
+        if y.iter().any(|v| v.is_infinite()) {
+            return Err(Error::invalid("y", "contains an infinite value"));
+        }
+        let new: Vec<usize> = (0..p).filter(|&k| y[k].is_finite()).collect();
+        if new.is_empty() {
+            return Err(Error::invalid("y", "has no measured channel (all NaN)"));
+        }
+        let max = self.max_delay().unwrap_or(0);
+        if age == 0 || age > max {
+            return Err(Error::invalid(
+                "age",
+                format!(
+                    "must be between 1 and {max} (the oldest output the next window uses), got {age}"
+                ),
+            ));
+        }
+        let row = self.present.len() - 1 - age;
+        let old = &mut self.y[row * p..(row + 1) * p];
+        let present = self.present[row];
+        if let Some(&k) = new.iter().find(|&&k| present && old[k].is_finite()) {
+            return Err(Error::invalid(
+                "y",
+                format!("channel {k} is already measured at that time"),
+            ));
+        }
+        let cov = match (present, r) {
+            (false, r) => r,
+            (true, None) if self.r[row].is_none() && r0.is_diagonal() => None,
+            (true, r) => {
+                let mine = self.r[row].as_ref().unwrap_or(r0);
+                Some(mine.with_block(r.as_ref().unwrap_or(r0), &new)?)
+            }
+        };
+        if !present {
+            old.iter_mut().for_each(|v| *v = f64::NAN);
+        }
+        new.iter().for_each(|&k| old[k] = y[k]);
+        self.present[row] = true;
+        self.r[row] = cov;
+        Ok(())
     }
 }
 
@@ -261,6 +343,8 @@ pub struct HistoryState {
     pub u: Vec<f64>,
     pub y: Vec<f64>,
     pub present: Vec<bool>,
+    /// The output covariance given with each row's sample (None: R0).
+    pub r: Vec<Option<Covariance>>,
     pub priors: Vec<f64>,
     pub x_window: Vec<f64>,
     pub window_t0: usize,
@@ -278,6 +362,7 @@ impl History {
             u: self.u.clone(),
             y: self.y.clone(),
             present: self.present.clone(),
+            r: self.r.clone(),
             priors: self.priors.iter().flatten().copied().collect(),
             x_window: self.x_window.clone(),
             window_t0: self.window_t0,
@@ -301,6 +386,12 @@ impl History {
         }
         check_len("u", &s.u, rows * m)?;
         check_len("y", &s.y, rows * p)?;
+        if s.r.len() != rows || s.r.iter().flatten().any(|c| c.dim() != p) {
+            return Err(Error::invalid(
+                "r",
+                format!("expected {rows} covariances of dimension {p} at t = {t}"),
+            ));
+        }
         check_len("priors", &s.priors, t.saturating_add(1).min(big_m + 2) * n)?;
         // The window of the last update (t − 1), or x0 as one row before any.
         let (t0, nodes) = match t.checked_sub(1) {
@@ -336,6 +427,7 @@ impl History {
         self.u = s.u;
         self.y = s.y;
         self.present = s.present;
+        self.r = s.r;
         self.priors = s.priors.chunks_exact(n).map(<[f64]>::to_vec).collect();
         self.x_window = s.x_window;
         self.window_t0 = s.window_t0;
@@ -361,7 +453,7 @@ mod tests {
         let mut seen = Vec::new();
         for t in 0..5 {
             let y = [t as f64];
-            let w = h.next_window(&[], Some(&y)).unwrap();
+            let w = h.next_window(&[], Some(&y), None).unwrap();
             seen.push((w.s0, w.nodes, w.x_prior[0], w.y.clone(), w.present.clone()));
             let x = vec![100.0 + t as f64; w.nodes];
             let last = x[w.nodes - 1];
@@ -389,7 +481,7 @@ mod tests {
         for t in 0..4 {
             let y = if t == 2 { None } else { Some([t as f64]) };
             let w = h
-                .next_window(&[t as f64], y.as_ref().map(|v| &v[..]))
+                .next_window(&[t as f64], y.as_ref().map(|v| &v[..]), None)
                 .unwrap();
             assert_eq!(w.nodes, t.min(2) + 1);
             assert_eq!(w.u.last(), Some(&(t as f64)));
@@ -414,7 +506,7 @@ mod tests {
                 }
                 let y = [t as f64];
                 let step = |h: &mut History| {
-                    let w = h.next_window(&[1.0], Some(&y)).unwrap();
+                    let w = h.next_window(&[1.0], Some(&y), None).unwrap();
                     let x = vec![t as f64 * 0.1; w.nodes];
                     h.push(w, x, vec![t as f64], h.outcome().clone());
                 };
@@ -446,9 +538,43 @@ mod tests {
     fn bad_steps_are_rejected_naming_the_argument() {
         let h = History::new(3, Form::Prediction, (2, 1, 1), &[0.0, 0.0]).unwrap();
         let err = |r: Result<WindowData>| r.unwrap_err().to_string();
-        assert!(err(h.next_window(&[], Some(&[0.0]))).starts_with("u:"));
-        assert!(err(h.next_window(&[0.0], Some(&[0.0, 1.0]))).starts_with("y:"));
+        assert!(err(h.next_window(&[], Some(&[0.0]), None)).starts_with("u:"));
+        assert!(err(h.next_window(&[0.0], Some(&[0.0, 1.0]), None)).starts_with("y:"));
         assert!(History::new(0, Form::Prediction, (2, 1, 1), &[0.0, 0.0]).is_err());
         assert!(History::new(1, Form::Prediction, (2, 1, 1), &[0.0]).is_err());
+    }
+
+    /// A late output fills the channels not measured at its time, with its covariance block
+    /// apart from the old channels', and is refused where it cannot go.
+    #[test]
+    fn late_outputs_fill_their_row_or_are_refused() {
+        let mut h = History::new(4, Form::Filtering, (1, 0, 2), &[0.0]).unwrap();
+        let r0 = Covariance::new("R0", &[1.0, 0.5, 0.5, 2.0], 2).unwrap();
+        let late = Covariance::new("R", &[9.0, 3.0], 2).unwrap();
+        for t in 0..6 {
+            let w = h
+                .next_window(&[], Some(&[t as f64, f64::NAN]), None)
+                .unwrap();
+            let nodes = w.nodes;
+            h.push(w, vec![0.0; nodes], vec![0.0], h.outcome().clone());
+        }
+        assert_eq!(h.max_delay(), Some(3));
+        let before = h.state();
+        let err = |r: Result<()>| r.unwrap_err().to_string();
+        assert!(err(h.add_delayed(&[f64::NAN, 1.0], 4, None, &r0)).starts_with("age:"));
+        assert!(err(h.add_delayed(&[f64::NAN, 1.0], 0, None, &r0)).starts_with("age:"));
+        assert!(err(h.add_delayed(&[2.0, f64::NAN], 2, None, &r0)).contains("already measured"));
+        assert!(err(h.add_delayed(&[f64::NAN; 2], 2, None, &r0)).contains("no measured"));
+        assert_eq!(format!("{:?}", h.state()), format!("{before:?}")); // (NaN != NaN)
+        h.add_delayed(&[f64::NAN, 7.0], 2, Some(late), &r0).unwrap();
+        let s = h.state();
+        let row = s.present.len() - 3;
+        assert_eq!(&s.y[2 * row..2 * row + 2], &[3.0, 7.0]);
+        let cov = s.r[row].as_ref().unwrap();
+        // R0's block for channel 0, the late one's for channel 1, no correlation between them.
+        assert_eq!(cov.as_slice(), &[1.0, 0.0, 0.0, 3.0]);
+        let w = h.next_window(&[], None, None).unwrap();
+        assert_eq!(w.r.len(), w.nodes);
+        assert_eq!(w.r[w.nodes - 1 - 3].as_ref(), Some(cov));
     }
 }

@@ -57,6 +57,8 @@ pub struct WindowProblem {
     x_prior: Vec<f64>,
     /// The penalty of the whitened output residuals (`loss.rs`).
     loss: Loss,
+    /// Per node, the output covariance given with that sample (None: R0).
+    r_rows: Vec<Option<Covariance>>,
 }
 
 /// The settings a problem was built with (for copies and checkpoints of an estimator).
@@ -125,6 +127,7 @@ impl WindowProblem {
             y_present: vec![false],
             x_prior: vec![0.0; n],
             loss: Loss::Squared,
+            r_rows: vec![None],
         })
     }
 
@@ -207,7 +210,38 @@ impl WindowProblem {
         self.y_present.extend_from_slice(y_present);
         self.x_prior.clear();
         self.x_prior.extend_from_slice(x_prior);
+        self.r_rows.clear();
+        self.r_rows.resize(nodes, None);
         Ok(())
+    }
+
+    /// The output covariance of each node of the window set by [`WindowProblem::set_data`]
+    /// (None: R0), until the next `set_data`. On error nothing changes.
+    pub fn set_output_covariances(&mut self, r: &[Option<Covariance>]) -> Result<()> {
+        if r.len() != self.n_nodes() {
+            return Err(Error::invalid(
+                "R",
+                format!(
+                    "needs one entry per node ({}), got {}",
+                    self.n_nodes(),
+                    r.len()
+                ),
+            ));
+        }
+        if r.iter().flatten().any(|c| c.dim() != self.p) {
+            return Err(Error::invalid("R", format!("must be {0} x {0}", self.p)));
+        }
+        self.r_rows.clear();
+        self.r_rows.extend_from_slice(r);
+        Ok(())
+    }
+
+    /// The output covariance of node i: the one given with its sample, or R0.
+    pub fn output_cov(&self, i: usize) -> &Covariance {
+        self.r_rows
+            .get(i)
+            .and_then(Option::as_ref)
+            .unwrap_or(&self.r0)
     }
 
     /// M_t + 1.
@@ -375,7 +409,8 @@ impl WindowProblem {
         out: &mut WindowEval,
     ) -> Result<usize> {
         let (n, p, nd) = (self.n, self.p, self.n + self.m);
-        if self.r0.is_diagonal() {
+        let cov = self.output_cov(i);
+        if cov.is_diagonal() {
             for kk in self.measured(i) {
                 let (t, g) = (i * p + kk, (i * p + kk) * nd);
                 let st = &out.stage;
@@ -384,7 +419,7 @@ impl WindowProblem {
                     target: self.y[t],
                     mean: st.mean_y[t],
                     var: st.var_y[t],
-                    floor: self.r0.get(kk, kk),
+                    floor: cov.get(kk, kk),
                     mean_rounding: st.mean_y_rounding[kk],
                     var_rounding: st.var_y_rounding[kk],
                 };
@@ -414,7 +449,7 @@ impl WindowProblem {
             mean_rounding: &st.mean_y_rounding,
             var_rounding: &st.var_y_rounding,
         };
-        let block = part.write(&self.r0, a, n, nd, want_jacobian)?;
+        let block = part.write(cov, a, n, nd, want_jacobian)?;
         Ok(out.take_block(block, i, row, false))
     }
 

@@ -81,6 +81,24 @@ impl Covariance {
         &self.full
     }
 
+    /// This covariance with the channels `channels` measured apart: their block taken from
+    /// `other`, their covariances with every other channel zero (block-diagonal, so positive
+    /// definite when both are).
+    pub fn with_block(&self, other: &Covariance, channels: &[usize]) -> Result<Covariance> {
+        let dim = self.dim;
+        let full: Vec<f64> = (0..dim * dim)
+            .map(|k| {
+                let (i, j) = (k / dim, k % dim);
+                match (channels.contains(&i), channels.contains(&j)) {
+                    (true, true) => other.get(i, j),
+                    (false, false) => self.get(i, j),
+                    _ => 0.0,
+                }
+            })
+            .collect();
+        Covariance::new("R", &full, dim)
+    }
+
     /// diag(var) + C[rows, rows] (var: one value per selected row, clamped at 0).
     pub(super) fn with_variances(&self, rows: &[usize], var: &[f64]) -> DMatrix<f64> {
         let k = rows.len();

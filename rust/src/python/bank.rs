@@ -12,7 +12,7 @@ use pyo3::exceptions::{PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use super::convert::slice2;
+use super::convert::{slice1, slice2};
 use super::error::{detach_interruptible, interruptible};
 use super::mhe::{CallbackModel, Model, PyMovingHorizon};
 use crate::mhe::{
@@ -304,6 +304,36 @@ impl PyEstimatorBank {
     /// as estimator i would).
     fn member(&self, py: Python<'_>, i: usize) -> PyResult<PyMovingHorizon> {
         self.window(py, i)
+    }
+
+    /// Records a late output for estimator i (see `MovingHorizon.add_delayed`); on error
+    /// nothing changes.
+    #[pyo3(signature = (i, y, age, r=None))]
+    fn add_delayed(
+        &mut self,
+        i: usize,
+        y: PyReadonlyArray1<'_, f64>,
+        age: usize,
+        r: Option<PyReadonlyArray1<'_, f64>>,
+    ) -> PyResult<()> {
+        let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
+        let y = slice1("y", &y)?;
+        let estimator = match &mut self.inner {
+            Inner::Gp(b) => b.member_mut(i).map(|m| &mut m.estimator),
+            Inner::Callback(b) => b.member_mut(i).map(|m| &mut m.estimator),
+        };
+        let estimator =
+            estimator.ok_or_else(|| PyIndexError::new_err(format!("i: no estimator {i}")))?;
+        Ok(estimator.add_delayed(y, age, r)?)
+    }
+
+    /// The largest age `add_delayed` accepts now (the same for every estimator).
+    #[getter]
+    fn max_delay(&self) -> usize {
+        self.each(|e| e.history().max_delay().unwrap_or(0))
+            .first()
+            .copied()
+            .unwrap_or(0)
     }
 
     /// Estimator i's state as `MovingHorizon.__getstate__` gives it.

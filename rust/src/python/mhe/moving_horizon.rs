@@ -203,39 +203,65 @@ impl PyMovingHorizon {
     }
 
     /// One whole update with u(t) (None: not known yet, see `MovingHorizon::prepare` in the
-    /// core) and y(t) (None: not measured); what it reports is read from the getters below.
-    /// On error the estimator is unchanged.
-    #[pyo3(signature = (u, y=None))]
+    /// core), y(t) (None: not measured) and its covariance `r` (p or p² values; None: R0);
+    /// what it reports is read from the getters below. On error the estimator is unchanged.
+    #[pyo3(signature = (u, y=None, r=None))]
     fn update(
         &mut self,
         py: Python<'_>,
         u: Option<PyReadonlyArray1<'_, f64>>,
         y: Option<PyReadonlyArray1<'_, f64>>,
+        r: Option<PyReadonlyArray1<'_, f64>>,
     ) -> PyResult<()> {
         let u = u.as_ref().map(|u| slice1("u", u)).transpose()?;
         let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
-        self.run(py, |core, model| core.update(model, u, y))?;
+        let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
+        self.run(py, |core, model| core.update_with(model, u, y, r))?;
+        Ok(())
+    }
+
+    /// The largest age `add_delayed` accepts now (0 while no older output is in the window).
+    #[getter]
+    fn max_delay(&self) -> usize {
+        self.core.history().max_delay().unwrap_or(0)
+    }
+
+    /// Records an output `y` (NaN: channels not in it) measured `age` steps before the newest
+    /// one, with its covariance `r` (None: R0), for the windows from the next update on. On
+    /// error nothing changes.
+    #[pyo3(signature = (y, age, r=None))]
+    fn add_delayed(
+        &mut self,
+        y: PyReadonlyArray1<'_, f64>,
+        age: usize,
+        r: Option<PyReadonlyArray1<'_, f64>>,
+    ) -> PyResult<()> {
+        let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
+        self.core.add_delayed(slice1("y", &y)?, age, r)?;
+        self.staged_cache = None;
         Ok(())
     }
 
     /// Stages the next window with u(t), y(t) without recording it; returns (z0, lower,
     /// upper): the warm start and the box of the stacked window states. The window methods
     /// (`cost`, ...) then evaluate it; `commit` records a solution.
-    #[pyo3(signature = (u, y=None))]
+    #[pyo3(signature = (u, y=None, r=None))]
     fn prepare<'py>(
         &mut self,
         py: Python<'py>,
         u: Option<PyReadonlyArray1<'py, f64>>,
         y: Option<PyReadonlyArray1<'py, f64>>,
+        r: Option<PyReadonlyArray1<'py, f64>>,
     ) -> PyResult<(Arr1<'py>, Arr1<'py>, Arr1<'py>)> {
         let u = u.as_ref().map(|u| slice1("u", u)).transpose()?;
         let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
+        let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
         if let Model::Gp(gp) = &self.model {
             if self.staged_cache.is_none() {
                 self.staged_cache = Some(gp.cache());
             }
         }
-        let z0 = self.run(py, |core, model| core.prepare(model, u, y))?;
+        let z0 = self.run(py, |core, model| core.prepare_with(model, u, y, r))?;
         let (lo, hi) = self.core.bounds();
         Ok((
             PyArray1::from_vec(py, z0),

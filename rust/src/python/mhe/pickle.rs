@@ -8,7 +8,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::stage_model::Model;
-use crate::mhe::{GpStageModel, HistoryState, MovingHorizon, Outcome, GP_CACHE_PARTS};
+use crate::mhe::{Covariance, GpStageModel, HistoryState, MovingHorizon, Outcome, GP_CACHE_PARTS};
 use crate::python::convert::array2;
 
 /// The float64 array `state[key]` with `cols` columns (2-D), as a flat row-major vector; a
@@ -52,7 +52,7 @@ fn state_usize(state: &Bound<'_, PyDict>, key: &str) -> PyResult<usize> {
 }
 
 /// The estimator's state as a dict of plain values: the history (`t`, `window_t0` (ints), `u`
-/// (rows, m), `y` (rows, p), `present` (rows,) bool, `priors` (k, n), `x_window` (nodes, n),
+/// (rows, m), `y` (rows, p), `present` (rows,) bool, `r_given` (rows,) bool and `r` (rows, p²), `priors` (k, n), `x_window` (nodes, n),
 /// `arrival_sqrt` (n, n)), the last update's report (`outcome_*`, see `outcome_items`) and, for
 /// the learned model, its evaluation cache (`cache_*`).
 pub(super) fn get_state<'py>(
@@ -70,6 +70,18 @@ pub(super) fn get_state<'py>(
     d.set_item("u", array2(py, s.u, rows, m)?)?;
     d.set_item("y", array2(py, s.y, rows, dy)?)?;
     d.set_item("present", PyArray1::from_vec(py, s.present))?;
+    // The covariance given with each row's output (`r_given`), as p × p rows of `r` (zeros
+    // where none was given).
+    let given: Vec<bool> = s.r.iter().map(Option::is_some).collect();
+    let r: Vec<f64> =
+        s.r.iter()
+            .flat_map(|c| {
+                c.as_ref()
+                    .map_or(vec![0.0; dy * dy], |c| c.as_slice().to_vec())
+            })
+            .collect();
+    d.set_item("r_given", PyArray1::from_vec(py, given))?;
+    d.set_item("r", array2(py, r, rows, dy * dy)?)?;
     let k = s.priors.len() / n;
     d.set_item("priors", array2(py, s.priors, k, n)?)?;
     let nodes = s.x_window.len() / n;
@@ -106,6 +118,7 @@ pub(super) fn set_state(
         u: state_rows(state, "u", m)?,
         y: state_rows(state, "y", dy)?,
         present: present.readonly().as_array().iter().copied().collect(),
+        r: read_covariances(state, dy)?,
         priors: state_rows(state, "priors", n)?,
         x_window: state_rows(state, "x_window", n)?,
         window_t0: state_usize(state, "window_t0")?,
@@ -132,6 +145,32 @@ pub(super) fn set_state(
     };
     core.set_history_state(s)?;
     Ok(gp)
+}
+
+/// The covariances given with the rows' outputs (`r_given`, `r`; all R0 in states saved before
+/// they were recorded).
+fn read_covariances(state: &Bound<'_, PyDict>, p: usize) -> PyResult<Vec<Option<Covariance>>> {
+    if !state.contains("r_given")? {
+        let rows = state_item(state, "present")?.len()?;
+        return Ok(vec![None; rows]);
+    }
+    let given = state_item(state, "r_given")?;
+    let given = given
+        .cast::<PyArrayDyn<bool>>()
+        .map_err(|_| PyValueError::new_err("r_given: must be a bool array"))?;
+    let given: Vec<bool> = given.readonly().as_array().iter().copied().collect();
+    let values = state_rows(state, "r", p * p)?;
+    if values.len() != given.len() * p * p {
+        return Err(PyValueError::new_err(
+            "r: needs one row per entry of r_given",
+        ));
+    }
+    given
+        .iter()
+        .zip(values.chunks_exact(p * p).chain(std::iter::repeat(&[][..])))
+        .map(|(&g, v)| g.then(|| Covariance::new("r", v, p)).transpose())
+        .collect::<crate::error::Result<_>>()
+        .map_err(Into::into)
 }
 
 /// Writes `outcome` into a state dict as `outcome_x_prior`, `outcome_P`, `outcome_cost`,
