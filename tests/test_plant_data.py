@@ -228,3 +228,25 @@ def test_a_bank_takes_late_outputs_per_estimator():
     with pytest.raises(IndexError):
         bank.add_delayed(5, [np.nan, 0.7], age=1)
     assert bank.max_delay == 4
+
+
+def test_batch_filter_and_banks_take_each_samples_covariance():
+    us, ys, Rs = data(12)
+    kw = dict(horizon=4, Q0=np.diag(Q), R0=np.diag(R0))
+    one = GPMHE(LINEAR, [0.0, 0.0], **kw)
+    xs = [one.update(u, y, R=R).copy() for u, y, R in zip(us, ys, Rs)]
+    batch, _ = GPMHE(LINEAR, [0.0, 0.0], **kw).batch_filter(ys, us, Rs=list(Rs))
+    np.testing.assert_array_equal(batch, xs)
+    with pytest.raises(ValueError, match=r"Rs\[3\]"):
+        GPMHE(LINEAR, [0.0, 0.0], **kw).batch_filter(ys[:5], us[:5], Rs=[None, None, None, -1.0, None])
+    # A bank: estimator 0 with R0, estimator 1 with the samples' R (diagonal, per estimator).
+    bank = EstimatorBank(LINEAR, 2, [0.0, 0.0], **kw)
+    plain = GPMHE(LINEAR, [0.0, 0.0], **kw)
+    for u, y, R in zip(us, ys, Rs):
+        # (n, dim_y, dim_y): with n = dim_y an (n, dim_y) array would be one diagonal matrix
+        bank.update(np.tile(u, (2, 1)), np.tile(y, (2, 1)), R=[np.diag(np.diag(R0)), R])
+        plain.update(u, y)
+    np.testing.assert_array_equal(bank.x[0], plain.x)
+    np.testing.assert_array_equal(bank.x[1], xs[-1])
+    with pytest.raises(ValueError, match="R"):
+        bank.update(np.tile(us[0], (2, 1)), np.tile(ys[0], (2, 1)), R=[[1.0, 0.5], [0.5, 1.0]])

@@ -537,9 +537,12 @@ class EstimatorBank:
     def threads() -> int:
         """Threads of a parallel update (rayon's pool; `RAYON_NUM_THREADS`)."""
         ...
-    def update(self, u: _F, y: _F, present: npt.NDArray[np.bool_]) -> None:
+    def update(
+        self, u: _F, y: _F, present: npt.NDArray[np.bool_], r: _F | None = None
+    ) -> None:
         """One update of every estimator (rows of `u` (k, m), `y` (k, p); `present[i]` False:
-        estimator i's y is missing), recorded with what each reports (the properties below)
+        estimator i's y is missing; row i of `r`: the diagonal of its y's covariance, None for
+        R0), recorded with what each reports (the properties below)
         in one step; on error no estimator changes."""
         ...
     # what the last update reported, one row per estimator

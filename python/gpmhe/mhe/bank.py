@@ -285,7 +285,7 @@ class EstimatorBank:
         Y[~present] = 0.0
         return U, Y, present
 
-    def update(self, U, Y):
+    def update(self, U, Y, R=None):
         """Add one sample for every estimator, solve their windows and update the estimates.
 
         Row i of ``U`` and ``Y`` is estimator i's (u(t), y(t)) (`GPMHE.update`). All estimators
@@ -300,6 +300,11 @@ class EstimatorBank:
             The outputs. A NaN marks a missing value: a row with any NaN means estimator i has
             no measurement at this step (as ``GPMHE.update(u, None)``; the row's other values are
             not used). None: no estimator has a measurement.
+        R : float or array_like, or None, default None
+            This sample's output-noise covariance (`GPMHE.update`'s ``R``), diagonal: one for all
+            estimators (a scalar, the diagonal (dim_y,) or a diagonal matrix) or one per
+            estimator ((n,) scalars, (n, dim_y) diagonals or (n, dim_y, dim_y) diagonal
+            matrices), as ``R0``. None: each estimator's ``R0``.
 
         Returns
         -------
@@ -334,7 +339,8 @@ class EstimatorBank:
          [0.]]
         """
         U, Y, present = self._check_sample(U, Y)
-        self._step(U, Y, present)
+        R = None if R is None else np.ascontiguousarray(_per_estimator("R", R, len(self), self.dim_y))
+        self._step(U, Y, present, R)
         return self.x
 
     def add_delayed(self, i, y, age, R=None):
@@ -390,8 +396,8 @@ class EstimatorBank:
         return self._core.max_delay
 
     @exclusive  # one update at a time per bank (gpmhe/_threads.py)
-    def _step(self, U, Y, present):
-        self._core.update(U, Y, present)
+    def _step(self, U, Y, present, R=None):
+        self._core.update(U, Y, present, R)
         failed = np.flatnonzero(~self.success)
         if failed.size:
             shown = ", ".join(map(str, failed[:20])) + (", ..." if failed.size > 20 else "")

@@ -748,7 +748,7 @@ class GPMHE:
         older output)."""
         return self._core.max_delay
 
-    def batch_filter(self, ys, us=None):
+    def batch_filter(self, ys, us=None, Rs=None):
         """Run `update` over a sequence of outputs (and inputs), as filterpy's ``batch_filter``.
 
         All input is validated before the first update, so bad input raises ValueError (naming
@@ -760,6 +760,9 @@ class GPMHE:
             Outputs y(t); a row may be None (no measurement at that step).
         us : sequence of array_like of shape (dim_u,) or None, length T, or None, default None
             Inputs u(t); None when the model has no input.
+        Rs : sequence of (float, array_like or None), length T, or None, default None
+            Each sample's output covariance (`update`'s ``R``; a row None: ``R0``), as filterpy's
+            ``Rs``. None: ``R0`` for all.
 
         Returns
         -------
@@ -790,12 +793,14 @@ class GPMHE:
         """
         ys = sequence_rows("ys", ys)
         us = [None] * len(ys) if us is None else sequence_rows("us", us)
-        if len(us) != len(ys):
-            raise ValueError(f"us, ys: us has {len(us)} rows but ys has {len(ys)}")
+        Rs = [None] * len(ys) if Rs is None else list(Rs)
+        if len(us) != len(ys) or len(Rs) != len(ys):
+            raise ValueError(f"us, ys, Rs: us has {len(us)} rows, Rs {len(Rs)} but ys has "
+                             f"{len(ys)}")
         steps = []
-        for i, (u, y) in enumerate(zip(us, ys)):
+        for i, (u, y, R) in enumerate(zip(us, ys, Rs)):
             try:
-                steps.append(self._check_step(u, y))
+                steps.append(self._check_step(u, y, R))
             except ValueError as e:  # "y: ..." -> "ys[i]: ... (at row i)"
                 name, _, detail = str(e).partition(": ")
                 raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None

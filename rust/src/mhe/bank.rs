@@ -20,7 +20,7 @@ use rayon::prelude::*;
 use super::estimator::{MovingHorizon, UpdateReport};
 use super::history::HistoryState;
 use super::problem::WindowProblem;
-use super::stage::GpStageModel;
+use super::stage::{GpStageModel, StageModel};
 use crate::error::{check_len, Error, Result};
 
 /// How often the thread waiting for a parallel update runs its interrupt check (which itself
@@ -102,6 +102,27 @@ pub struct BankSample<'a> {
     pub u: &'a [f64],
     pub y: &'a [f64],
     pub present: &'a [bool],
+    /// Each estimator's output covariance for this sample (k × p diagonals), or None: R0.
+    pub r: Option<&'a [f64]>,
+}
+
+/// Estimator i's part of a [`BankSample`]: u, y (None: not measured) and the covariance of y.
+#[derive(Debug, Clone, Copy)]
+pub struct BankRow<'a> {
+    pub u: &'a [f64],
+    pub y: Option<&'a [f64]>,
+    pub r: Option<&'a [f64]>,
+}
+
+impl BankRow<'_> {
+    /// The update of `estimator` with this row.
+    pub fn update(
+        self,
+        estimator: &mut MovingHorizon,
+        model: &mut dyn StageModel,
+    ) -> Result<UpdateReport> {
+        estimator.update_with(model, Some(self.u), self.y, self.y.and(self.r))
+    }
 }
 
 /// See the module documentation.
@@ -185,6 +206,9 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         let k = self.len();
         check_len("U", s.u, k * m)?;
         check_len("Y", s.y, k * p)?;
+        if let Some(r) = s.r {
+            check_len("R", r, k * p)?;
+        }
         if s.present.len() != k {
             return Err(Error::invalid(
                 "Y",
@@ -194,10 +218,12 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         Ok(())
     }
 
-    fn row<'a>(s: &BankSample<'a>, i: usize, m: usize, p: usize) -> (&'a [f64], Option<&'a [f64]>) {
-        let u = &s.u[i * m..(i + 1) * m];
-        let y = s.present[i].then(|| &s.y[i * p..(i + 1) * p]);
-        (u, y)
+    fn row<'a>(s: &BankSample<'a>, i: usize, m: usize, p: usize) -> BankRow<'a> {
+        BankRow {
+            u: &s.u[i * m..(i + 1) * m],
+            y: s.present[i].then(|| &s.y[i * p..(i + 1) * p]),
+            r: s.r.map(|r| &r[i * p..(i + 1) * p]),
+        }
     }
 
     /// Keeps the reports, or (after an error or an `interrupt`) restores every estimator from
@@ -230,15 +256,18 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
     pub fn update_each(
         &mut self,
         sample: BankSample<'_>,
-        mut step: impl FnMut(&mut MovingHorizon, &mut M, &[f64], Option<&[f64]>) -> Result<UpdateReport>,
+        mut step: impl FnMut(&mut MovingHorizon, &mut M, BankRow<'_>) -> Result<UpdateReport>,
     ) -> Result<Vec<UpdateReport>> {
         self.check_sample(&sample)?;
         let (_, m, p) = self.dims();
         let saved = self.save_all();
         let mut results = Vec::with_capacity(self.len());
         for (i, member) in self.members.iter_mut().enumerate() {
-            let (u, y) = Self::row(&sample, i, m, p);
-            let r = step(&mut member.estimator, &mut member.model, u, y);
+            let r = step(
+                &mut member.estimator,
+                &mut member.model,
+                Self::row(&sample, i, m, p),
+            );
             let stop = r.is_err();
             results.push(r);
             if stop {
@@ -258,14 +287,17 @@ impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
     pub fn par_update_with(
         &mut self,
         sample: BankSample<'_>,
-        step: impl Fn(&mut MovingHorizon, &mut M, &[f64], Option<&[f64]>) -> Result<UpdateReport> + Sync,
+        step: impl Fn(&mut MovingHorizon, &mut M, BankRow<'_>) -> Result<UpdateReport> + Sync,
     ) -> Result<Vec<UpdateReport>> {
         self.check_sample(&sample)?;
         let (_, m, p) = self.dims();
         let saved: Vec<_> = self.members.par_iter().map(Member::save).collect();
         let run = |(i, member): (usize, &mut Member<M>)| {
-            let (u, y) = Self::row(&sample, i, m, p);
-            step(&mut member.estimator, &mut member.model, u, y)
+            step(
+                &mut member.estimator,
+                &mut member.model,
+                Self::row(&sample, i, m, p),
+            )
         };
         if self.len() == 1 || bank_threads() == 1 {
             // On this thread: the core's own interrupt checks run as for a lone estimator.
@@ -321,7 +353,7 @@ impl<M: super::stage::StageModel + Clone + ModelState + Send + Sync> EstimatorBa
     /// One update of every estimator in parallel with its own model (see
     /// [`Self::par_update_with`]).
     pub fn par_update(&mut self, sample: BankSample<'_>) -> Result<Vec<UpdateReport>> {
-        self.par_update_with(sample, |est, model, u, y| est.update(model, Some(u), y))
+        self.par_update_with(sample, |est, model, row| row.update(est, model))
     }
 }
 
@@ -424,11 +456,12 @@ mod tests {
                 u: &u,
                 y: &y,
                 present: &present,
+                r: None,
             };
             let reports = if t % 2 == 0 {
                 bank.par_update(sample).unwrap()
             } else {
-                bank.update_each(sample, |e, m, u, y| e.update(m, Some(u), y))
+                bank.update_each(sample, |e, m, row| row.update(e, m))
                     .unwrap()
             };
             for (i, l) in lone.iter_mut().enumerate() {
@@ -457,6 +490,7 @@ mod tests {
             u: &[0.0, 0.0],
             y: &[1.0, 1.0],
             present: &[true, true],
+            r: None,
         };
         bank.par_update(ok).unwrap();
         let before: Vec<_> = bank
@@ -469,11 +503,10 @@ mod tests {
             u: &[0.0, 9.0],
             y: &[1.0, 9.0],
             present: &[true, true],
+            r: None,
         };
         assert!(bank.par_update(bad).is_err());
-        assert!(bank
-            .update_each(bad, |e, m, u, y| e.update(m, Some(u), y))
-            .is_err());
+        assert!(bank.update_each(bad, |e, m, row| row.update(e, m)).is_err());
         let after: Vec<_> = bank
             .members()
             .iter()
@@ -485,6 +518,7 @@ mod tests {
             u: &[0.0],
             y: &[1.0, 1.0],
             present: &[true, true],
+            r: None,
         };
         assert!(bank.par_update(short).is_err());
         assert!(EstimatorBank::new(&template(), &model, &[]).is_err());
@@ -506,6 +540,7 @@ mod tests {
             u: &u,
             y: &y,
             present: &present,
+            r: None,
         };
         let before: Vec<_> = bank
             .members()

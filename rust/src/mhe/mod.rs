@@ -23,7 +23,9 @@ pub mod stage;
 pub mod weights;
 
 pub use arrival::{Arrival, ArrivalMean, ArrivalWeight};
-pub use bank::{bank_threads, BankSample, EstimatorBank, Member, MemberSettings, ModelState};
+pub use bank::{
+    bank_threads, BankRow, BankSample, EstimatorBank, Member, MemberSettings, ModelState,
+};
 pub use estimator::{MovingHorizon, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
 pub use loss::Loss;

@@ -175,21 +175,30 @@ impl PyEstimatorBank {
     }
 
     /// One update of every estimator: row i of `u` (k, m) and `y` (k, p) for estimator i,
-    /// `present[i]` False when its y is missing (its row of `y` is ignored). What each
-    /// estimator reports is read from the getters below. On error no estimator changes.
+    /// `present[i]` False when its y is missing (its row of `y` is ignored), row i of `r`
+    /// (k, p) the diagonal of its y's covariance (None: each one's R0). What each estimator
+    /// reports is read from the getters below. On error no estimator changes.
+    #[pyo3(signature = (u, y, present, r=None))]
     fn update<'py>(
         &mut self,
         py: Python<'py>,
         u: PyReadonlyArray2<'py, f64>,
         y: PyReadonlyArray2<'py, f64>,
         present: PyReadonlyArray1<'py, bool>,
+        r: Option<PyReadonlyArray2<'py, f64>>,
     ) -> PyResult<()> {
         let (u, _, _) = slice2("U", &u)?;
         let (y, _, _) = slice2("Y", &y)?;
         let present = present
             .as_slice()
             .map_err(|_| PyValueError::new_err("present: must be a contiguous bool array"))?;
-        let sample = BankSample { u, y, present };
+        let r = r.as_ref().map(|r| slice2("R", r)).transpose()?;
+        let sample = BankSample {
+            u,
+            y,
+            present,
+            r: r.map(|(r, _, _)| r),
+        };
         match (&mut self.inner, &self.model) {
             (Inner::Gp(bank), _) => {
                 detach_interruptible(py, || bank.par_update(sample))?;
@@ -205,14 +214,14 @@ impl PyEstimatorBank {
                 let (func, predict) = (stage_eval.bind(py), predict.as_ref().map(|f| f.bind(py)));
                 let mut raised_by_model: Option<PyErr> = None;
                 let run = interruptible(|| {
-                    bank.update_each(sample, |est, _, u, y| {
+                    bank.update_each(sample, |est, _, row| {
                         let mut cb = CallbackModel {
                             func,
                             predict,
                             dims: *dims,
                             err: None,
                         };
-                        let r = est.update(&mut cb, Some(u), y);
+                        let r = row.update(est, &mut cb);
                         if r.is_err() {
                             raised_by_model = cb.err.take();
                         }
