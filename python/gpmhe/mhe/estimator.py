@@ -42,8 +42,9 @@ class GPMHE:
     Q(d) = diag σ²_x(d) + Q0, R(d) = diag σ²_y(d) + R0 and M_t = min(t, M) (full information
     while t < M). Missing outputs (``y=None``) drop their v̄ term; NaN entries of y are channels
     not measured and drop their rows (with a full R0, v̄ is weighted by R's block of the
-    measured channels). The estimate is the last window
-    state, x̂(t) = x̄_t.
+    measured channels). A sample given with its own covariance (``update(u, y, R=...)``) uses it
+    in place of R0; an output that arrives late (`add_delayed`) enters at its own time. The
+    estimate is the last window state, x̂(t) = x̄_t.
 
     The loop, next to filterpy's EKF::
 
@@ -166,6 +167,8 @@ class GPMHE:
         Final ‖z − Π(z − ∇J)‖∞ of the last update ("gauss-newton" only; 0 otherwise).
     t : int
         Number of updates since construction or ``reset``.
+    max_delay : int
+        The largest ``age`` `add_delayed` accepts now.
     p : ndarray of shape (dim_p,)
         The estimate of the parameters (empty without parameters).
     P_p : ndarray of shape (dim_p, dim_p)
