@@ -67,8 +67,8 @@ class RecordingCore:
     def __init__(self, core):
         self.core, self.ys = core, []
 
-    def update(self, u, y=None, r=None):
-        rep = self.core.update(u, y, r)
+    def update(self, u, y=None, r=None, u_last=None):
+        rep = self.core.update(u, y, r, u_last)
         self.ys.append(y)
         return rep
 

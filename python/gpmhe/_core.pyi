@@ -424,12 +424,17 @@ class MovingHorizon:
     def arrival_weight(self) -> _F:
         """The next window's arrival weight SᵀS (n, n)."""
         ...
-    def update(self, u: _F | None, y: _F | None = None, r: _F | None = None) -> None:
+    def update(
+        self, u: _F | None, y: _F | None = None, r: _F | None = None, u_last: _F | None = None
+    ) -> None:
         """One whole update (u None: not known yet, filtering form or no input; r: the
-        covariance of y, p or p² values, None for R0), recorded with what it reports (the
-        properties below) in one step; on error nothing changes."""
+        covariance of y, p or p² values, None for R0; u_last: u(t − 1) as this sample completes
+        it, e.g. with the interval that ends here, None: as recorded), recorded with what it
+        reports (the properties below) in one step; on error nothing changes."""
         ...
-    def prepare(self, u: _F | None, y: _F | None = None, r: _F | None = None) -> tuple[_F, _F, _F]:
+    def prepare(
+        self, u: _F | None, y: _F | None = None, r: _F | None = None, u_last: _F | None = None
+    ) -> tuple[_F, _F, _F]:
         """Stage the next window without recording it: (z0, lower, upper)."""
         ...
     def add_delayed(self, y: _F, age: int, r: _F | None = None) -> None:
@@ -538,12 +543,21 @@ class EstimatorBank:
         """Threads of a parallel update (rayon's pool; `RAYON_NUM_THREADS`)."""
         ...
     def update(
-        self, u: _F, y: _F, present: npt.NDArray[np.bool_], r: _F | None = None
+        self,
+        u: _F,
+        y: _F,
+        present: npt.NDArray[np.bool_],
+        r: _F | None = None,
+        u_last: _F | None = None,
     ) -> None:
         """One update of every estimator (rows of `u` (k, m), `y` (k, p); `present[i]` False:
         estimator i's y is missing; row i of `r`: the diagonal of its y's covariance, None for
-        R0), recorded with what each reports (the properties below)
-        in one step; on error no estimator changes."""
+        R0; row i of `u_last`: its last input row as this sample completes it), recorded with
+        what each reports (the properties below) in one step; on error no estimator changes."""
+        ...
+    @property
+    def last_inputs(self) -> _F:
+        """Each estimator's last recorded input row (k, m; zeros before the first update)."""
         ...
     # what the last update reported, one row per estimator
     @property

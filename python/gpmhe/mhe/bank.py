@@ -18,7 +18,7 @@ from gpmhe import _core
 from gpmhe._threads import exclusive
 from gpmhe._validation import (MAX_ABS, box, float_array, integer, output_sample,
                                positive_diagonal, real_array, within_limits)
-from gpmhe.mhe.estimator import GPMHE
+from gpmhe.mhe.estimator import GPMHE, check_interval
 from gpmhe.mhe.settings import sample_covariance
 
 __all__ = ["EstimatorBank"]
@@ -189,6 +189,7 @@ class EstimatorBank:
         self._core = _core.EstimatorBank(template._core, x0, lb, ub, q0,
                                          np.ascontiguousarray(r0))
         self.model = model
+        self._dt = template._dt
         self.dim_x, self.dim_y, self.dim_u = d, p, model.dim_u
         self.horizon, self.eta, self.form = template.horizon, template.eta, template.form
         self.P2, self.solver_options = template.P2, template.solver_options
@@ -285,7 +286,7 @@ class EstimatorBank:
         Y[~present] = 0.0
         return U, Y, present
 
-    def update(self, U, Y, R=None):
+    def update(self, U, Y, R=None, dt=None):
         """Add one sample for every estimator, solve their windows and update the estimates.
 
         Row i of ``U`` and ``Y`` is estimator i's (u(t), y(t)) (`GPMHE.update`). All estimators
@@ -305,6 +306,9 @@ class EstimatorBank:
             estimators (a scalar, the diagonal (dim_y,) or a diagonal matrix) or one per
             estimator ((n,) scalars, (n, dim_y) diagonals or (n, dim_y, dim_y) diagonal
             matrices), as ``R0``. None: each estimator's ``R0``.
+        dt : float, array_like of shape (n,), or None, default None
+            The time since the previous sample (`GPMHE.update`'s ``dt``), one for all estimators
+            or one each; only for a model with a time step. None: the model's ``dt``.
 
         Returns
         -------
@@ -340,8 +344,19 @@ class EstimatorBank:
         """
         U, Y, present = self._check_sample(U, Y)
         R = None if R is None else np.ascontiguousarray(_per_estimator("R", R, len(self), self.dim_y))
-        self._step(U, Y, present, R)
+        self._step(U, Y, present, R, self._intervals(dt))
         return self.x
+
+    def _intervals(self, dt):
+        """``dt`` checked as one interval per estimator (n,), or None."""
+        if dt is None:
+            return None
+        values = np.ravel(float_array("dt", dt))
+        if values.size == 1:
+            values = np.full(len(self), values[0])
+        if values.size != len(self):
+            raise ValueError(f"dt: expected a number or {len(self)} values, got {values.size}")
+        return np.array([check_interval(v, self._dt, self.form, self.horizon) for v in values])
 
     def add_delayed(self, i, y, age, R=None):
         """Add a late output for estimator i, as `GPMHE.add_delayed` (used from the next
@@ -396,8 +411,14 @@ class EstimatorBank:
         return self._core.max_delay
 
     @exclusive  # one update at a time per bank (gpmhe/_threads.py)
-    def _step(self, U, Y, present, R=None):
-        self._core.update(U, Y, present, R)
+    def _step(self, U, Y, present, R=None, dt=None):
+        if self._dt is not None:  # the interval as the last input, a placeholder until the next
+            U = np.column_stack([U, np.full(len(U), self._dt)])
+        u_last = None
+        if dt is not None and self.t > 0:
+            u_last = np.array(self._core.last_inputs)
+            u_last[:, -1] = dt
+        self._core.update(U, Y, present, R, u_last)
         failed = np.flatnonzero(~self.success)
         if failed.size:
             shown = ", ".join(map(str, failed[:20])) + (", ..." if failed.size > 20 else "")

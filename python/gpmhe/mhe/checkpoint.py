@@ -16,8 +16,8 @@ __all__ = ["FORMAT_VERSION", "save", "load"]
 # 2: arrival cost, full weights, parameters, pending input; 3: the estimate and the last update's
 # report only in the core's state (core_outcome_*), not also as attributes; 4: the output loss
 # (loss, loss_scale); 5: the output covariance given with each sample in the history (core_r_given,
-# core_r).
-FORMAT_VERSION = 5
+# core_r); 6: a model with a time step keeps each sample's interval as the last column of core_u.
+FORMAT_VERSION = 6
 
 _CACHE_PARTS = ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y",
                 "dvar_y")
@@ -53,7 +53,7 @@ def load(cls, path, model):
                              f"dim_y={p}, dim_u={m}, dim_p={k}")
         settings = MHESettings.from_file(f, (n, p, m, k))
         est = cls._from_settings(model, settings, np.clip(np.zeros(n), *settings.x_bounds))
-        state = _core_state(f, n + k, m, p, kind)
+        state = _core_state(f, n + k, m, p, kind, est._dt)
         state.update(_outcome(f, n + k) if f.version >= 3
                      else _outcome_of_format2(f, state["t"], n, k, settings.scaling))
         try:
@@ -63,12 +63,17 @@ def load(cls, path, model):
     return est
 
 
-def _core_state(f, na, m, p, kind):
-    """The core's history (and the learned model's cache) in the file."""
+def _core_state(f, na, m, p, kind, dt):
+    """The core's history (and the learned model's cache) in the file; ``dt`` the time step of
+    a model that has one (None: none)."""
     state = {"t": f.integer("core_t"), "window_t0": f.integer("core_window_t0"),
              "present": f.array("core_present", "b", (None,))}
-    for key, cols in (("u", m), ("y", p), ("priors", na), ("x_window", na)):
+    timed = dt is not None and f.version >= 6  # earlier files: every interval was dt
+    for key, cols in (("u", m + timed), ("y", p), ("priors", na), ("x_window", na)):
         state[key] = f.floats("core_" + key, (None, cols))
+    if dt is not None and not timed:
+        u = state["u"]
+        state["u"] = np.column_stack([u, np.full(len(u), dt)])
     if f.version >= 2:
         state["arrival_sqrt"] = f.floats("core_arrival_sqrt", (na, na))
     if f.version >= 5:  # earlier files: every sample with R0

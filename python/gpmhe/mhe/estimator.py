@@ -17,11 +17,27 @@ import numpy as np
 
 from gpmhe import _core
 from gpmhe._threads import exclusive
-from gpmhe._validation import finite_vector, integer, output_sample, sequence_rows
+from gpmhe._validation import finite_vector, integer, output_sample, positive_scalar, sequence_rows
 from gpmhe.mhe import checkpoint, solvers
 from gpmhe.mhe.settings import WEIGHTS, MHESettings, sample_covariance
 
 __all__ = ["GPMHE"]
+
+
+def check_interval(dt, time_step, form, horizon):
+    """A sample's interval ``dt`` checked: a positive number, for a model with a time step
+    (``time_step`` not None) in a form and horizon that can use it; None stays None."""
+    if dt is None:
+        return None
+    if time_step is None:
+        raise ValueError("dt: the model has no time step (a learned or discrete-time model "
+                         "takes one sample per step; KnownModel.from_ode makes a model that "
+                         "integrates over each sample's interval)")
+    if form == "prediction" and horizon == 1:
+        raise ValueError("dt: the prediction form with horizon 1 cannot use it (its window "
+                         "never holds the stage the interval belongs to); use horizon >= 2 "
+                         "or the filtering form")
+    return positive_scalar("dt", dt)
 
 
 class GPMHE:
@@ -286,6 +302,11 @@ class GPMHE:
         x0, _ = settings.check_state(x0)
         # The model the core runs: on [x; p̃] when the model has parameters.
         core_model = model._augment(settings.p_scale) if settings.dims[3] else model
+        # A model with a time step runs with each sample's interval as its last input.
+        timed = getattr(core_model, "_timed_model", lambda: None)()
+        if timed is not None:
+            core_model = timed
+        object.__setattr__(self, "_dt", None if timed is None else core_model.dt)
         object.__setattr__(self, "model", model)
         object.__setattr__(self, "_settings", settings)
         object.__setattr__(self, "_core_model", core_model)
@@ -552,28 +573,45 @@ class GPMHE:
         """The solver's message for the last window."""
         return self._core.message
 
-    def _check_step(self, u, y, R=None):
-        """The validated (u, y, whether y holds a measured channel, R as the core takes it or
-        None): u None stays None when the core may stand in for it (no input, or the filtering
-        form; the core refuses it while an earlier update still waits for its input)."""
+    def _check_step(self, u, y, R=None, dt=None):
+        """The validated (u as the core takes it, y, whether y holds a measured channel, R as the
+        core takes it or None, dt or None): u None stays None when the core may stand in for it
+        (no input, or the filtering form; the core refuses it while an earlier update still
+        waits for its input)."""
         m, p = self.dim_u, self.dim_y
         if R is not None:
             if y is None:
                 raise ValueError("R: given without an output y")
             R = sample_covariance(R, p)
+        dt = self._check_dt(dt)
         if u is None:
             if m and self.form != "filtering":
                 raise ValueError(f"u: required (dim_u = {m}; only the filtering form accepts "
                                  "None, see set_input)")
         else:
             u = finite_vector("u", u, m, flatten=True)
+        u_core = self._core_input(u)
         if y is None:
-            return u, np.zeros(p), False, None
+            return u_core, np.zeros(p), False, None, dt
         y, present = output_sample("y", y, p)
         if u is None and m and present and self._output_uses_input(self._core.last_input):
             raise ValueError("u: required, the model's output h depends on u (u=None is for "
                              "models whose h(x, u) does not use u)")
-        return u, y, present, R
+        return u_core, y, present, R, dt
+
+    def _check_dt(self, dt):
+        """``dt`` checked (see `check_interval`)."""
+        return check_interval(dt, self._dt, self.form, self.horizon)
+
+    def _core_input(self, u):
+        """u as the core takes it: with the model's dt appended for a model with a time step
+        (a placeholder until the next sample gives the interval), None kept when the core
+        stands in for it."""
+        if self._dt is None:
+            return u
+        if u is None:
+            return None if self.dim_u else np.array([self._dt])
+        return np.append(u, self._dt)
 
     def _output_uses_input(self, u):
         """Whether the model's output mean h depends on u: probed once, at the current estimate
@@ -616,9 +654,9 @@ class GPMHE:
         >>> _ = mhe.update(None, [0.6])
         """
         u = finite_vector("u", u, self.dim_u, flatten=True)
-        self._core.set_last_input(u)  # refused unless an update waits for its input
+        self._core.set_last_input(self._core_input(u))  # refused unless an update waits for it
 
-    def update(self, u, y, R=None):
+    def update(self, u, y, R=None, dt=None):
         """Add the input and output of the next step, solve the window and update the estimate.
 
         The t-th call appends (u(t), y(t)), slides the window (it grows until it holds M stages),
@@ -641,6 +679,15 @@ class GPMHE:
             the matrix; the entries of channels not measured are not used), in place of ``R0``
             for as long as the sample is in the window (kept by copies and checkpoints). None:
             ``R0``; ``R=R0`` gives exactly the result without ``R``. Only with an output y.
+        dt : float or None, default None
+            The time since the previous sample (> 0), for a model with a time step
+            (`KnownModel.from_ode`): the stage from the previous sample to this one integrates
+            over it, u(t − 1) held, and keeps it while it is in the window (copies and
+            checkpoints too). None: the model's ``dt``; ``dt=model.dt`` gives exactly the
+            result without it. The first update after construction or `reset` has no previous
+            sample and does not use it. The stage from this sample to the next is integrated
+            over the model's ``dt`` until the next update gives its interval: in the prediction
+            form x̂(t+1) is predicted over the model's ``dt``.
 
         Returns
         -------
@@ -651,7 +698,8 @@ class GPMHE:
         ------
         ValueError
             On bad input (shape, NaN or inf, a required u missing, u=None while h depends
-            on u) or bad output of a `KnownModel` callable (a wrong shape anywhere; NaN, inf or
+            on u, ``dt`` not positive, ``dt`` for a model without a time step or in the
+            prediction form with horizon 1) or bad output of a `KnownModel` callable (a wrong shape anywhere; NaN, inf or
             a ValueError at the window's start point); the estimator is then unchanged.
         Exception
             Any exception a `KnownModel` callable raises (``KeyboardInterrupt`` included) is
@@ -686,7 +734,7 @@ class GPMHE:
         >>> print(np.round(same.update([0.0], [4.0], R=3.0), 3))  # a noisier sample moves x̂ less
         [2.968]
         """
-        self._step(*self._check_step(u, y, R))
+        self._step(*self._check_step(u, y, R, dt))
         return self.x
 
     def add_delayed(self, y, age, R=None):
@@ -751,7 +799,7 @@ class GPMHE:
         older output)."""
         return self._core.max_delay
 
-    def batch_filter(self, ys, us=None, Rs=None):
+    def batch_filter(self, ys, us=None, Rs=None, dts=None):
         """Run `update` over a sequence of outputs (and inputs), as filterpy's ``batch_filter``.
 
         All input is validated before the first update, so bad input raises ValueError (naming
@@ -766,6 +814,9 @@ class GPMHE:
         Rs : sequence of (float, array_like or None), length T, or None, default None
             Each sample's output covariance (`update`'s ``R``; a row None: ``R0``), as filterpy's
             ``Rs``. None: ``R0`` for all.
+        dts : sequence of (float or None), length T, or None, default None
+            Each sample's interval since the previous one (`update`'s ``dt``; a row None: the
+            model's ``dt``). None: the model's ``dt`` for all.
 
         Returns
         -------
@@ -797,13 +848,16 @@ class GPMHE:
         ys = sequence_rows("ys", ys)
         us = [None] * len(ys) if us is None else sequence_rows("us", us)
         Rs = [None] * len(ys) if Rs is None else list(Rs)
-        if len(us) != len(ys) or len(Rs) != len(ys):
-            raise ValueError(f"us, ys, Rs: us has {len(us)} rows, Rs {len(Rs)} but ys has "
-                             f"{len(ys)}")
+        dts = [None] * len(ys) if dts is None else list(np.ravel(dts) if np.ndim(dts) else [dts])
+        other = {"us": us, "Rs": Rs, "dts": dts}
+        wrong = [name for name, rows in other.items() if len(rows) != len(ys)]
+        if wrong:
+            raise ValueError(f"ys, {', '.join(wrong)}: ys has {len(ys)} rows but "
+                             + ", ".join(f"{name} has {len(other[name])}" for name in wrong))
         steps = []
-        for i, (u, y, R) in enumerate(zip(us, ys, Rs)):
+        for i, (u, y, R, dt) in enumerate(zip(us, ys, Rs, dts)):
             try:
-                steps.append(self._check_step(u, y, R))
+                steps.append(self._check_step(u, y, R, dt))
             except ValueError as e:  # "y: ..." -> "ys[i]: ... (at row i)"
                 name, _, detail = str(e).partition(": ")
                 raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
@@ -819,19 +873,25 @@ class GPMHE:
 
     # ----------------------------------------------------------------------------------------
     @exclusive  # one update at a time per estimator (gpmhe/_threads.py)
-    def _step(self, u, y, present, R=None):
+    def _step(self, u, y, present, R=None, dt=None):
         """One update with validated input, recorded by the core in one step with everything it
         reports: the Rust solver in one call ("gauss-newton"), or a SciPy solver between the
-        core's ``prepare`` and ``commit``. Nothing changes unless the core records the step."""
+        core's ``prepare`` and ``commit``. Nothing changes unless the core records the step.
+        ``dt`` completes the last recorded input row with the interval that ends at this
+        sample (nothing to complete before the first)."""
         core = self._core
         y, R = (y, R) if present else (None, None)
+        u_last = None
+        if dt is not None and core.t > 0:
+            u_last = core.last_input.copy()
+            u_last[-1] = dt
         if self.solver == "gauss-newton":
-            core.update(u, y, R)
+            core.update(u, y, R, u_last)
             if not core.success:  # (after the step is recorded: the warning may be an error)
                 self._warn(core.message, core.t - 1, stacklevel=5)  # 5: past `exclusive`
             return
         try:
-            z0, lb, ub = core.prepare(u, y, R)
+            z0, lb, ub = core.prepare(u, y, R, u_last)
             z, cost, success, nit, message = solvers.solve(
                 self.solver, self._settings.solver_options, core, z0, lb, ub)
             if not success:  # (before the record: as an error it leaves nothing changed)

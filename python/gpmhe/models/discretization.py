@@ -131,8 +131,10 @@ def discretize(rhs, dt, substeps=1, method="rk4", rhs_jacobian=None, fd_step=1e-
                             newton_max_iter)
 
 
-def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter):
-    """The discrete map of a CasADi rhs(x[, u]) as a CasADi Function with rhs's inputs."""
+def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter, timed=False):
+    """The discrete map of a CasADi rhs(x[, u]) as a CasADi Function with rhs's inputs; with
+    ``timed`` the interval is not ``dt`` but the last entry of the input v = [u; dt], so the map
+    is f(x, v) (for the estimator's per-sample intervals)."""
     from gpmhe.models.casadi import _vec_call, import_casadi, signature
 
     ca = import_casadi("discretize with a CasADi rhs")
@@ -141,8 +143,12 @@ def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter):
         raise ValueError(f"rhs: the state x must have at least one value, got 0 in {rhs}")
     if n_out != n:
         raise ValueError(f"rhs: returns {n_out} values, expected one per state ({n}) in {rhs}")
-    x, u = ca.MX.sym("x", n), ca.MX.sym("u", m or 0)
-    h = dt / substeps
+    x = ca.MX.sym("x", n)
+    if timed:
+        v = ca.MX.sym("u", (m or 0) + 1)
+        u, h = v[:m or 0], v[m or 0] / substeps
+    else:
+        u, h = ca.MX.sym("u", m or 0), dt / substeps
     z = x
     if method == "rk4":
         for _ in range(substeps):
@@ -152,28 +158,43 @@ def _casadi_discretize(rhs, dt, substeps, method, newton_tol, newton_max_iter):
             k4 = _vec_call(ca, rhs, z + h * k3, u)
             z = z + (h / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
     else:
-        theta = _THETA[method]
-        zs, xs, us = ca.MX.sym("z", n), ca.MX.sym("x", n), ca.MX.sym("u", m or 0)
-        residual = ca.Function("residual", [zs, xs, us],
-                               [zs - xs - h * _vec_call(ca, rhs, xs + theta * (zs - xs), us)])
-        try:
-            residual = residual.expand()
-        except RuntimeError:
-            pass
-        step = ca.rootfinder(f"{rhs.name()}_{method.replace('-', '_')}", "newton", residual,
-                             {"abstol": newton_tol, "abstolStep": newton_tol,
-                              "max_iter": newton_max_iter, "error_on_fail": True,
-                              # plain Newton from z = x, as the numpy scheme: CasADi's line search
-                              # stalls on stiff steps (steps of 1e-2 where one full step converges)
-                              "line_search": False})
+        step = _implicit_step(ca, rhs, n, m, method, newton_tol, newton_max_iter,
+                              None if timed else h)
         for _ in range(substeps):
-            z = step(z, z, u)
-    inputs, names = ([x, u], ["x", "u"]) if m is not None else ([x], ["x"])
+            z = step(z, z, u, h) if timed else step(z, z, u)
+    if timed:
+        inputs, names = [x, v], ["x", "u"]
+    else:
+        inputs, names = ([x, u], ["x", "u"]) if m is not None else ([x], ["x"])
     f = ca.Function(f"{rhs.name()}_discrete", inputs, [z], names, ["x_next"])
     try:
         return f.expand()
     except RuntimeError:  # an MX-only operation in rhs
         return f
+
+
+def _implicit_step(ca, rhs, n, m, method, newton_tol, newton_max_iter, h):
+    """One θ-method sub-step of length ``h`` as a CasADi rootfinder z(z0, x, u); ``h`` None: of
+    the length given as a fourth input, z(z0, x, u, h)."""
+    from gpmhe.models.casadi import _vec_call
+
+    theta = _THETA[method]
+    zs, xs, us = ca.MX.sym("z", n), ca.MX.sym("x", n), ca.MX.sym("u", m or 0)
+    extra = [] if h is not None else [ca.MX.sym("h")]
+    if h is None:
+        h = extra[0]
+    residual = ca.Function("residual", [zs, xs, us] + extra,
+                           [zs - xs - h * _vec_call(ca, rhs, xs + theta * (zs - xs), us)])
+    try:
+        residual = residual.expand()
+    except RuntimeError:
+        pass
+    return ca.rootfinder(f"{rhs.name()}_{method.replace('-', '_')}", "newton", residual,
+                         {"abstol": newton_tol, "abstolStep": newton_tol,
+                          "max_iter": newton_max_iter, "error_on_fail": True,
+                          # plain Newton from z = x, as the numpy scheme: CasADi's line search
+                          # stalls on stiff steps (steps of 1e-2 where one full step converges)
+                          "line_search": False})
 
 
 class DiscreteDynamics:
@@ -412,8 +433,17 @@ class DiscreteDynamics:
         A = (out[1:n + 1] - out[n + 1:]) / (2.0 * steps.T[:, :, None])  # (n, k, n): [j, i, :]
         return out[0], np.ascontiguousarray(A.transpose(1, 2, 0))
 
-    def _rk4(self, X, U, jacobian):
-        h = self.dt / self.substeps
+    def _steps(self, dt):
+        """The sub-step length h for the state rows and for the (k, n, n) sensitivities: the
+        scalar dt / substeps, or per row for a (k, 1) column of intervals ``dt``."""
+        if dt is None:
+            h = self.dt / self.substeps
+            return h, h
+        h = dt / self.substeps
+        return h, h[:, :, None]
+
+    def _rk4(self, X, U, jacobian, dt=None):
+        h, hs = self._steps(dt)
         Z = X.copy()
         S = np.broadcast_to(np.eye(X.shape[1]), (X.shape[0],) + (X.shape[1],) * 2).copy() if jacobian else None
         for _ in range(self.substeps):
@@ -426,18 +456,18 @@ class DiscreteDynamics:
                 k1, A = self._FA(Z, U)
                 d1 = A @ S
                 k2, A = self._FA(Z + (h / 2) * k1, U)
-                d2 = A @ (S + (h / 2) * d1)
+                d2 = A @ (S + (hs / 2) * d1)
                 k3, A = self._FA(Z + (h / 2) * k2, U)
-                d3 = A @ (S + (h / 2) * d2)
+                d3 = A @ (S + (hs / 2) * d2)
                 k4, A = self._FA(Z + h * k3, U)
-                d4 = A @ (S + h * d3)
-                S = S + (h / 6) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
+                d4 = A @ (S + hs * d3)
+                S = S + (hs / 6) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
             Z = Z + (h / 6) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         return Z, S
 
-    def _implicit(self, X, U, jacobian):
+    def _implicit(self, X, U, jacobian, dt=None):
         """θ-method sub-steps z = x + h F(x + θ(z − x), u), Newton from z = x."""
-        h, theta = self.dt / self.substeps, _THETA[self.method]
+        (h, hs), theta = self._steps(dt), _THETA[self.method]
         k, n = X.shape
         eye = np.eye(n)
         Z = X.copy()
@@ -453,7 +483,7 @@ class DiscreteDynamics:
                     break
                 if not np.isfinite(worst):
                     raise NumericalError(f"discretize ({self.method}): Newton's method met NaN or inf")
-                z = z - np.linalg.solve(eye - (h * theta) * A, r[:, :, None])[:, :, 0]
+                z = z - np.linalg.solve(eye - (hs * theta) * A, r[:, :, None])[:, :, 0]
             else:
                 raise NumericalError(
                     f"discretize ({self.method}): Newton's method did not converge in "
@@ -461,6 +491,46 @@ class DiscreteDynamics:
                     f"{self.newton_tol:g}); try more substeps")
             if jacobian:
                 # the implicit function theorem at the solution: ∂z/∂x
-                S = np.linalg.solve(eye - (h * theta) * A, eye + (h * (1.0 - theta)) * A) @ S
+                S = np.linalg.solve(eye - (hs * theta) * A, eye + (hs * (1.0 - theta)) * A) @ S
             Z = z
         return Z, S
+
+
+class TimedDynamics:
+    """A `DiscreteDynamics` whose interval is given per point: the last column of U (k, m + 1)
+    is each row's dt, the others are u. What the estimator runs for per-sample intervals
+    (`GPMHE.update`'s ``dt``); with every dt equal to the map's own, the values are bit for bit
+    the map's."""
+
+    def __init__(self, dynamics):
+        self.dynamics = dynamics
+
+    def _split(self, X, U):
+        X2, U2, one = self.dynamics._points(X, U)
+        return X2, U2[:, :-1], U2[:, -1:], one
+
+    def _run(self, X, U, jacobian):
+        X2, U2, dt, one = self._split(X, U)
+        d = self.dynamics
+        Z, S = (d._rk4 if d.method == "rk4" else d._implicit)(X2, U2, jacobian, dt)
+        return (Z[0], None if S is None else S[0]) if one else (Z, S)
+
+    def __call__(self, X, U):
+        return self._run(X, U, False)[0]
+
+    def jacobian(self, X, U):
+        return self._run(X, U, True)[1]
+
+    def value_and_jacobian(self, X, U):
+        return self._run(X, U, True)
+
+
+class WithoutTime:
+    """``fn(X, U)`` of a model's output (or its Jacobian) called with U's last column, the
+    interval, left out: y = h(x, u) does not depend on it."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def __call__(self, X, U):
+        return self.fn(X, U[:, :-1])

@@ -81,6 +81,9 @@ class KnownModel(SharedOnCopy):
         The finite-difference step.
     vectorized : bool
         Whether the callables take all points at once.
+    dt : float or None
+        The sample time of a model made by `from_ode` (a continuous-time model integrated over
+        each sample interval); None for a discrete-time model.
 
     Raises
     ------
@@ -137,6 +140,10 @@ class KnownModel(SharedOnCopy):
     #: model without parameters.
     _parameter_source = None
     dim_p = 0
+    #: The sample time of a model from `from_ode`; None for a discrete-time model.
+    dt = None
+    #: How `_timed_model` builds the model with a per-sample interval (`from_ode`), or None.
+    _time_step = None
 
     def __init__(self, f, h, dim_x, dim_y, dim_u=0, f_jacobian=None, h_jacobian=None,
                  fd_step=1e-6, vectorized=False, dim_p=0):
@@ -299,7 +306,9 @@ class KnownModel(SharedOnCopy):
         Returns
         -------
         KnownModel
-            The sampled model, ``vectorized=True``.
+            The sampled model, ``vectorized=True``, with ``dt`` its sample time: `GPMHE`
+            integrates each stage of its window over that stage's own interval when
+            `GPMHE.update` is given one (``dt``), over ``dt`` otherwise.
 
         Raises
         ------
@@ -337,13 +346,16 @@ class KnownModel(SharedOnCopy):
             if h_jacobian is not None or rhs_jacobian is not None:
                 raise ValueError("rhs_jacobian, h_jacobian: not used with CasADi functions")
             settings["jit"] = boolean("jit", jit)
-            return cls._parametrised(("ode-casadi", rhs, h, dt, settings), rhs, h)
+            model = cls._parametrised(("ode-casadi", rhs, h, dt, settings), rhs, h)
+            model.dt = float(dt)
+            return model
         if dim_p:
             if dim_x is None or dim_y is None:
                 raise ValueError("dim_x, dim_y: required with a numpy rhs")
             model = cls._parametrised(("ode-numpy", rhs, h, dt, rhs_jacobian, h_jacobian, settings),
                                       rhs, h, (dim_x, dim_y, dim_u or 0, dim_p))
             model._augment(np.ones(model.dim_p))  # validates the settings now
+            model.dt = float(dt)
             return model
         f = discretize(rhs, dt, substeps=substeps, method=method, rhs_jacobian=rhs_jacobian,
                        fd_step=fd_step, newton_tol=newton_tol, newton_max_iter=newton_max_iter)
@@ -355,6 +367,8 @@ class KnownModel(SharedOnCopy):
                                         ("dim_u", dim_u, model.dim_u)):
                 if given is not None and given != actual:
                     raise ValueError(f"{name}: {given!r} disagrees with the CasADi functions' {actual}")
+            model.dt = float(dt)
+            model._time_step = ("casadi", rhs, h, dict(settings, jit=boolean("jit", jit)))
             return model
         if is_casadi_function(h):
             raise ValueError("h: a casadi.Function needs a CasADi rhs (give both in CasADi, or "
@@ -366,6 +380,41 @@ class KnownModel(SharedOnCopy):
         model = cls(f, h, dim_x, dim_y, 0 if dim_u is None else dim_u, f_jacobian=f.jacobian,
                     h_jacobian=h_jacobian, fd_step=fd_step, vectorized=True)
         model._f_joint = f.value_and_jacobian
+        model.dt = f.dt
+        model._time_step = ("numpy", f, h, h_jacobian)
+        return model
+
+    def _timed_model(self):
+        """This model with the interval of each sample as one more input (the last entry of
+        u): f integrates over it, h ignores it. For the estimator's core, built once; None for a
+        model without a time step (or with parameters: its augmented model has one)."""
+        if self._time_step is None:
+            return None
+        timed = self.__dict__.get("_timed")
+        if timed is None:
+            timed = self._build_timed()
+            self.__dict__["_timed"] = timed
+        return timed
+
+    def _build_timed(self):
+        from gpmhe.models.discretization import TimedDynamics, WithoutTime, _casadi_discretize
+
+        kind, *rest = self._time_step
+        if kind == "casadi":
+            rhs, h, settings = rest
+            f = _casadi_discretize(rhs, self.dt, settings["substeps"], settings["method"],
+                                   settings["newton_tol"], settings["newton_max_iter"], timed=True)
+            model = type(self).from_casadi(
+                f, None if h is None else _casadi_without_time(h, self.dim_u), jit=settings["jit"])
+        else:
+            dynamics, h, h_jacobian = rest
+            f = TimedDynamics(dynamics)
+            model = type(self)(f, WithoutTime(h), self.dim_x, self.dim_y, self.dim_u + 1,
+                               f_jacobian=f.jacobian,
+                               h_jacobian=None if h_jacobian is None else WithoutTime(h_jacobian),
+                               fd_step=self.fd_step, vectorized=True)
+            model._f_joint = f.value_and_jacobian
+        model.dt = self.dt  # the interval its last input replaces
         return model
 
     # ---- unknown parameters (models/parameters.py) ------------------------------------------
@@ -630,10 +679,11 @@ class KnownModel(SharedOnCopy):
     # ---- pickling ---------------------------------------------------------------------------
     def __getstate__(self):
         """Pickling needs picklable callables (module-level functions, not lambdas or local
-        functions): raise a `pickle.PicklingError` naming the one that is not."""
+        functions): raise a `pickle.PicklingError` naming the one that is not. The model with
+        per-sample intervals is built again when needed, not pickled."""
         check_picklable("KnownModel", {name: getattr(self, name) for name in
                                        ("f", "h", "f_jacobian", "h_jacobian")})
-        return self.__dict__
+        return {key: value for key, value in self.__dict__.items() if key != "_timed"}
 
     def _predict_f64(self, x, u):
         """`predict` as the Rust core's callback wants it (a bound method, so it pickles)."""
@@ -651,3 +701,18 @@ class KnownModel(SharedOnCopy):
             stage, predict = self.stage_eval, self._predict_f64
         return _core.StageModel.callback(stage, self.dim_x, self.dim_u, self.dim_y,
                                          predict=predict)
+
+
+def _casadi_without_time(h, m):
+    """The CasADi output function h(x[, u]) as h(x, v), v = [u; dt] (m + 1 values): y does not
+    depend on the interval."""
+    from gpmhe.models.casadi import _vec_call, import_casadi
+
+    ca = import_casadi("KnownModel.from_ode")
+    x = ca.MX.sym("x", h.size1_in(0) * h.size2_in(0))
+    v = ca.MX.sym("u", m + 1)
+    out = ca.Function(h.name(), [x, v], [_vec_call(ca, h, x, v[:m])], ["x", "u"], ["y"])
+    try:
+        return out.expand()
+    except RuntimeError:
+        return out

@@ -17,7 +17,7 @@ use std::time::Duration;
 
 use rayon::prelude::*;
 
-use super::estimator::{MovingHorizon, UpdateReport};
+use super::estimator::{MovingHorizon, Step, UpdateReport};
 use super::history::HistoryState;
 use super::problem::WindowProblem;
 use super::stage::{GpStageModel, StageModel};
@@ -104,14 +104,19 @@ pub struct BankSample<'a> {
     pub present: &'a [bool],
     /// Each estimator's output covariance for this sample (k × p diagonals), or None: R0.
     pub r: Option<&'a [f64]>,
+    /// Each estimator's last input row as completed by this sample (k × m), or None: as
+    /// recorded (see [`Step::u_last`]).
+    pub u_last: Option<&'a [f64]>,
 }
 
-/// Estimator i's part of a [`BankSample`]: u, y (None: not measured) and the covariance of y.
+/// Estimator i's part of a [`BankSample`]: u, y (None: not measured), the covariance of y and
+/// the revised last input row.
 #[derive(Debug, Clone, Copy)]
 pub struct BankRow<'a> {
     pub u: &'a [f64],
     pub y: Option<&'a [f64]>,
     pub r: Option<&'a [f64]>,
+    pub u_last: Option<&'a [f64]>,
 }
 
 impl BankRow<'_> {
@@ -121,7 +126,13 @@ impl BankRow<'_> {
         estimator: &mut MovingHorizon,
         model: &mut dyn StageModel,
     ) -> Result<UpdateReport> {
-        estimator.update_with(model, Some(self.u), self.y, self.y.and(self.r))
+        let step = Step {
+            u: Some(self.u),
+            y: self.y,
+            r: self.y.and(self.r),
+            u_last: self.u_last,
+        };
+        estimator.update_step(model, step)
     }
 }
 
@@ -209,6 +220,9 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         if let Some(r) = s.r {
             check_len("R", r, k * p)?;
         }
+        if let Some(u_last) = s.u_last {
+            check_len("u_last", u_last, k * m)?;
+        }
         if s.present.len() != k {
             return Err(Error::invalid(
                 "Y",
@@ -223,6 +237,7 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
             u: &s.u[i * m..(i + 1) * m],
             y: s.present[i].then(|| &s.y[i * p..(i + 1) * p]),
             r: s.r.map(|r| &r[i * p..(i + 1) * p]),
+            u_last: s.u_last.map(|u| &u[i * m..(i + 1) * m]),
         }
     }
 
@@ -457,6 +472,7 @@ mod tests {
                 y: &y,
                 present: &present,
                 r: None,
+                u_last: None,
             };
             let reports = if t % 2 == 0 {
                 bank.par_update(sample).unwrap()
@@ -491,6 +507,7 @@ mod tests {
             y: &[1.0, 1.0],
             present: &[true, true],
             r: None,
+            u_last: None,
         };
         bank.par_update(ok).unwrap();
         let before: Vec<_> = bank
@@ -504,6 +521,7 @@ mod tests {
             y: &[1.0, 9.0],
             present: &[true, true],
             r: None,
+            u_last: None,
         };
         assert!(bank.par_update(bad).is_err());
         assert!(bank.update_each(bad, |e, m, row| row.update(e, m)).is_err());
@@ -519,6 +537,7 @@ mod tests {
             y: &[1.0, 1.0],
             present: &[true, true],
             r: None,
+            u_last: None,
         };
         assert!(bank.par_update(short).is_err());
         assert!(EstimatorBank::new(&template(), &model, &[]).is_err());
@@ -541,6 +560,7 @@ mod tests {
             y: &y,
             present: &present,
             r: None,
+            u_last: None,
         };
         let before: Vec<_> = bank
             .members()

@@ -38,6 +38,20 @@ pub struct UpdateReport {
     pub cost: f64,
 }
 
+/// The data of one update.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Step<'a> {
+    /// u(t); None: not known yet (see [`MovingHorizon::prepare`]).
+    pub u: Option<&'a [f64]>,
+    /// y(t); None: not measured.
+    pub y: Option<&'a [f64]>,
+    /// The covariance of y(t) (p or p² values, as R0), kept with it; None: R0.
+    pub r: Option<&'a [f64]>,
+    /// The input row of the last recorded step u(t − 1) as completed by this sample (see
+    /// [`History::revise_last_input`]); None: as recorded.
+    pub u_last: Option<&'a [f64]>,
+}
+
 /// See the module documentation.
 #[derive(Debug, Clone)]
 pub struct MovingHorizon {
@@ -314,7 +328,24 @@ impl MovingHorizon {
         y: Option<&[f64]>,
         r: Option<&[f64]>,
     ) -> Result<UpdateReport> {
-        let report = self.update_staged(model, u, y, r);
+        self.update_step(
+            model,
+            Step {
+                u,
+                y,
+                r,
+                u_last: None,
+            },
+        )
+    }
+
+    /// One whole update with the data of `step` (see [`MovingHorizon::update`]).
+    pub fn update_step(
+        &mut self,
+        model: &mut dyn StageModel,
+        step: Step<'_>,
+    ) -> Result<UpdateReport> {
+        let report = self.update_staged(model, step);
         if report.is_err() {
             self.staged = None;
         }
@@ -324,11 +355,9 @@ impl MovingHorizon {
     fn update_staged(
         &mut self,
         model: &mut dyn StageModel,
-        u: Option<&[f64]>,
-        y: Option<&[f64]>,
-        r: Option<&[f64]>,
+        step: Step<'_>,
     ) -> Result<UpdateReport> {
-        let z0 = self.prepare_with(model, u, y, r)?;
+        let z0 = self.prepare_step(model, step)?;
         let mut z = z0.clone();
         self.evaluated_at.clear();
         let solve = {
@@ -391,9 +420,25 @@ impl MovingHorizon {
         y: Option<&[f64]>,
         r: Option<&[f64]>,
     ) -> Result<Vec<f64>> {
+        self.prepare_step(
+            model,
+            Step {
+                u,
+                y,
+                r,
+                u_last: None,
+            },
+        )
+    }
+
+    /// [`MovingHorizon::prepare`] with the data of `step`.
+    pub fn prepare_step(&mut self, model: &mut dyn StageModel, step: Step<'_>) -> Result<Vec<f64>> {
         self.staged = None;
-        let r = self.sample_covariance(y, r)?;
-        let data = self.next_window(u, y, r)?;
+        let r = self.sample_covariance(step.y, step.r)?;
+        let mut data = self.next_window(step.u, step.y, r)?;
+        if let Some(u_last) = step.u_last {
+            self.revise_last_input(model, &mut data, u_last)?;
+        }
         self.problem
             .set_data(&data.u, &data.y, &data.present, &data.x_prior)?;
         self.problem.set_output_covariances(&data.r)?;
@@ -414,6 +459,41 @@ impl MovingHorizon {
         self.staged = Some(data);
         self.has_window = true;
         Ok(z0)
+    }
+
+    /// Revises u(t − 1) in the window `data` ([`History::revise_last_input`]). With the paper's
+    /// arrival mean the arrival prior of time t, the prediction from x̂(t − 1), is made again
+    /// with it. The prediction form with horizon 1 refuses: its window holds no stage the row
+    /// belongs to, and its arrival prior and weight were carried over the old row.
+    fn revise_last_input(
+        &mut self,
+        model: &mut dyn StageModel,
+        data: &mut WindowData,
+        u: &[f64],
+    ) -> Result<()> {
+        let form = self.problem.form();
+        if form == Form::Prediction && self.history.horizon() == 1 {
+            return Err(Error::invalid(
+                "u_last",
+                "the prediction form with horizon 1 cannot revise the last step (its arrival \
+                 cost was carried over it)",
+            ));
+        }
+        self.history.revise_last_input(data, u)?;
+        if self.arrival.mean == ArrivalMean::Estimate {
+            let n = self.problem.dim_x();
+            let (window, _) = self.history.x_window();
+            // x̂(t − 1): the last node (filtering form) or the one before it (prediction form).
+            let from = window.len() - if form == Form::Filtering { n } else { 2 * n };
+            let mut out = vec![0.0; n];
+            self.prediction
+                .predict(model, &window[from..from + n], u, &mut out)?;
+            check_finite("u_last", &out).map_err(|_| {
+                Error::numerical("the model's prediction with the revised input is not finite")
+            })?;
+            data.last_prior = Some(out);
+        }
+        Ok(())
     }
 
     /// The covariance given with an output sample (p or p² values), checked; None for R0.
@@ -885,5 +965,76 @@ mod tests {
         assert_eq!(est.history().last_input(), Some(&[0.5][..]));
         est.update(&mut model, Some(&[0.0]), Some(&[1.0])).unwrap();
         assert_eq!(est.history().t(), 2);
+    }
+
+    /// An input row completed only by the next sample (`Step::u_last`) gives the windows the
+    /// data they would have had with the input on time: bit for bit in the filtering form, and
+    /// to rounding for every node but the predicted one in the prediction form (a placeholder
+    /// near a bound would move them through the barrier); the paper's arrival mean is predicted
+    /// again with the completed row.
+    #[test]
+    fn a_last_input_completed_by_the_next_sample_counts_as_given_on_time() {
+        let inputs = [0.3, -0.2, 0.5, 0.1, -0.4, 0.2, 0.0, 0.6];
+        for (form, mean) in [
+            (Form::Filtering, ArrivalMean::Smoothed),
+            (Form::Filtering, ArrivalMean::Estimate),
+            (Form::Prediction, ArrivalMean::Smoothed),
+            (Form::Prediction, ArrivalMean::Estimate),
+        ] {
+            let arrival = Arrival {
+                mean,
+                weight: ArrivalWeight::Ekf,
+            };
+            let (mut on_time, mut late) = (estimator(form), estimator(form));
+            on_time.set_arrival(arrival);
+            late.set_arrival(arrival);
+            let mut model = Scalar {
+                calls: 0,
+                fail_at: usize::MAX,
+            };
+            for (t, &u) in inputs.iter().enumerate() {
+                let y = [(t as f64 * 0.7).sin()];
+                on_time.update(&mut model, Some(&[u]), Some(&y)).unwrap();
+                let revised = [inputs[t.max(1) - 1]];
+                let step = Step {
+                    u: Some(&[2.0]), // a placeholder, completed by the next sample
+                    y: Some(&y),
+                    r: None,
+                    u_last: (t > 0).then_some(&revised[..]),
+                };
+                late.update_step(&mut model, step).unwrap();
+                let (a, _) = on_time.history().x_window();
+                let (b, _) = late.history().x_window();
+                match form {
+                    Form::Filtering => assert_eq!(a, b, "{mean:?} t={t}"),
+                    Form::Prediction => {
+                        for (x, z) in a.iter().zip(b).take(a.len() - 1) {
+                            assert!((x - z).abs() < 1e-10, "{mean:?} t={t}: {x} vs {z}");
+                        }
+                    }
+                }
+            }
+        }
+        // Nothing to complete before the first step; a row of the wrong size is refused.
+        let mut est = estimator(Form::Filtering);
+        let mut model = Scalar {
+            calls: 0,
+            fail_at: usize::MAX,
+        };
+        let first = Step {
+            u: Some(&[0.0]),
+            y: Some(&[1.0]),
+            r: None,
+            u_last: Some(&[0.0]),
+        };
+        let err = est.update_step(&mut model, first).unwrap_err();
+        assert!(err.to_string().starts_with("u_last:"));
+        est.update(&mut model, Some(&[0.0]), Some(&[1.0])).unwrap();
+        let wide = Step {
+            u_last: Some(&[0.0, 1.0]),
+            ..first
+        };
+        assert!(est.update_step(&mut model, wide).is_err());
+        assert_eq!(est.history().t(), 1);
     }
 }

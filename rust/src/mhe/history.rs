@@ -34,6 +34,12 @@ pub struct WindowData {
     step: (Vec<f64>, Vec<f64>, bool, Option<Covariance>),
     /// Whether u(t) is a placeholder the caller will replace (`set_last_input`).
     pub input_pending: bool,
+    /// The input row of the last recorded step (t − 1) as revised with the new step
+    /// ([`History::revise_last_input`]); [`History::push`] records it in place of the old one.
+    last_input: Option<Vec<f64>>,
+    /// The arrival prior of time t recomputed with that row (the estimate's own prediction),
+    /// recorded by [`History::push`] in place of the old one.
+    pub last_prior: Option<Vec<f64>>,
 }
 
 /// See the module documentation.
@@ -221,6 +227,8 @@ impl History {
             nodes,
             step: (u.to_vec(), y_t.clone(), y.is_some(), r.clone()),
             input_pending: false,
+            last_input: None,
+            last_prior: None,
         };
         data.u.extend_from_slice(u);
         data.y.extend_from_slice(&y_t);
@@ -236,6 +244,26 @@ impl History {
         Ok(data)
     }
 
+    /// Revises, in the window `data`, the input row of the last recorded step (t − 1) to `u`
+    /// (m values): a row the caller completes only when the next sample arrives (the interval
+    /// a continuous-time model integrates over, known once the sample that ends it is in).
+    /// The history itself takes it with [`History::push`]. Refused before the first step.
+    pub fn revise_last_input(&self, data: &mut WindowData, u: &[f64]) -> Result<()> {
+        let m = self.dims.1;
+        check_len("u_last", u, m)?;
+        check_finite("u_last", u)?;
+        if self.t == 0 {
+            return Err(Error::invalid("u_last", "no step is recorded yet"));
+        }
+        // Row t − 1 is in the window when the window starts before t.
+        if data.s0 < self.t {
+            let at = (self.t - 1 - data.s0) * m;
+            data.u[at..at + m].copy_from_slice(u);
+        }
+        data.last_input = Some(u.to_vec());
+        Ok(())
+    }
+
     /// Records a solved step: its data, the optimal window `x_window`, the arrival prior of
     /// the next time and what the update reports.
     pub fn push(
@@ -248,6 +276,10 @@ impl History {
         let (_, m, p) = self.dims;
         let (u, y, present, r) = data.step;
         let keep = self.horizon + 1;
+        if let Some(last) = data.last_input {
+            let at = self.u.len() - m;
+            self.u[at..].copy_from_slice(&last);
+        }
         self.u.extend_from_slice(&u);
         self.y.extend_from_slice(&y);
         self.present.push(present);
@@ -258,6 +290,9 @@ impl History {
             self.r.drain(..drop);
             self.u.drain(..drop * m);
             self.y.drain(..drop * p);
+        }
+        if let Some(prior) = data.last_prior {
+            self.set_newest_prior(&prior);
         }
         self.priors.push_back(next_prior);
         if self.priors.len() > self.horizon + 2 {

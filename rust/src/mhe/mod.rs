@@ -26,7 +26,7 @@ pub use arrival::{Arrival, ArrivalMean, ArrivalWeight};
 pub use bank::{
     bank_threads, BankRow, BankSample, EstimatorBank, Member, MemberSettings, ModelState,
 };
-pub use estimator::{MovingHorizon, UpdateReport};
+pub use estimator::{MovingHorizon, Step, UpdateReport};
 pub use history::{History, HistoryState, WindowData};
 pub use loss::Loss;
 pub use lsq::WindowLsq;

@@ -177,8 +177,9 @@ impl PyEstimatorBank {
     /// One update of every estimator: row i of `u` (k, m) and `y` (k, p) for estimator i,
     /// `present[i]` False when its y is missing (its row of `y` is ignored), row i of `r`
     /// (k, p) the diagonal of its y's covariance (None: each one's R0). What each estimator
-    /// reports is read from the getters below. On error no estimator changes.
-    #[pyo3(signature = (u, y, present, r=None))]
+    /// reports is read from the getters below. Row i of `u_last` (k, m), if given, is
+    /// estimator i's last input row as this sample completes it. On error no estimator changes.
+    #[pyo3(signature = (u, y, present, r=None, u_last=None))]
     fn update<'py>(
         &mut self,
         py: Python<'py>,
@@ -186,6 +187,7 @@ impl PyEstimatorBank {
         y: PyReadonlyArray2<'py, f64>,
         present: PyReadonlyArray1<'py, bool>,
         r: Option<PyReadonlyArray2<'py, f64>>,
+        u_last: Option<PyReadonlyArray2<'py, f64>>,
     ) -> PyResult<()> {
         let (u, _, _) = slice2("U", &u)?;
         let (y, _, _) = slice2("Y", &y)?;
@@ -193,11 +195,13 @@ impl PyEstimatorBank {
             .as_slice()
             .map_err(|_| PyValueError::new_err("present: must be a contiguous bool array"))?;
         let r = r.as_ref().map(|r| slice2("R", r)).transpose()?;
+        let u_last = u_last.as_ref().map(|u| slice2("u_last", u)).transpose()?;
         let sample = BankSample {
             u,
             y,
             present,
             r: r.map(|(r, _, _)| r),
+            u_last: u_last.map(|(u, _, _)| u),
         };
         match (&mut self.inner, &self.model) {
             (Inner::Gp(bank), _) => {
@@ -262,6 +266,17 @@ impl PyEstimatorBank {
         self.stacked(py, &[n], |e| {
             let w = e.history().x_window().0;
             w[w.len() - n..].to_vec()
+        })
+    }
+
+    /// Each estimator's last recorded input row (k, m; zeros before the first update).
+    #[getter]
+    fn last_inputs<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let m = self.dims().1;
+        self.stacked(py, &[m], |e| {
+            e.history()
+                .last_input()
+                .map_or_else(|| vec![0.0; m], <[f64]>::to_vec)
         })
     }
 

@@ -12,7 +12,7 @@ use super::pickle;
 use super::stage_model::{CallbackModel, Model, PyStageModel};
 use super::window_solver::PyWindowSolver;
 use crate::error::{check_finite, check_len};
-use crate::mhe::{Arrival, Form, Loss, MovingHorizon, Solved, StageModel, WindowProblem};
+use crate::mhe::{Arrival, Form, Loss, MovingHorizon, Solved, StageModel, Step, WindowProblem};
 use crate::python::convert::{array2, slice1, slice2};
 use crate::python::error::{detach_interruptible, interruptible};
 use crate::solver::{BoxLsqSolver, SolverOptions};
@@ -203,20 +203,25 @@ impl PyMovingHorizon {
     }
 
     /// One whole update with u(t) (None: not known yet, see `MovingHorizon::prepare` in the
-    /// core), y(t) (None: not measured) and its covariance `r` (p or p² values; None: R0);
-    /// what it reports is read from the getters below. On error the estimator is unchanged.
-    #[pyo3(signature = (u, y=None, r=None))]
+    /// core), y(t) (None: not measured), its covariance `r` (p or p² values; None: R0) and
+    /// `u_last`, the last input row as this sample completes it (None: as recorded); what it
+    /// reports is read from the getters below. On error the estimator is unchanged.
+    #[pyo3(signature = (u, y=None, r=None, u_last=None))]
     fn update(
         &mut self,
         py: Python<'_>,
         u: Option<PyReadonlyArray1<'_, f64>>,
         y: Option<PyReadonlyArray1<'_, f64>>,
         r: Option<PyReadonlyArray1<'_, f64>>,
+        u_last: Option<PyReadonlyArray1<'_, f64>>,
     ) -> PyResult<()> {
-        let u = u.as_ref().map(|u| slice1("u", u)).transpose()?;
-        let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
-        let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
-        self.run(py, |core, model| core.update_with(model, u, y, r))?;
+        let step = Step {
+            u: u.as_ref().map(|u| slice1("u", u)).transpose()?,
+            y: y.as_ref().map(|y| slice1("y", y)).transpose()?,
+            r: r.as_ref().map(|r| slice1("R", r)).transpose()?,
+            u_last: u_last.as_ref().map(|u| slice1("u_last", u)).transpose()?,
+        };
+        self.run(py, |core, model| core.update_step(model, step))?;
         Ok(())
     }
 
@@ -245,23 +250,27 @@ impl PyMovingHorizon {
     /// Stages the next window with u(t), y(t) without recording it; returns (z0, lower,
     /// upper): the warm start and the box of the stacked window states. The window methods
     /// (`cost`, ...) then evaluate it; `commit` records a solution.
-    #[pyo3(signature = (u, y=None, r=None))]
+    #[pyo3(signature = (u, y=None, r=None, u_last=None))]
     fn prepare<'py>(
         &mut self,
         py: Python<'py>,
         u: Option<PyReadonlyArray1<'py, f64>>,
         y: Option<PyReadonlyArray1<'py, f64>>,
         r: Option<PyReadonlyArray1<'py, f64>>,
+        u_last: Option<PyReadonlyArray1<'py, f64>>,
     ) -> PyResult<(Arr1<'py>, Arr1<'py>, Arr1<'py>)> {
-        let u = u.as_ref().map(|u| slice1("u", u)).transpose()?;
-        let y = y.as_ref().map(|y| slice1("y", y)).transpose()?;
-        let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
+        let step = Step {
+            u: u.as_ref().map(|u| slice1("u", u)).transpose()?,
+            y: y.as_ref().map(|y| slice1("y", y)).transpose()?,
+            r: r.as_ref().map(|r| slice1("R", r)).transpose()?,
+            u_last: u_last.as_ref().map(|u| slice1("u_last", u)).transpose()?,
+        };
         if let Model::Gp(gp) = &self.model {
             if self.staged_cache.is_none() {
                 self.staged_cache = Some(gp.cache());
             }
         }
-        let z0 = self.run(py, |core, model| core.prepare_with(model, u, y, r))?;
+        let z0 = self.run(py, |core, model| core.prepare_step(model, step))?;
         let (lo, hi) = self.core.bounds();
         Ok((
             PyArray1::from_vec(py, z0),
