@@ -140,7 +140,7 @@ class KnownModel(SharedOnCopy):
     #: model without parameters.
     _parameter_source = None
     dim_p = 0
-    #: The sample time of a model from `from_ode`; None for a discrete-time model.
+    # The sample time of a model from `from_ode`; None for a discrete-time model.
     dt = None
     #: How `_timed_model` builds the model with a per-sample interval (`from_ode`), or None.
     _time_step = None
