@@ -16,6 +16,7 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
 * `NumericalError`: a numerical failure on valid input;
 * `monte_carlo`: Monte Carlo studies of estimators over many seeds, serially or on a Dask cluster
   (`gpmhe.study`);
+* `gpmhe.consistency`: χ² tests of an estimator's uncertainty over a run (NEES, NIS);
 * `gpmhe.baselines`: EKF baselines on filterpy; `gpmhe.systems`: the papers' example plants.
 
 See the user guide, starting with *Notation*.

@@ -453,9 +453,11 @@ class MovingHorizon:
         nit: int = 0,
         message: str = "",
         P: _F | None = None,
+        P_window: _F | None = None,
     ) -> tuple[_F, _F]:
         """Record the staged window's solution with another solver's report (cost None:
-        evaluated here; P None: keep the previous covariance): (x_window, x_prior)."""
+        evaluated here; P None: keep the previous covariance; P_window: every node's covariance
+        block, flattened, None: NaN): (x_window, x_prior)."""
         ...
     def abandon(self) -> None:
         """Drop the staged window and put the learned model's cache back as before `prepare`."""
@@ -477,6 +479,14 @@ class MovingHorizon:
     def x_prior(self) -> _F: ...
     @property
     def covariance(self) -> _F: ...
+    @property
+    def window_covariance(self) -> _F:
+        """Every node's covariance block of the last window, flattened (NaN: not computable)."""
+        ...
+    def innovation(self) -> tuple[_F, _F, float, float, int]:
+        """The newest output's (innovation, S, NIS, log-likelihood, measured channels),
+        computed now with the model (the learned model's cache left as it was)."""
+        ...
     @property
     def optimal_cost(self) -> float: ...
     @property

@@ -16,8 +16,10 @@ __all__ = ["FORMAT_VERSION", "save", "load"]
 # 2: arrival cost, full weights, parameters, pending input; 3: the estimate and the last update's
 # report only in the core's state (core_outcome_*), not also as attributes; 4: the output loss
 # (loss, loss_scale); 5: the output covariance given with each sample in the history (core_r_given,
-# core_r); 6: a model with a time step keeps each sample's interval as the last column of core_u.
-FORMAT_VERSION = 6
+# core_r); 6: a model with a time step keeps each sample's interval as the last column of core_u;
+# 7: the estimate and covariance before the last update and the window's covariances
+# (core_outcome_x_before, core_outcome_P_before, core_outcome_P_window).
+FORMAT_VERSION = 7
 
 _CACHE_PARTS = ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y",
                 "dvar_y")
@@ -38,7 +40,8 @@ def load(cls, path, model):
     with NpzReader(path, "GPMHE", FORMAT_VERSION) as f:
         f.allow_nonfinite = ("x_lower", "x_upper", "p_lower", "p_upper", "cost",
                              "projected_gradient", "core_outcome_cost",
-                             "core_outcome_projected_gradient")
+                             "core_outcome_projected_gradient", "core_outcome_x_before",
+                             "core_outcome_P_before", "core_outcome_P_window")
         kind = f.string("model_kind")
         if kind not in ("LearnedModel", "KnownModel"):
             raise f.error("model_kind", f"must be 'LearnedModel' or 'KnownModel', got {kind!r}")
@@ -95,7 +98,11 @@ def _outcome(f, na):
             "outcome_nfev": f.integer("core_outcome_nfev"),
             "outcome_projected_gradient": f.float("core_outcome_projected_gradient"),
             "outcome_message": f.string("core_outcome_message"),
-            "outcome_input_pending": f.boolean("core_outcome_input_pending")}
+            "outcome_input_pending": f.boolean("core_outcome_input_pending"),
+            **({"outcome_x_before": f.floats("core_outcome_x_before", (na,)),
+                "outcome_P_before": f.floats("core_outcome_P_before", (na, na)),
+                "outcome_P_window": f.floats("core_outcome_P_window", (None, na))}
+               if f.version >= 7 else {})}  # earlier files: unknown (NaN) until the next update
 
 
 def _outcome_of_format2(f, t_core, n, k, scaling):

@@ -166,6 +166,25 @@ class GPMHE:
         Arrival prior x̂(t−M_t) used in the last window.
     x_window : ndarray of shape (M_t + 1, dim_x)
         Optimal window trajectory z of the last update, oldest first (``x`` is its last row).
+    P_window : ndarray of shape (M_t + 1, dim_x, dim_x)
+        The covariance of every node of ``x_window``: the diagonal blocks of 4 H⁻¹ (the last one
+        is ``P``; on a linear-Gaussian model with the Kalman-filter settings, the RTS smoother's
+        over the window). NaN where H was singular. Before the first update: [P2⁻¹].
+    innovation : ndarray of shape (dim_y,)
+        y(t) − ŷ for the last update's output, ŷ = m_y(x̂⁻, u(t)) the output predicted before
+        y(t) was seen (x̂⁻: the previous ``x``, carried over the stage with u(t − 1) in the
+        filtering form); NaN for channels not measured. Computed when read (one or two model
+        evaluations), from the estimator's state: NaN before the first update.
+    S : ndarray of shape (dim_y, dim_y)
+        Its covariance C P⁻ Cᵀ + R(t) + diag σ²_y(x̂⁻, u(t)), P⁻ the previous ``P`` (carried
+        over the stage, + Q0 + diag σ²_x, in the filtering form), R(t) the sample's covariance
+        or ``R0``. With the Kalman-filter settings on a linear-Gaussian model: the Kalman
+        filter's innovation and S.
+    nis : float
+        νᵀS⁻¹ν over the measured channels (NaN when none is measured): χ² with as many degrees
+        of freedom as channels when the estimator is consistent (`gpmhe.consistency`).
+    log_likelihood : float
+        log N(y(t); ŷ, S) over the measured channels (0.0 when none is measured).
     cost : float
         Optimal cost J of the last window.
     success : bool
@@ -243,8 +262,8 @@ class GPMHE:
     input to ``update`` raises ValueError and leaves the estimator unchanged.
 
     With filterpy's ``Saver`` every attribute is recorded; ``Saver.to_array()`` needs equal
-    shapes, so pass ``ignore=("x_window",)`` if you save during the full-information phase
-    (t < M), where the window grows.
+    shapes, so pass ``ignore=("x_window", "P_window")`` if you save during the
+    full-information phase (t < M), where the window grows.
 
     See the user guide, *The window problem*, *Weights from GP variances* and *The window
     solver*.
@@ -532,6 +551,36 @@ class GPMHE:
         """Covariance estimate of ``x`` (dim_x, dim_x), see the class docstring."""
         c = self._core.covariance
         return np.ascontiguousarray(c[:self.dim_x, :self.dim_x]) if self.dim_p else c
+
+    @property
+    def P_window(self):  # noqa: N802
+        """The covariance of every node of ``x_window`` (M_t + 1, dim_x, dim_x), see the class
+        docstring; NaN when the last window's was not computable."""
+        na = self.dim_x + self.dim_p
+        blocks = self._core.window_covariance.reshape(-1, na, na)
+        return np.ascontiguousarray(blocks[:, :self.dim_x, :self.dim_x])
+
+    @property
+    def innovation(self):
+        """y(t) − ŷ for the newest output (dim_y,), ŷ predicted before y(t) was seen; NaN for
+        channels not measured (and before the first update). See the class docstring."""
+        return self._core.innovation()[0]
+
+    @property
+    def S(self):  # noqa: N802 (filterpy's and the Kalman filter's symbol)
+        """The covariance of ``innovation`` (dim_y, dim_y), every channel."""
+        return self._core.innovation()[1]
+
+    @property
+    def nis(self):
+        """The normalised innovation squared νᵀS⁻¹ν over the measured channels (NaN when
+        none is measured)."""
+        return self._core.innovation()[2]
+
+    @property
+    def log_likelihood(self):
+        """log N(y(t); ŷ, S) over the measured channels (0.0 when none is measured)."""
+        return self._core.innovation()[3]
 
     @property
     def p(self):
@@ -896,8 +945,8 @@ class GPMHE:
                 self.solver, self._settings.solver_options, core, z0, lb, ub)
             if not success:  # (before the record: as an error it leaves nothing changed)
                 self._warn(message, core.t, stacklevel=5)
-            P = solvers.window_covariance(core, z, self.dim_x + self.dim_p)
-            core.commit(z, cost, success, nit, message, P)
+            P, P_window = solvers.window_covariance(core, z, self.dim_x + self.dim_p)
+            core.commit(z, cost, success, nit, message, P, P_window)
         except BaseException:
             core.abandon()  # the model's cache as before prepare: as if never started
             raise

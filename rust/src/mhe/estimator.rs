@@ -11,6 +11,7 @@
 
 use super::arrival::{ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
+use super::innovation::{innovation, Innovation};
 use super::lsq::WindowLsq;
 use super::outcome::Solved;
 use super::problem::{Form, WindowEval, WindowProblem};
@@ -369,11 +370,11 @@ impl MovingHorizon {
             self.solver
                 .solve(&mut lsq, &mut z, &self.lower, &self.upper, &self.opts)
         };
-        let (solve, cost, covariance) = match solve {
+        let (solve, cost, blocks) = match solve {
             Ok(report) => {
                 self.evaluated_at.extend_from_slice(&z);
-                let cov = self.solver.last_node_covariance();
-                (Ok(report.clone()), report.cost, cov)
+                let blocks = self.solver.window_covariance();
+                (Ok(report.clone()), report.cost, blocks)
             }
             // A numerical failure keeps the warm start; anything else is an error.
             Err(e @ Error::Numerical(_)) => {
@@ -383,8 +384,11 @@ impl MovingHorizon {
             }
             Err(e) => return Err(e),
         };
+        let nn = self.problem.dim_x() * self.problem.dim_x();
+        let covariance = blocks.as_ref().map(|b| b[b.len() - nn..].to_vec());
         let solved = Solved::Rust(solve.clone());
-        let (x_window, x_prior) = self.commit(model, z, covariance.clone(), cost, &solved)?;
+        let (x_window, x_prior) =
+            self.commit(model, z, covariance.clone(), blocks, cost, &solved)?;
         Ok(UpdateReport {
             x_window,
             x_prior,
@@ -603,8 +607,8 @@ impl MovingHorizon {
     }
 
     /// Records the staged window's solution z (nodes × n) with how it was solved (its cost,
-    /// the covariance estimate of its last node, None if not computable, and the solver's
-    /// report), all in one step: the next arrival prior is the new estimate (prediction form)
+    /// the covariance estimate of its last node and of every node, None if not computable, and
+    /// the solver's report), all in one step: the next arrival prior is the new estimate (prediction form)
     /// or its one-step prediction m_x(x̄_t, u(t)) (filtering form); when the next window starts
     /// one node later, the arrival cost moves with it (the smoothed mean and the EKF weight,
     /// `arrival.rs`). Returns (x_window, x_prior of the window). On error nothing changes.
@@ -613,6 +617,7 @@ impl MovingHorizon {
         model: &mut dyn StageModel,
         z: Vec<f64>,
         covariance: Option<Vec<f64>>,
+        window_covariance: Option<Vec<f64>>,
         cost: f64,
         solved: &Solved,
     ) -> Result<(Vec<f64>, Vec<f64>)> {
@@ -626,6 +631,10 @@ impl MovingHorizon {
         if let Some(c) = &covariance {
             check_len("P", c, n * n)?;
             check_finite("P", c)?;
+        }
+        if let Some(c) = &window_covariance {
+            check_len("P_window", c, data.nodes * n * n)?;
+            check_finite("P_window", c)?;
         }
         let last = &z[z.len() - n..];
         let next_prior = match self.problem.form() {
@@ -664,10 +673,15 @@ impl MovingHorizon {
             .staged
             .take()
             .ok_or_else(|| Error::numerical("lost the window"))?;
-        let (x_prior, s0) = (data.x_prior.clone(), data.s0);
+        let (x_prior, s0, nodes) = (data.x_prior.clone(), data.s0, data.nodes);
+        let (before, _) = self.history.x_window();
+        let x_before = before[before.len() - n..].to_vec();
         let outcome = self.history.outcome().record(
             x_prior.clone(),
             covariance,
+            window_covariance,
+            nodes,
+            x_before,
             cost,
             solved,
             data.input_pending,
@@ -680,6 +694,11 @@ impl MovingHorizon {
             self.history.set_arrival_sqrt(next);
         }
         Ok((z, x_prior))
+    }
+
+    /// The innovation of the newest sample (`innovation.rs`).
+    pub fn innovation(&self, model: &mut dyn StageModel) -> Result<Innovation> {
+        innovation(&self.problem, &self.history, model)
     }
 
     /// Drops the staged window, if any (its solve was abandoned); the history is unchanged.
@@ -882,7 +901,7 @@ mod tests {
             message: String::new(),
         };
         assert!(est
-            .commit(&mut model, vec![0.0; 4], None, 0.0, &solved)
+            .commit(&mut model, vec![0.0; 4], None, None, 0.0, &solved)
             .is_err()); // nothing left staged
                         // Bad input is refused before anything is staged.
         model.fail_at = usize::MAX;

@@ -42,6 +42,16 @@ pub struct WindowData {
     pub last_prior: Option<Vec<f64>>,
 }
 
+/// The newest recorded sample: u(t), u(t − 1) (None at the first), y(t) (None: not measured; NaN
+/// for channels not measured) and the covariance given with it (None: R0).
+#[derive(Debug, Clone, Copy)]
+pub struct Sample<'a> {
+    pub u: &'a [f64],
+    pub u_before: Option<&'a [f64]>,
+    pub y: Option<&'a [f64]>,
+    pub r: Option<&'a Covariance>,
+}
+
 /// See the module documentation.
 #[derive(Debug, Clone)]
 pub struct History {
@@ -183,6 +193,24 @@ impl History {
     pub fn last_input(&self) -> Option<&[f64]> {
         let m = self.dims.1;
         (self.t > 0).then(|| &self.u[self.u.len() - m..])
+    }
+
+    /// The newest recorded sample (of time t − 1), or None before the first.
+    pub fn newest_sample(&self) -> Option<Sample<'_>> {
+        let (_, m, p) = self.dims;
+        let rows = self.present.len();
+        if self.t == 0 || rows == 0 {
+            return None;
+        }
+        let u = &self.u[(rows - 1) * m..rows * m];
+        let u_before = (rows >= 2).then(|| &self.u[(rows - 2) * m..(rows - 1) * m]);
+        let y = self.present[rows - 1].then(|| &self.y[(rows - 1) * p..rows * p]);
+        Some(Sample {
+            u,
+            u_before,
+            y,
+            r: self.r[rows - 1].as_ref(),
+        })
     }
 
     /// Replaces the newest arrival prior (for time t).
@@ -453,6 +481,11 @@ impl History {
         check_len("arrival_sqrt", &s.arrival_sqrt, n * n)?;
         check_finite("arrival_sqrt", &s.arrival_sqrt)?;
         s.outcome.check(n)?;
+        check_len(
+            "outcome_P_window",
+            &s.outcome.window_covariance,
+            s.x_window.len() * n,
+        )?;
         // Outputs that were not measured are stored as zeros; measured channels are finite and
         // channels not measured NaN.
         if s.y.iter().any(|v| v.is_infinite()) {
@@ -543,7 +576,10 @@ mod tests {
                 let step = |h: &mut History| {
                     let w = h.next_window(&[1.0], Some(&y), None).unwrap();
                     let x = vec![t as f64 * 0.1; w.nodes];
-                    h.push(w, x, vec![t as f64], h.outcome().clone());
+                    // An outcome with one covariance per node, as an update records it.
+                    let mut outcome = h.outcome().clone();
+                    outcome.window_covariance = vec![1.0; w.nodes];
+                    h.push(w, x, vec![t as f64], outcome);
                 };
                 step(&mut a);
                 step(&mut b);

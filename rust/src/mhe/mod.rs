@@ -15,6 +15,7 @@ pub mod arrival;
 pub mod bank;
 pub mod estimator;
 pub mod history;
+pub mod innovation;
 pub mod loss;
 pub mod lsq;
 pub mod outcome;
@@ -27,7 +28,8 @@ pub use bank::{
     bank_threads, BankRow, BankSample, EstimatorBank, Member, MemberSettings, ModelState,
 };
 pub use estimator::{MovingHorizon, Step, UpdateReport};
-pub use history::{History, HistoryState, WindowData};
+pub use history::{History, HistoryState, Sample, WindowData};
+pub use innovation::Innovation;
 pub use loss::Loss;
 pub use lsq::WindowLsq;
 pub use outcome::{Outcome, Solved};

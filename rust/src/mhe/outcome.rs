@@ -27,6 +27,14 @@ pub struct Outcome {
     pub message: String,
     /// Whether the last update was given no input and waits for it (`set_last_input`).
     pub input_pending: bool,
+    /// The estimate and covariance of the newest node before the last update (what the
+    /// innovation's prediction starts from, `innovation.rs`); NaN when not known.
+    pub x_before: Vec<f64>,
+    pub covariance_before: Vec<f64>,
+    /// The covariance of every node of the last window (nodes × n × n, row-major blocks): the
+    /// diagonal blocks of the Gauss-Newton covariance whose last block is `covariance`; NaN
+    /// when that was not computable.
+    pub window_covariance: Vec<f64>,
 }
 
 /// How a window was solved, for [`Outcome::record`]: by the Rust solver (its report or the error
@@ -46,7 +54,7 @@ impl Outcome {
     pub fn initial(x0: &[f64], covariance: Vec<f64>) -> Self {
         Self {
             x_prior: x0.to_vec(),
-            covariance,
+            covariance: covariance.clone(),
             cost: 0.0,
             success: true,
             nit: 0,
@@ -54,18 +62,28 @@ impl Outcome {
             projected_gradient: 0.0,
             message: String::new(),
             input_pending: false,
+            x_before: x0.to_vec(),
+            covariance_before: covariance.clone(),
+            window_covariance: covariance,
         }
     }
 
-    /// The outcome of a solved window; `covariance` None (H singular) keeps `self`'s.
+    /// The outcome of a solved window of `nodes` nodes that started from the estimate
+    /// `x_before` (with `self`'s covariance); `covariance` None (H singular) keeps `self`'s,
+    /// `window_covariance` None gives NaN blocks.
+    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
         x_prior: Vec<f64>,
         covariance: Option<Vec<f64>>,
+        window_covariance: Option<Vec<f64>>,
+        nodes: usize,
+        x_before: Vec<f64>,
         cost: f64,
         solved: &Solved,
         input_pending: bool,
     ) -> Self {
+        let nn = self.covariance.len();
         let (success, nit, nfev, projected_gradient, message) = match solved {
             Solved::Rust(Ok(s)) => (
                 s.status.is_success(),
@@ -96,6 +114,9 @@ impl Outcome {
             projected_gradient,
             message,
             input_pending,
+            x_before,
+            covariance_before: self.covariance.clone(),
+            window_covariance: window_covariance.unwrap_or_else(|| vec![f64::NAN; nodes * nn]),
         }
     }
 
@@ -105,6 +126,14 @@ impl Outcome {
         crate::error::check_len("outcome_P", &self.covariance, n * n)?;
         crate::error::check_finite("outcome_x_prior", &self.x_prior)?;
         crate::error::check_finite("outcome_P", &self.covariance)?;
+        crate::error::check_len("outcome_x_before", &self.x_before, n)?;
+        crate::error::check_len("outcome_P_before", &self.covariance_before, n * n)?;
+        if self.window_covariance.len() % (n * n) != 0 || self.window_covariance.is_empty() {
+            return Err(Error::invalid(
+                "outcome_P_window",
+                format!("must hold whole {n}×{n} blocks"),
+            ));
+        }
         if self.cost.is_nan() {
             return Err(Error::invalid("outcome_cost", "is NaN"));
         }
@@ -156,11 +185,26 @@ mod tests {
             nit: 3,
             message: "ok".into(),
         };
-        let next = first.record(vec![0.5], None, 1.5, &solved, false);
+        let next = first.record(vec![0.5], None, None, 2, vec![1.0], 1.5, &solved, false);
         assert_eq!(next.covariance, vec![2.0]);
         assert_eq!((next.nit, next.nfev, next.cost), (3, 0, 1.5));
-        let next = next.record(vec![0.5], Some(vec![3.0]), 1.0, &solved, true);
+        // The window's blocks are unknown, and said so; what the update started from is kept.
+        assert!(next.window_covariance.len() == 2 && next.window_covariance[0].is_nan());
+        assert_eq!((next.x_before[0], next.covariance_before[0]), (1.0, 2.0));
+        let blocks = Some(vec![4.0, 3.0]);
+        let next = next.record(
+            vec![0.5],
+            Some(vec![3.0]),
+            blocks,
+            2,
+            vec![0.7],
+            1.0,
+            &solved,
+            true,
+        );
         assert_eq!(next.covariance, vec![3.0]);
+        assert_eq!(next.window_covariance, vec![4.0, 3.0]);
+        assert_eq!((next.x_before[0], next.covariance_before[0]), (0.7, 2.0));
         assert!(next.input_pending);
     }
 }

@@ -124,15 +124,45 @@ impl BlockTridiagCholesky {
     /// The last n×n diagonal block of A⁻¹ (row-major into `out`) after a successful
     /// [`factor`](Self::factor): L is block lower-bidiagonal, so (A⁻¹)_NN = L_N⁻ᵀ L_N⁻¹.
     pub fn last_block_of_inverse(&self, out: &mut [f64]) {
-        let n = self.n;
         let Some(l) = self.l.last() else { return };
-        let mut x = DMatrix::<f64>::identity(n, n);
-        l.solve_lower_triangular_unchecked_mut(&mut x);
-        let inv = x.transpose() * x;
-        for r in 0..n {
-            for c in 0..n {
-                out[r * n + c] = inv[(r, c)];
-            }
+        write_block(&gram_of_inverse(l).1, out);
+    }
+
+    /// Every diagonal n×n block of A⁻¹ (nodes blocks, row-major, into `out`) after a successful
+    /// [`factor`](Self::factor), by the backward recursion of selected inversion:
+    /// Σ_N = L_N⁻ᵀL_N⁻¹ and Σ_i = L_i⁻ᵀL_i⁻¹ + G_i Σ_{i+1} G_iᵀ with G_i = L_i⁻ᵀX_i (the
+    /// block-row i of LᵀΣ = L⁻¹). O(nodes·n³); the last block is `last_block_of_inverse`'s.
+    pub fn diagonal_blocks_of_inverse(&self, out: &mut [f64]) {
+        let (n, nodes) = (self.n, self.l.len());
+        if nodes == 0 {
+            return;
+        }
+        let mut next = gram_of_inverse(&self.l[nodes - 1]).1;
+        write_block(&next, &mut out[(nodes - 1) * n * n..]);
+        for i in (0..nodes - 1).rev() {
+            let (l_inv, own) = gram_of_inverse(&self.l[i]);
+            let g = l_inv.transpose() * &self.x[i];
+            next = own + &g * &next * g.transpose();
+            write_block(&next, &mut out[i * n * n..]);
+        }
+    }
+}
+
+/// (L⁻¹, L⁻ᵀL⁻¹) of a lower-triangular factor L.
+fn gram_of_inverse(l: &DMatrix<f64>) -> (DMatrix<f64>, DMatrix<f64>) {
+    let n = l.nrows();
+    let mut x = DMatrix::<f64>::identity(n, n);
+    l.solve_lower_triangular_unchecked_mut(&mut x);
+    let inv = x.transpose() * &x;
+    (x, inv)
+}
+
+/// The n×n matrix `m` row-major into the first n² entries of `out`.
+fn write_block(m: &DMatrix<f64>, out: &mut [f64]) {
+    let n = m.nrows();
+    for r in 0..n {
+        for c in 0..n {
+            out[r * n + c] = m[(r, c)];
         }
     }
 }
@@ -174,6 +204,25 @@ pub(super) fn undamped_last_block_inverse(
     }
     let mut out = vec![0.0; n * n];
     chol.last_block_of_inverse(&mut out);
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
+/// Every diagonal block of the inverse of the undamped block-tridiagonal matrix (`zero` shifts,
+/// nothing held), factored in `chol`; None if not positive definite or not finite.
+pub(super) fn undamped_diagonal_blocks_of_inverse(
+    chol: &mut BlockTridiagCholesky,
+    nodes: usize,
+    n: usize,
+    diag: &[f64],
+    off: &[f64],
+    zero: &[f64],
+    free: &[bool],
+) -> Option<Vec<f64>> {
+    if !chol.factor(nodes, n, diag, off, zero, free) {
+        return None;
+    }
+    let mut out = vec![0.0; nodes * n * n];
+    chol.diagonal_blocks_of_inverse(&mut out);
     out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
@@ -291,6 +340,15 @@ mod tests {
                             let e = ainv[((nodes - 1) * n + r, (nodes - 1) * n + c)];
                             assert!((inv[r * n + c] - e).abs() < 1e-9 * (1.0 + e.abs()));
                         }
+                    }
+                    // every diagonal block, the last one bit for bit as above
+                    let mut all = vec![0.0; nodes * n * n];
+                    chol.diagonal_blocks_of_inverse(&mut all);
+                    assert_eq!(&all[(nodes - 1) * n * n..], &inv[..]);
+                    for (k, v) in all.iter().enumerate() {
+                        let (i, r, c) = (k / (n * n), (k / n) % n, k % n);
+                        let e = ainv[(i * n + r, i * n + c)];
+                        assert!((v - e).abs() < 1e-9 * (1.0 + e.abs()), "{nodes} {n} {k}");
                     }
                 }
                 let mut y = vec![0.0; nodes * n];

@@ -6,7 +6,9 @@
 // better than zipped iterator chains.
 #![allow(clippy::needless_range_loop)]
 
-use super::block_tridiag::{undamped_last_block_inverse, BlockTridiagCholesky};
+use super::block_tridiag::{
+    undamped_diagonal_blocks_of_inverse, undamped_last_block_inverse, BlockTridiagCholesky,
+};
 use super::{
     projected_gradient_norm, BlockLsqProblem, InteriorMode, SolveReport, SolverOptions, Status,
 };
@@ -217,9 +219,31 @@ impl BoxLsqSolver {
             &self.work.shift,
             &self.work.fixed,
         )?;
+        Some(symmetrised(&b, n))
+    }
+
+    /// 4·sym of every diagonal n×n block of H⁻¹ (nodes × n × n; see `last_node_covariance`,
+    /// whose block is the last one, bit for bit): the Laplace covariance of every node of the
+    /// window. None as for `last_node_covariance`.
+    pub fn window_covariance(&mut self) -> Option<Vec<f64>> {
+        let (nodes, n) = (self.nodes, self.n);
+        if nodes == 0 {
+            return None;
+        }
+        self.work.shift.fill(0.0);
+        self.work.fixed.fill(false);
+        let b = undamped_diagonal_blocks_of_inverse(
+            &mut self.chol,
+            nodes,
+            n,
+            &self.diag,
+            &self.off,
+            &self.work.shift,
+            &self.work.fixed,
+        )?;
         Some(
-            (0..n * n)
-                .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
+            b.chunks(n * n)
+                .flat_map(|block| symmetrised(block, n))
                 .collect(),
         )
     }
@@ -366,6 +390,13 @@ impl BoxLsqSolver {
         self.take_derivatives(prob);
         Ok(())
     }
+}
+
+/// 4·sym(B) = 2(B + Bᵀ) of an n×n row-major block.
+fn symmetrised(b: &[f64], n: usize) -> Vec<f64> {
+    (0..n * n)
+        .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
+        .collect()
 }
 
 #[cfg(test)]

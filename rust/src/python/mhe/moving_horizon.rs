@@ -283,7 +283,7 @@ impl PyMovingHorizon {
     /// (None: J(z) evaluated here), `success`, `nit`, `message` and the covariance `P` (n, n)
     /// of the last node (None: not computable, the previous one is kept). Returns (x_window
     /// (nodes, n), x_prior). On error nothing changes.
-    #[pyo3(signature = (z, cost=None, success=true, nit=0, message=String::new(), P=None))]
+    #[pyo3(signature = (z, cost=None, success=true, nit=0, message=String::new(), P=None, P_window=None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn commit<'py>(
         &mut self,
@@ -294,10 +294,16 @@ impl PyMovingHorizon {
         nit: usize,
         message: String,
         P: Option<PyReadonlyArray2<'py, f64>>,
+        P_window: Option<PyReadonlyArray1<'py, f64>>,
     ) -> PyResult<(Arr2<'py>, Arr1<'py>)> {
         let z = slice1("z", &z)?.to_vec();
         let cov = P.as_ref().map(|a| slice2("P", a)).transpose()?;
         let cov = cov.map(|(c, _, _)| c.to_vec());
+        let blocks = P_window
+            .as_ref()
+            .map(|a| slice1("P_window", a))
+            .transpose()?;
+        let blocks = blocks.map(<[f64]>::to_vec);
         let solved = Solved::Other {
             success,
             nit,
@@ -309,7 +315,7 @@ impl PyMovingHorizon {
                 Some(c) => c,
                 None => core.evaluate(model, &z, false)?.cost(),
             };
-            core.commit(model, z, cov, cost, &solved)
+            core.commit(model, z, cov, blocks, cost, &solved)
         })?;
         self.staged_cache = None;
         let rows = x_window.len() / n;
@@ -398,6 +404,41 @@ impl PyMovingHorizon {
     fn covariance<'py>(&self, py: Python<'py>) -> PyResult<Arr2<'py>> {
         let n = self.core.problem().dim_x();
         array2(py, self.core.history().outcome().covariance.clone(), n, n)
+    }
+
+    /// The covariance of every node of the last window (nodes, n, n; NaN when not computable),
+    /// flattened.
+    #[getter]
+    fn window_covariance<'py>(&self, py: Python<'py>) -> Arr1<'py> {
+        PyArray1::from_slice(py, &self.core.history().outcome().window_covariance)
+    }
+
+    /// The newest sample's innovation, computed now with the model (see `innovation.rs` in the
+    /// core): (ν (p,), S (p, p), NIS, log-likelihood, measured channels).
+    #[allow(clippy::type_complexity)]
+    fn innovation<'py>(
+        &mut self,
+        py: Python<'py>,
+    ) -> PyResult<(Arr1<'py>, Arr2<'py>, f64, f64, usize)> {
+        let p = self.core.problem().dim_y();
+        // A read: the learned model's evaluation cache stays as it was (it decides which values
+        // later updates reuse).
+        let saved = match &self.model {
+            Model::Gp(gp) => Some(gp.cache()),
+            Model::Callback { .. } => None,
+        };
+        let inn = self.run(py, |core, model| core.innovation(model));
+        if let (Some(saved), Model::Gp(gp)) = (saved, &mut self.model) {
+            let _ = gp.set_cache(saved); // the model's own cache always fits it
+        }
+        let inn = inn?;
+        Ok((
+            PyArray1::from_vec(py, inn.nu),
+            array2(py, inn.s, p, p)?,
+            inn.nis,
+            inn.log_likelihood,
+            inn.measured,
+        ))
     }
 
     /// The optimal cost J of the last window (0 before any update).

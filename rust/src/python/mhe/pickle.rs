@@ -175,8 +175,16 @@ fn read_covariances(state: &Bound<'_, PyDict>, p: usize) -> PyResult<Vec<Option<
 
 /// Writes `outcome` into a state dict as `outcome_x_prior`, `outcome_P`, `outcome_cost`,
 /// `outcome_success`, `outcome_nit`, `outcome_nfev`, `outcome_projected_gradient`,
-/// `outcome_message` and `outcome_input_pending`.
+/// `outcome_message`, `outcome_input_pending`, `outcome_x_before`, `outcome_P_before` and
+/// `outcome_P_window` (the window's blocks stacked, (nodes·n, n)).
 fn outcome_items(py: Python<'_>, d: &Bound<'_, PyDict>, o: Outcome, n: usize) -> PyResult<()> {
+    d.set_item("outcome_x_before", PyArray1::from_vec(py, o.x_before))?;
+    d.set_item("outcome_P_before", array2(py, o.covariance_before, n, n)?)?;
+    let rows = o.window_covariance.len() / n;
+    d.set_item(
+        "outcome_P_window",
+        array2(py, o.window_covariance, rows, n)?,
+    )?;
     d.set_item("outcome_x_prior", PyArray1::from_vec(py, o.x_prior))?;
     d.set_item("outcome_P", array2(py, o.covariance, n, n)?)?;
     d.set_item("outcome_cost", o.cost)?;
@@ -190,15 +198,33 @@ fn outcome_items(py: Python<'_>, d: &Bound<'_, PyDict>, o: Outcome, n: usize) ->
 }
 
 /// The outcome in a state dict (see `outcome_items`); a state without one (saved before
-/// estimators recorded it) keeps `current`. An entry of the wrong type is a ValueError naming
-/// it; the values are checked by `HistoryState`'s restore.
+/// estimators recorded it) keeps `current`, one without the state before the update and the
+/// window's covariances (saved before they were recorded) has them NaN. An entry of the wrong
+/// type is a ValueError naming it; the values are checked by `HistoryState`'s restore.
 fn read_outcome(state: &Bound<'_, PyDict>, current: &Outcome, n: usize) -> PyResult<Outcome> {
     if !state.contains("outcome_x_prior")? {
         return Ok(current.clone());
     }
     let item = |key: &str| state_item(state, key);
     let typed = |key: &str, what: &str| PyValueError::new_err(format!("{key}: must be {what}"));
+    let (x_before, covariance_before, window_covariance) = if state.contains("outcome_x_before")? {
+        (
+            state_rows_1d(state, "outcome_x_before")?,
+            state_rows(state, "outcome_P_before", n)?,
+            state_rows(state, "outcome_P_window", n)?,
+        )
+    } else {
+        let nodes = state_rows(state, "x_window", n)?.len() / n;
+        (
+            vec![f64::NAN; n],
+            vec![f64::NAN; n * n],
+            vec![f64::NAN; nodes * n * n],
+        )
+    };
     Ok(Outcome {
+        x_before,
+        covariance_before,
+        window_covariance,
         x_prior: state_rows_1d(state, "outcome_x_prior")?,
         covariance: state_rows(state, "outcome_P", n)?,
         cost: item("outcome_cost")?
