@@ -112,7 +112,10 @@ def chi2_test(values, dof, alpha=0.05):
     Returns
     -------
     Chi2Test
-        The mean, the band and the verdict.
+        A frozen dataclass: ``mean`` (of the values used), ``lower`` and ``upper`` (the band of a
+        consistent estimator's mean), ``consistent`` (whether the mean lies in it), ``steps``
+        (the values used) and ``dof`` (the mean degrees of freedom per value, what the mean
+        should be).
 
     Raises
     ------
