@@ -229,3 +229,31 @@ def test_chi2_test_refuses_what_it_cannot_judge():
         chi2_test([1.0], dof=1, alpha=1.5)
     with pytest.raises(ValueError, match="^P: not positive definite at step 1"):
         nees([[0.0], [0.0]], [[0.0], [0.0]], [[[1.0]], [[-1.0]]])
+
+
+def test_smooth_is_the_rts_smoother_of_the_whole_run_and_changes_nothing():
+    _, us, ys = data(30)
+    kf = kalman()
+    xs_f, Ps_f = [], []
+    for u, y in zip(us, ys):
+        kf.update(y)
+        xs_f.append(kf.x.copy())
+        Ps_f.append(kf.P.copy())
+        kf.predict(u=u)
+    # filterpy's RTS smoother gives the covariances (its means leave out the input B u).
+    _, Ps_r, _, _ = kf.rts_smoother(np.array(xs_f), np.array(Ps_f), Fs=[A] * 30, Qs=[Q] * 30)
+    Psm, xsm = rts(xs_f, Ps_f), [xs_f[-1]]  # the means with the input, by the same recursion
+    for k in range(28, -1, -1):
+        Pp = A @ Ps_f[k] @ A.T + Q
+        G = Ps_f[k] @ A.T @ np.linalg.inv(Pp)
+        xsm.insert(0, xs_f[k] + G @ (xsm[0] - (A @ xs_f[k] + B @ us[k])))
+    for form in ("prediction", "filtering"):
+        est = kalman_like(form, 4)
+        xs, Ps = est.smooth(ys, us)
+        np.testing.assert_allclose(xs, np.array(xsm), atol=1e-7)
+        np.testing.assert_allclose(Ps, Psm, atol=1e-8)
+        np.testing.assert_allclose(Ps, Ps_r, atol=1e-8)  # filterpy's covariances agree
+        assert est.t == 0 and est.horizon == 4 and est.form == form
+        est.update(us[0], ys[0])
+        with pytest.raises(ValueError, match="^smooth: the estimator has been updated"):
+            est.smooth(ys, us)

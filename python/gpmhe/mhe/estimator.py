@@ -11,6 +11,7 @@ See *Architecture* in the documentation.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -919,6 +920,63 @@ class GPMHE:
             self._step(*step)
             xs[i], Ps[i] = self.x, self.P
         return xs, Ps
+
+    def smooth(self, ys, us=None, Rs=None, dts=None):
+        """The fixed-interval smoothed trajectory of a logged run, with its covariances.
+
+        Runs this estimator's model and settings over the whole run in one window (the
+        filtering form with a horizon as long as the run: full information), from this
+        estimator's prior ``x`` and ``P`` for the first sample, and returns the last window and
+        its covariances. The estimator itself does not change. The default solver runs every
+        window to its gradient tolerance (``dtol=0`` unless ``solver_options`` give one).
+
+        Parameters
+        ----------
+        ys, us, Rs, dts
+            The run, as for `batch_filter` (``ys[0]`` is the first sample after the prior).
+
+        Returns
+        -------
+        xs : ndarray of shape (T, dim_x)
+            x̂(t | all T samples) for t = 0..T−1.
+        Ps : ndarray of shape (T, dim_x, dim_x)
+            Their covariances (``P_window`` of that window).
+
+        Raises
+        ------
+        ValueError
+            As `batch_filter`, or if the estimator has been updated (``t`` > 0: its prior is
+            then not the prior of a new run; use a new estimator or `reset`).
+
+        Notes
+        -----
+        On a linear-Gaussian model with η = 1 and no active bounds the result is the
+        Rauch-Tung-Striebel smoother's (the arrival cost enters only at the first sample, as
+        its prior). With η < 1 the older samples weigh less, as in every window. The window
+        grows to T nodes: every update solves the whole run so far, so the time grows with T².
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import GPMHE, KnownModel
+        >>> model = KnownModel(lambda x, u: x, lambda x, u: x, dim_x=1, dim_y=1)
+        >>> est = GPMHE(model, x0=[0.0], P0=100.0, Q0=1e-6, R0=1.0, eta=1.0)
+        >>> xs, Ps = est.smooth([[1.0], [3.0], [2.0]])  # a constant: every node is the mean
+        >>> print(np.round(xs.ravel(), 3), np.round(Ps[0, 0, 0], 3))
+        [1.993 1.993 1.993] 0.332
+        """
+        if self.t:
+            raise ValueError(f"smooth: the estimator has been updated (t = {self.t}); smooth "
+                             "from a new estimator (or after reset)")
+        ys = sequence_rows("ys", ys)
+        options = dict(self._settings.solver_options)
+        if self.solver == "gauss-newton":  # off-line: to the gradient tolerance unless told
+            options.setdefault("dtol", 0.0)
+        settings = dataclasses.replace(self._settings, horizon=max(len(ys), 1), form="filtering",
+                                       solver_options=options)
+        full = type(self)._from_settings(self.model, settings, self.x)  # the same prior
+        full.batch_filter(ys, us, Rs, dts)
+        return full.x_window, full.P_window
 
     # ----------------------------------------------------------------------------------------
     @exclusive  # one update at a time per estimator (gpmhe/_threads.py)
