@@ -179,7 +179,8 @@ class GPMHE:
     S : ndarray of shape (dim_y, dim_y)
         Its covariance C P⁻ Cᵀ + R(t) + diag σ²_y(x̂⁻, u(t)), P⁻ the previous ``P`` (carried
         over the stage, + Q0 + diag σ²_x, in the filtering form), R(t) the sample's covariance
-        or ``R0``. With the Kalman-filter settings on a linear-Gaussian model: the Kalman
+        or ``R0`` (Q0 and R0 as they are when read: after setting them, S is the one they would
+        have given). With the Kalman-filter settings on a linear-Gaussian model: the Kalman
         filter's innovation and S.
     nis : float
         νᵀS⁻¹ν over the measured channels (NaN when none is measured): χ² with as many degrees
