@@ -1,6 +1,7 @@
 """The arrival cost on three plants: the paper's (the estimator's own estimate of x(t − M), P2
-constant), the smoothed mean (the previous window's estimate of the new first node) and the EKF
-update of the arrival weight, in the four combinations.
+constant), the smoothed mean (the previous window's estimate of the new first node), the
+filtered mean (the leaving node's prior updated with its output and carried over its stage at
+the window's solution) and the EKF update of the arrival weight, in the six combinations.
 
 Plants: the batch reactor of the GP-MHE paper (exact model, its setting), the cart-pole with
 nearly deterministic dynamics and full-state noisy measurements (`gpmhe.systems.cart_pole`, its
@@ -22,8 +23,8 @@ from gpmhe.systems import batch_reactor as br
 from gpmhe.systems import cart_pole as cp
 from gpmhe.systems import rotating_masses as rm
 
-COMBOS = [("estimate", "constant"), ("smoothed", "constant"), ("estimate", "ekf"),
-          ("smoothed", "ekf")]
+COMBOS = [("estimate", "constant"), ("smoothed", "constant"), ("filtered", "constant"),
+          ("estimate", "ekf"), ("smoothed", "ekf"), ("filtered", "ekf")]
 
 
 def reactor(seed, mean, weight):

@@ -8,7 +8,7 @@ import copy
 import numpy as np
 import pytest
 
-from gpmhe import GPMHE, KnownModel
+from gpmhe import GPMHE, EstimatorBank, KnownModel
 from gpmhe.systems import batch_reactor as br
 
 A = np.array([[0.9, 0.2], [-0.1, 0.8]])
@@ -42,24 +42,36 @@ def _data(steps=40, seed=0):
     return np.array(xs), np.array(us), np.array(ys)
 
 
-def test_linear_mhe_with_ekf_arrival_weight_is_the_kalman_filter():
+@pytest.mark.parametrize("horizon", [1, 4])
+@pytest.mark.parametrize("form", ["filtering", "prediction"])
+@pytest.mark.parametrize("mean", ["estimate", "filtered"])
+def test_linear_mhe_with_ekf_arrival_weight_is_the_kalman_filter(mean, form, horizon):
     Q, R, P0 = np.array([[0.01, 0.004], [0.004, 0.02]]), np.array([[0.04, 0.01], [0.01, 0.02]]), np.eye(2)
     _, us, ys = _data()
-    est = GPMHE(_linear(), x0=[0.0, 0.0], horizon=4, eta=1.0, P0=P0, Q0=Q, R0=R, form="filtering",
-                arrival_mean="estimate", arrival_weight="ekf", solver_options=dict(dtol=0.0, gtol=1e-10))
+    est = GPMHE(_linear(), x0=[0.0, 0.0], horizon=horizon, eta=1.0, P0=P0, Q0=Q, R0=R, form=form,
+                arrival_mean=mean, arrival_weight="ekf", solver_options=dict(dtol=0.0, gtol=1e-10))
     x, P = np.zeros(2), P0.copy()
     for u, y in zip(us, ys):
-        # Kalman filter: update with y(t), then x̂(t|t); predict with u(t).
+        # Kalman filter: update with y(t), then x̂(t|t); predict with u(t): x̂(t+1|t).
         K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
         x, P = x + K @ (y - C @ x), (np.eye(2) - K @ C) @ P
         est.update(u, y)
-        np.testing.assert_allclose(est.x, x, atol=1e-7)
+        if form == "filtering":
+            np.testing.assert_allclose(est.x, x, atol=1e-7)
+            np.testing.assert_allclose(est.P, P, atol=1e-7)
         x, P = A @ x + B @ u, A @ P @ A.T + Q
-    # The constant-weight MHE (the paper's) differs once the window slides.
-    paper = GPMHE(_linear(), x0=[0.0, 0.0], horizon=4, eta=1.0, P0=P0, Q0=Q, R0=R, form="filtering",
-                  arrival_mean="estimate", arrival_weight="constant")
-    xs, _ = paper.batch_filter(ys, us)
-    assert np.abs(xs[-1] - est.x).max() > 1e-4
+        if form == "prediction":
+            np.testing.assert_allclose(est.x, x, atol=1e-7)
+            np.testing.assert_allclose(est.P, P, atol=1e-7)
+    # The constant-weight MHE (the paper's) and the smoothed mean differ once the window slides
+    # (with M = 1 in the prediction form the smoothed node is the prediction itself).
+    others = [dict(arrival_mean="estimate", arrival_weight="constant")]
+    if not (form == "prediction" and horizon == 1):
+        others.append(dict(arrival_mean="smoothed", arrival_weight="ekf"))
+    for other in others:
+        xs, _ = GPMHE(_linear(), x0=[0.0, 0.0], horizon=horizon, eta=1.0, P0=P0, Q0=Q, R0=R,
+                      form=form, **other).batch_filter(ys, us)
+        assert np.abs(xs[-1] - est.x).max() > 1e-4
 
 
 def test_weights_set_between_updates_take_effect_and_unknown_names_are_rejected():
@@ -223,3 +235,31 @@ def test_a_parameter_is_estimated_with_the_states():
     np.testing.assert_array_equal(twin.p, est.p)
     with pytest.raises(ValueError, match="p0"):
         GPMHE(model, x0=[0.0])
+
+
+def test_the_filtered_arrival_mean_runs_everywhere_the_others_do(tmp_path):
+    """A learned model, a robust penalty and missing channels; checkpoints and banks keep it."""
+    from conftest import synthetic_learned_model
+
+    model = synthetic_learned_model(40)
+    rng = np.random.default_rng(7)
+    steps = [(rng.uniform(-1, 1, 1), rng.normal(size=2) * 0.3) for _ in range(20)]
+    steps[5][1][1] = np.nan
+    kw = dict(horizon=4, Q0=1e-3, R0=[1e-2, 1e-2], arrival_mean="filtered", loss="huber")
+    est = GPMHE(model, [0.2, -0.1], **kw)
+    for u, y in steps[:10]:
+        est.update(u, y)
+    est.save(tmp_path / "est.npz")
+    again = GPMHE.load(tmp_path / "est.npz", model)
+    assert again.arrival_mean == "filtered"
+    bank = EstimatorBank(model, 2, [0.2, -0.1], **kw)
+    lone = GPMHE(model, [0.2, -0.1], **kw)
+    for u, y in steps:
+        y = np.nan_to_num(y)  # (a bank takes a row with a NaN as not measured at all)
+        lone.update(u, y)
+        bank.update(np.array([u, u]), np.array([y, y]))
+    for u, y in steps[10:]:
+        est.update(u, y)
+        again.update(u, y)
+    assert np.array_equal(est.x, again.x) and np.all(np.isfinite(est.x))
+    assert np.array_equal(bank.x[0], lone.x) and np.array_equal(bank.x[1], lone.x)

@@ -331,14 +331,16 @@ class StageModel:
     def __reduce__(self) -> tuple[Any, ...]: ...
 
 class ArrivalMean:
-    """The arrival prior's mean: `Estimate` (the estimator's own earlier estimate) or `Smoothed`
-    (the previous window's estimate of the new first node)."""
+    """The arrival prior's mean: `Estimate` (the estimator's own earlier estimate), `Smoothed`
+    (the previous window's estimate of the new first node) or `Filtered` (the leaving node's
+    prior filtered with its output and carried over its stage at the window's solution)."""
 
     Estimate: ArrivalMean
     Smoothed: ArrivalMean
+    Filtered: ArrivalMean
     @staticmethod
     def from_name(name: str) -> ArrivalMean:
-        """From "estimate" or "smoothed" (ValueError naming arrival_mean otherwise)."""
+        """From "estimate", "smoothed" or "filtered" (ValueError naming arrival_mean otherwise)."""
         ...
     @property
     def name(self) -> str: ...

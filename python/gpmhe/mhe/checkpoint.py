@@ -41,7 +41,8 @@ def load(cls, path, model):
         f.allow_nonfinite = ("x_lower", "x_upper", "p_lower", "p_upper", "cost",
                              "projected_gradient", "core_outcome_cost",
                              "core_outcome_projected_gradient", "core_outcome_x_before",
-                             "core_outcome_P_before", "core_outcome_P_window")
+                             "core_outcome_P_before", "core_outcome_P_window",
+                             "core_y")  # NaN: channels not measured (the core refuses inf)
         kind = f.string("model_kind")
         if kind not in ("LearnedModel", "KnownModel"):
             raise f.error("model_kind", f"must be 'LearnedModel' or 'KnownModel', got {kind!r}")

@@ -127,10 +127,14 @@ class GPMHE:
 
     P0 : array_like of shape (dim_x, dim_x) or None, default None
         The arrival covariance, the covariance form of ``P2`` (P2 = P0⁻¹, as filterpy's ``P``).
-    arrival_mean : {"smoothed", "estimate"}, default "smoothed"
+    arrival_mean : {"smoothed", "estimate", "filtered"}, default "smoothed"
         The arrival prior x̂(t−M_t) once the window slides: "smoothed" is the previous window's
         estimate of the new first node; "estimate" is the estimator's own earlier estimate of
-        x(t−M_t) (the paper's).
+        x(t−M_t) (the paper's); "filtered" is the prior of the node that leaves the window
+        updated with its output and carried over its stage, linearised at the window's solution
+        (the mean of the "ekf" weight's step). With "ekf" weights, "estimate" and "filtered"
+        are the Kalman filter on a linear-Gaussian model (η = 1); see the user guide, *The
+        window problem*, for how they compare on nonlinear plants.
     arrival_weight : {"ekf", "constant"}, default "ekf"
         The arrival weight: "ekf" updates the arrival covariance by an extended Kalman filter
         step over the node that leaves the window (starting from P0); "constant" keeps P2 (the

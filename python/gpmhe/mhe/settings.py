@@ -141,7 +141,7 @@ class MHESettings:
             R0=_frozen(_covariance("R0", R0, p)), x_bounds=(_frozen(lb), _frozen(ub)),
             form=one_of("form", form, ("prediction", "filtering")), solver=solver,
             solver_options=dict(options("solver_options", solver_options, SOLVERS[solver])),
-            arrival_mean=one_of("arrival_mean", arrival_mean, ("estimate", "smoothed")),
+            arrival_mean=one_of("arrival_mean", arrival_mean, ("estimate", "smoothed", "filtered")),
             arrival_weight=one_of("arrival_weight", arrival_weight, ("constant", "ekf")),
             **cls._loss(loss, loss_scale), **cls._parameters(k, p0, P_p0, p_bounds, p_drift))
 

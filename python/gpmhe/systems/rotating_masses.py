@@ -61,7 +61,8 @@ MHE_SETTINGS = dict(horizon=HORIZON, eta=0.99, P2=P_X, R0=np.linalg.inv(P_V), Q0
                     arrival_mean="smoothed", arrival_weight="constant")
 #: `gpmhe.GPMHE`'s parameter settings for Θ1 unknown (with ``known_model(theta1=None)``): the
 #: guess, P_P as the prior weight of Θ1 in its own units (covariance P_P⁻¹), the bounds.
-PARAMETER_SETTINGS = dict(p0=[THETA1_GUESS], P_p0=1.0 / P_P, p_bounds=THETA1_BOUNDS)
+PARAMETER_SETTINGS = dict(p0=[THETA1_GUESS], P_p0=1.0 / P_P,
+                          p_bounds=([THETA1_BOUNDS[0]], [THETA1_BOUNDS[1]]))
 
 #: The true initial state, and the relative perturbation of the estimator's initial guess.
 X0 = np.pi * np.array([1.0, 1.0, -1.5, 1.0, -5.0, 5.0, 0.0, 0.0])

@@ -3,8 +3,10 @@
 //! the window slides.
 //!
 //! * mean: the estimator's own estimate of x(t − M) (the paper's, [`ArrivalMean::Estimate`]),
-//!   or the smoothed estimate of the new first node from the window just solved
-//!   ([`ArrivalMean::Smoothed`]);
+//!   the smoothed estimate of the new first node from the window just solved
+//!   ([`ArrivalMean::Smoothed`]), or the leaving node's prior updated with its output and carried
+//!   over its stage, linearised at the window's solution ([`ArrivalMean::Filtered`],
+//!   [`ekf_mean_step`]: the mean of the EKF step of the weight);
 //! * weight: P2 for ever (the paper's, [`ArrivalWeight::Constant`]), or an extended Kalman
 //!   filter step of the arrival covariance Π = P⁻¹ over the node that leaves the window
 //!   ([`ArrivalWeight::Ekf`], [`ekf_step`]).
@@ -21,6 +23,7 @@ pub enum ArrivalMean {
     #[default]
     Estimate,
     Smoothed,
+    Filtered,
 }
 
 /// The arrival weight (see the module docs).
@@ -118,6 +121,70 @@ pub fn ekf_step(
     Ok(s_next.transpose().as_slice().to_vec()) // row-major
 }
 
+/// The mean of the EKF step of [`ekf_step`]: the arrival prior `x_prior` of the node that leaves
+/// (information W = SᵀS) updated with its output y_0 and carried over its stage, with the model
+/// linearised at the window's solution `z0` of that node (values and Jacobians in `st`):
+/// x⁺ = (W + JᵀJ)⁻¹ (W x̄ + Jᵀ(r + J z0)) with the whitened output rows J = ψ′ L⁻¹ C and
+/// targets r = ψ(L⁻¹(y_0 − m_y(z0))) (e and ψ(e) = e for the squared loss, so W + JᵀJ is
+/// `ekf_step`'s information), then m_x(z0) + A (x⁺ − z0). On a linear model the linearisation
+/// point does not matter and this is the Kalman filter's prediction. A numerical error if a
+/// matrix is not positive definite.
+pub fn ekf_mean_step(
+    st: &StageEval,
+    problem: &WindowProblem,
+    y0: Option<&[f64]>,
+    s: &[f64],
+    x_prior: &[f64],
+    z0: &[f64],
+) -> Result<Vec<f64>> {
+    let (n, p) = (problem.dim_x(), problem.dim_y());
+    let nd = n + problem.dim_u();
+    if st.mean_x.len() < n || st.dmean_x.len() < n * nd || st.dmean_y.len() < p * nd {
+        return Err(Error::numerical(
+            "arrival mean update: no model values at the node",
+        ));
+    }
+    let not_pd = || Error::numerical("arrival mean update: a matrix is not positive definite");
+    let s = DMatrix::from_row_slice(n, n, s);
+    let mut info = s.transpose() * &s;
+    let z0 = DVector::from_column_slice(z0);
+    let mut b = &info * DVector::from_column_slice(x_prior);
+    let measured: Vec<usize> =
+        y0.map_or_else(Vec::new, |y| (0..p).filter(|&k| y[k].is_finite()).collect());
+    if let (false, Some(y)) = (measured.is_empty(), y0) {
+        let r = problem.output_cov(0).with_variances(
+            &measured,
+            &measured.iter().map(|&k| st.var_y[k]).collect::<Vec<_>>(),
+        );
+        let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
+        let rc = r.cholesky().ok_or_else(not_pd)?;
+        let mut rows = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
+        let e = DVector::from_iterator(
+            measured.len(),
+            measured.iter().map(|&k| y[k] - st.mean_y[k]),
+        );
+        let mut target = rc.l().solve_lower_triangular(&e).ok_or_else(not_pd)?;
+        let loss = problem.loss();
+        if !loss.is_squared() {
+            for i in 0..measured.len() {
+                let (psi, slope) = loss.psi(target[i]);
+                rows.row_mut(i).scale_mut(slope);
+                target[i] = psi;
+            }
+        }
+        target += &rows * &z0;
+        info += rows.transpose() * &rows;
+        b += rows.transpose() * target;
+    }
+    let posterior = info.cholesky().ok_or_else(not_pd)?.solve(&b);
+    let a = DMatrix::from_fn(n, n, |i, j| st.dmean_x[i * nd + j]);
+    let next = DVector::from_column_slice(&st.mean_x[..n]) + a * (posterior - z0);
+    if next.iter().any(|v| !v.is_finite()) {
+        return Err(not_pd());
+    }
+    Ok(next.as_slice().to_vec())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -181,5 +248,41 @@ mod tests {
         let got = (sn.transpose() * sn).try_inverse().unwrap();
         let expected = &a * pi * a.transpose() + DMatrix::from_row_slice(2, 2, &q0);
         assert!((got - expected).norm() < 1e-12);
+    }
+
+    /// On a linear-Gaussian model the mean step is the Kalman filter's update and prediction,
+    /// wherever the model is linearised.
+    #[test]
+    fn ekf_mean_step_is_the_kalman_mean_recursion() {
+        let q0 = [0.01, 0.002, 0.002, 0.02];
+        let problem = WindowProblem::new(
+            2,
+            0,
+            1,
+            1.0,
+            &q0,
+            &[0.1],
+            &[1.0, 0.0, 0.0, 1.0],
+            Form::Prediction,
+        )
+        .unwrap();
+        let s = [2.0, 0.0, 0.5, 1.0];
+        let (prior, y) = ([0.4, -0.1], 0.7);
+        let sm = DMatrix::from_row_slice(2, 2, &s);
+        let pi = (sm.transpose() * &sm).try_inverse().unwrap();
+        let c = DMatrix::from_row_slice(1, 2, &[1.0, 0.0]);
+        let k = &pi * c.transpose() / ((&c * &pi * c.transpose())[0] + 0.1);
+        let x = DVector::from_column_slice(&prior);
+        let x_plus = &x + &k * (y - (&c * &x)[0]);
+        let a = DMatrix::from_row_slice(2, 2, &[0.9, 0.2, 0.0, 0.8]);
+        let expected = &a * x_plus;
+        for z0 in [[0.3, -0.2], [5.0, 3.0]] {
+            let st = evaluate_at(&mut Linear, &z0, &[]).unwrap();
+            let got = ekf_mean_step(&st, &problem, Some(&[y]), &s, &prior, &z0).unwrap();
+            assert!((DVector::from_column_slice(&got) - &expected).norm() < 1e-12);
+            // Without the output: the prior carried over the stage.
+            let got = ekf_mean_step(&st, &problem, None, &s, &prior, &z0).unwrap();
+            assert!((DVector::from_column_slice(&got) - &a * &x).norm() < 1e-12);
+        }
     }
 }

@@ -9,7 +9,7 @@
 //! [`MovingHorizon::evaluate`] evaluates the staged window at any z, and
 //! [`MovingHorizon::commit`] records a solution.
 
-use super::arrival::{ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
+use super::arrival::{ekf_mean_step, ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
 use super::innovation::{innovation, Innovation};
 use super::lsq::WindowLsq;
@@ -647,28 +647,34 @@ impl MovingHorizon {
             }
         };
         let slides = self.history.window_start(self.history.t() + 1) == data.s0 + 1;
-        let weight = match (slides, self.arrival.weight) {
-            (true, ArrivalWeight::Ekf) => {
-                let p = self.problem.dim_y();
-                let y0 = data.present[0].then(|| &data.y[..p]);
-                let s = self.history.arrival_sqrt();
-                // The window's last evaluation holds the model's values at node 0 when it was
-                // at z (the solver's solution); otherwise evaluate there.
-                let fresh;
-                let st = if self.evaluated_at == z {
-                    self.eval.stage()
-                } else {
-                    fresh = evaluate_at(model, &z[..n], &data.u[..m])?;
-                    &fresh
-                };
-                match ekf_step(st, &self.problem, y0, s) {
-                    Ok(next) => Some(next),
-                    Err(Error::Numerical(_)) => None, // keep the weight
-                    Err(e) => return Err(e),
-                }
+        let ekf_weight = self.arrival.weight == ArrivalWeight::Ekf;
+        let filtered_mean = self.arrival.mean == ArrivalMean::Filtered;
+        let (mut weight, mut mean) = (None, None);
+        if slides && (ekf_weight || filtered_mean) {
+            let p = self.problem.dim_y();
+            let y0 = data.present[0].then(|| &data.y[..p]);
+            let s = match self.arrival.weight {
+                ArrivalWeight::Constant => self.problem.p2_sqrt(),
+                ArrivalWeight::Ekf => self.history.arrival_sqrt(),
+            };
+            // The window's last evaluation holds the model's values at node 0 when it was
+            // at z (the solver's solution); otherwise evaluate there.
+            let fresh;
+            let st = if self.evaluated_at == z {
+                self.eval.stage()
+            } else {
+                fresh = evaluate_at(model, &z[..n], &data.u[..m])?;
+                &fresh
+            };
+            // A numerical failure keeps the weight (and the mean: the estimate's prediction).
+            if ekf_weight {
+                weight = keep_on_numerical(ekf_step(st, &self.problem, y0, s))?;
             }
-            _ => None,
-        };
+            if filtered_mean {
+                let step = ekf_mean_step(st, &self.problem, y0, s, &data.x_prior, &z[..n]);
+                mean = keep_on_numerical(step)?;
+            }
+        }
         let data = self
             .staged
             .take()
@@ -689,6 +695,9 @@ impl MovingHorizon {
         self.history.push(data, z.clone(), next_prior, outcome);
         if slides && self.arrival.mean == ArrivalMean::Smoothed && z.len() >= 2 * n {
             self.history.set_prior(s0 + 1, &z[n..2 * n]);
+        }
+        if let Some(prior) = mean {
+            self.history.set_prior(s0 + 1, &prior);
         }
         if let Some(next) = weight {
             self.history.set_arrival_sqrt(next);
@@ -750,6 +759,15 @@ impl MovingHorizon {
         let report = solver.solve(&mut lsq, z, lower, upper, opts)?;
         self.evaluated_at.extend_from_slice(z);
         Ok(report)
+    }
+}
+
+/// Ok(None) for a numerical error (the caller keeps what it had), the value or the other errors.
+fn keep_on_numerical<T>(r: Result<T>) -> Result<Option<T>> {
+    match r {
+        Ok(v) => Ok(Some(v)),
+        Err(Error::Numerical(_)) => Ok(None),
+        Err(e) => Err(e),
     }
 }
 

@@ -9,7 +9,8 @@ use pyo3::types::PyTuple;
 use crate::mhe::{ArrivalMean, ArrivalWeight};
 
 /// The arrival prior's mean: the estimator's own earlier estimate, or the previous window's
-/// smoothed estimate of the new first node.
+/// smoothed estimate of the new first node, or the leaving node's prior filtered with its output
+/// and carried over its stage at the window's solution.
 #[pyclass(
     name = "ArrivalMean",
     module = "gpmhe._core",
@@ -22,6 +23,7 @@ use crate::mhe::{ArrivalMean, ArrivalWeight};
 pub(crate) enum PyArrivalMean {
     Estimate,
     Smoothed,
+    Filtered,
 }
 
 /// The arrival weight: constant (P2), or updated by an EKF step over the node that leaves.
@@ -41,14 +43,15 @@ pub(crate) enum PyArrivalWeight {
 
 #[pymethods]
 impl PyArrivalMean {
-    /// The value named "estimate" or "smoothed".
+    /// The value named "estimate", "smoothed" or "filtered".
     #[staticmethod]
     fn from_name(name: &str) -> PyResult<Self> {
         match name {
             "estimate" => Ok(Self::Estimate),
             "smoothed" => Ok(Self::Smoothed),
+            "filtered" => Ok(Self::Filtered),
             _ => Err(PyValueError::new_err(format!(
-                "arrival_mean: must be 'estimate' or 'smoothed', got {name:?}"
+                "arrival_mean: must be 'estimate', 'smoothed' or 'filtered', got {name:?}"
             ))),
         }
     }
@@ -59,6 +62,7 @@ impl PyArrivalMean {
         match self {
             Self::Estimate => "estimate",
             Self::Smoothed => "smoothed",
+            Self::Filtered => "filtered",
         }
     }
 
@@ -104,6 +108,7 @@ impl From<PyArrivalMean> for ArrivalMean {
         match m {
             PyArrivalMean::Estimate => ArrivalMean::Estimate,
             PyArrivalMean::Smoothed => ArrivalMean::Smoothed,
+            PyArrivalMean::Filtered => ArrivalMean::Filtered,
         }
     }
 }
@@ -113,6 +118,7 @@ impl From<ArrivalMean> for PyArrivalMean {
         match m {
             ArrivalMean::Estimate => PyArrivalMean::Estimate,
             ArrivalMean::Smoothed => PyArrivalMean::Smoothed,
+            ArrivalMean::Filtered => PyArrivalMean::Filtered,
         }
     }
 }
