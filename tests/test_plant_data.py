@@ -250,3 +250,15 @@ def test_batch_filter_and_banks_take_each_samples_covariance():
     np.testing.assert_array_equal(bank.x[1], xs[-1])
     with pytest.raises(ValueError, match="R"):
         bank.update(np.tile(us[0], (2, 1)), np.tile(ys[0], (2, 1)), R=[[1.0, 0.5], [0.5, 1.0]])
+
+
+def test_a_checkpoint_keeps_samples_with_a_channel_not_measured(tmp_path):
+    us, ys, _ = data(20)
+    ys[3, 1] = ys[8, 0] = np.nan  # in the history when saved
+    est = GPMHE(LINEAR, x0=[0.0, 0.0], horizon=8, Q0=Q, R0=R0)
+    est.batch_filter(ys[:10], us[:10])
+    est.save(tmp_path / "est.npz")
+    again = GPMHE.load(tmp_path / "est.npz", LINEAR)
+    a, _ = est.batch_filter(ys[10:], us[10:])
+    b, _ = again.batch_filter(ys[10:], us[10:])
+    assert np.array_equal(a, b)
