@@ -48,8 +48,8 @@ def run_until_interrupted(step, rng):
     """Runs `step()` in a loop until a SIGINT sent after a random delay stops it."""
     timer = threading.Timer(rng.uniform(0.0, 0.02), signal.pthread_kill,
                             (threading.main_thread().ident, signal.SIGINT))
-    timer.start()
     try:
+        timer.start()  # (on a busy machine the signal can come before start returns)
         while True:
             step()
     except KeyboardInterrupt:

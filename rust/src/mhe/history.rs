@@ -361,6 +361,12 @@ impl History {
             return Err(Error::invalid("y", "has no measured channel (all NaN)"));
         }
         let max = self.max_delay().unwrap_or(0);
+        if max == 0 {
+            return Err(Error::invalid(
+                "age",
+                format!("got {age}, but the next window holds no earlier output yet (max_delay 0)"),
+            ));
+        }
         if age == 0 || age > max {
             return Err(Error::invalid(
                 "age",
