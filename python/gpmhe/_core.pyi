@@ -454,12 +454,11 @@ class MovingHorizon:
         success: bool = True,
         nit: int = 0,
         message: str = "",
-        P: _F | None = None,
         P_window: _F | None = None,
     ) -> tuple[_F, _F]:
         """Record the staged window's solution with another solver's report (cost None:
-        evaluated here; P None: keep the previous covariance; P_window: every node's covariance
-        block, flattened, None: NaN): (x_window, x_prior)."""
+        evaluated here; P_window: every node's covariance block, flattened, the last one the
+        estimate's; None: keep the previous covariance, NaN blocks): (x_window, x_prior)."""
         ...
     def abandon(self) -> None:
         """Drop the staged window and put the learned model's cache back as before `prepare`."""

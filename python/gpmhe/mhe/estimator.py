@@ -1008,8 +1008,8 @@ class GPMHE:
                 self.solver, self._settings.solver_options, core, z0, lb, ub)
             if not success:  # (before the record: as an error it leaves nothing changed)
                 self._warn(message, core.t, stacklevel=5)
-            P, P_window = solvers.window_covariance(core, z, self.dim_x + self.dim_p)
-            core.commit(z, cost, success, nit, message, P, P_window)
+            P_window = solvers.window_covariance(core, z, self.dim_x + self.dim_p)
+            core.commit(z, cost, success, nit, message, P_window)
         except BaseException:
             core.abandon()  # the model's cache as before prepare: as if never started
             raise

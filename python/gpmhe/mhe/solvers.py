@@ -112,20 +112,17 @@ def solve(solver, options, window, z0, lb, ub):
 
 
 def window_covariance(window, z, n):
-    """(P, P_window): the last n×n block of 4 H⁻¹ at z and every diagonal block, stacked
-    (nodes·n·n,) (the Rust solve returns the same blocks from its block-tridiagonal
-    factorisation); (None, None) if H is singular."""
+    """Every diagonal n×n block of 4 H⁻¹ at z, stacked (nodes·n·n,) (the Rust solve returns the
+    same blocks from its block-tridiagonal factorisation); None if H is singular."""
     H = window.gn_hessian(z)
     try:
         Hinv = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        return None, None
+        return None
     nodes = len(z) // n
     blocks = np.array([Hinv[i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(nodes)])
     blocks = 2.0 * (blocks + blocks.transpose(0, 2, 1))
-    if not np.all(np.isfinite(blocks)):
-        return None, None
-    return np.ascontiguousarray(blocks[-1]), blocks.ravel()
+    return blocks.ravel() if np.all(np.isfinite(blocks)) else None
 
 
 def _trust_constr(user_options, window, z0, lb, ub):

@@ -67,45 +67,15 @@ pub fn ekf_step(
     y0: Option<&[f64]>,
     s: &[f64],
 ) -> Result<Vec<f64>> {
-    let (n, p) = (problem.dim_x(), problem.dim_y());
+    let n = problem.dim_x();
     let nd = n + problem.dim_u();
-    if st.var_x.len() < n
-        || st.var_y.len() < p
-        || st.dmean_x.len() < n * nd
-        || st.dmean_y.len() < p * nd
-    {
-        return Err(Error::numerical(
-            "arrival covariance update: no model values at the node",
-        ));
-    }
+    check_node_values(st, problem)?;
     let not_pd =
         || Error::numerical("arrival covariance update: a matrix is not positive definite");
     let s = DMatrix::from_row_slice(n, n, s);
     let mut info = s.transpose() * &s;
-    let measured: Vec<usize> =
-        y0.map_or_else(Vec::new, |y| (0..p).filter(|&k| y[k].is_finite()).collect());
-    if !measured.is_empty() {
-        let r = problem.output_cov(0).with_variances(
-            &measured,
-            &measured.iter().map(|&k| st.var_y[k]).collect::<Vec<_>>(),
-        );
-        let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
-        let rc = r.cholesky().ok_or_else(not_pd)?;
-        let mut whitened = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
-        let loss = problem.loss();
-        if let (false, Some(y)) = (loss.is_squared(), y0) {
-            // A robust penalty: each whitened row's information times ψ′(e)², as in the window.
-            let e = DVector::from_iterator(
-                measured.len(),
-                measured.iter().map(|&k| y[k] - st.mean_y[k]),
-            );
-            let e = rc.l().solve_lower_triangular(&e).ok_or_else(not_pd)?;
-            for (i, &ei) in e.iter().enumerate() {
-                let slope = loss.psi(ei).1;
-                whitened.row_mut(i).scale_mut(slope);
-            }
-        }
-        info += whitened.transpose() * whitened;
+    if let Some((rows, _)) = output_rows(st, problem, y0)? {
+        info += rows.transpose() * rows;
     }
     let pi_plus = info.cholesky().ok_or_else(not_pd)?.inverse();
     let a = DMatrix::from_fn(n, n, |i, j| st.dmean_x[i * nd + j]);
@@ -137,42 +107,16 @@ pub fn ekf_mean_step(
     x_prior: &[f64],
     z0: &[f64],
 ) -> Result<Vec<f64>> {
-    let (n, p) = (problem.dim_x(), problem.dim_y());
+    let n = problem.dim_x();
     let nd = n + problem.dim_u();
-    if st.mean_x.len() < n || st.dmean_x.len() < n * nd || st.dmean_y.len() < p * nd {
-        return Err(Error::numerical(
-            "arrival mean update: no model values at the node",
-        ));
-    }
+    check_node_values(st, problem)?;
     let not_pd = || Error::numerical("arrival mean update: a matrix is not positive definite");
     let s = DMatrix::from_row_slice(n, n, s);
     let mut info = s.transpose() * &s;
     let z0 = DVector::from_column_slice(z0);
     let mut b = &info * DVector::from_column_slice(x_prior);
-    let measured: Vec<usize> =
-        y0.map_or_else(Vec::new, |y| (0..p).filter(|&k| y[k].is_finite()).collect());
-    if let (false, Some(y)) = (measured.is_empty(), y0) {
-        let r = problem.output_cov(0).with_variances(
-            &measured,
-            &measured.iter().map(|&k| st.var_y[k]).collect::<Vec<_>>(),
-        );
-        let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
-        let rc = r.cholesky().ok_or_else(not_pd)?;
-        let mut rows = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
-        let e = DVector::from_iterator(
-            measured.len(),
-            measured.iter().map(|&k| y[k] - st.mean_y[k]),
-        );
-        let mut target = rc.l().solve_lower_triangular(&e).ok_or_else(not_pd)?;
-        let loss = problem.loss();
-        if !loss.is_squared() {
-            for i in 0..measured.len() {
-                let (psi, slope) = loss.psi(target[i]);
-                rows.row_mut(i).scale_mut(slope);
-                target[i] = psi;
-            }
-        }
-        target += &rows * &z0;
+    if let Some((rows, target)) = output_rows(st, problem, y0)? {
+        let target = target + &rows * &z0;
         info += rows.transpose() * &rows;
         b += rows.transpose() * target;
     }
@@ -183,6 +127,66 @@ pub fn ekf_mean_step(
         return Err(not_pd());
     }
     Ok(next.as_slice().to_vec())
+}
+
+/// A numerical error unless `st` holds the model's values and Jacobians at (at least) one point.
+fn check_node_values(st: &StageEval, problem: &WindowProblem) -> Result<()> {
+    let (n, p) = (problem.dim_x(), problem.dim_y());
+    let nd = n + problem.dim_u();
+    let short = st.mean_x.len() < n
+        || st.var_x.len() < n
+        || st.mean_y.len() < p
+        || st.var_y.len() < p
+        || st.dmean_x.len() < n * nd
+        || st.dmean_y.len() < p * nd;
+    match short {
+        true => Err(Error::numerical(
+            "arrival update: no model values at the node",
+        )),
+        false => Ok(()),
+    }
+}
+
+/// The whitened rows of the leaving node's output y_0 as the window weighs them, on its measured
+/// channels: J = ψ′(e) L⁻¹C and targets ψ(e) with e = L⁻¹(y_0 − m_y) (J = L⁻¹C and e for the
+/// squared loss), L Lᵀ = R + diag σ²_y (R the covariance given with y_0, or R0), C = ∂m_y/∂x, read
+/// from `st` at the node; None without a measured channel.
+fn output_rows(
+    st: &StageEval,
+    problem: &WindowProblem,
+    y0: Option<&[f64]>,
+) -> Result<Option<(DMatrix<f64>, DVector<f64>)>> {
+    let (n, p) = (problem.dim_x(), problem.dim_y());
+    let nd = n + problem.dim_u();
+    let Some(y) = y0 else { return Ok(None) };
+    let measured: Vec<usize> = (0..p).filter(|&k| y[k].is_finite()).collect();
+    if measured.is_empty() {
+        return Ok(None);
+    }
+    let not_pd =
+        || Error::numerical("arrival update: the output covariance is not positive definite");
+    let r = problem.output_cov(0).with_variances(
+        &measured,
+        &measured.iter().map(|&k| st.var_y[k]).collect::<Vec<_>>(),
+    );
+    let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
+    let rc = r.cholesky().ok_or_else(not_pd)?;
+    let mut rows = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
+    let e = DVector::from_iterator(
+        measured.len(),
+        measured.iter().map(|&k| y[k] - st.mean_y[k]),
+    );
+    let mut target = rc.l().solve_lower_triangular(&e).ok_or_else(not_pd)?;
+    let loss = problem.loss();
+    if !loss.is_squared() {
+        // A robust penalty: each whitened row times ψ′(e), its target ψ(e), as in the window.
+        for i in 0..measured.len() {
+            let (psi, slope) = loss.psi(target[i]);
+            rows.row_mut(i).scale_mut(slope);
+            target[i] = psi;
+        }
+    }
+    Ok(Some((rows, target)))
 }
 
 #[cfg(test)]

@@ -13,7 +13,7 @@ use super::arrival::{ekf_mean_step, ekf_step, evaluate_at, Arrival, ArrivalMean,
 use super::history::{History, HistoryState, WindowData};
 use super::innovation::{innovation, Innovation};
 use super::lsq::WindowLsq;
-use super::outcome::Solved;
+use super::outcome::{last_block, Solved};
 use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
 use super::weights::Covariance;
@@ -384,11 +384,10 @@ impl MovingHorizon {
             }
             Err(e) => return Err(e),
         };
-        let nn = self.problem.dim_x() * self.problem.dim_x();
-        let covariance = blocks.as_ref().map(|b| b[b.len() - nn..].to_vec());
+        let n = self.problem.dim_x();
+        let covariance = blocks.as_deref().map(|b| last_block(b, n * n));
         let solved = Solved::Rust(solve.clone());
-        let (x_window, x_prior) =
-            self.commit(model, z, covariance.clone(), blocks, cost, &solved)?;
+        let (x_window, x_prior) = self.commit(model, z, blocks, cost, &solved)?;
         Ok(UpdateReport {
             x_window,
             x_prior,
@@ -607,8 +606,8 @@ impl MovingHorizon {
     }
 
     /// Records the staged window's solution z (nodes × n) with how it was solved (its cost,
-    /// the covariance estimate of its last node and of every node, None if not computable, and
-    /// the solver's report), all in one step: the next arrival prior is the new estimate (prediction form)
+    /// the covariance estimates of its nodes, nodes × n × n, whose last block is the estimate's,
+    /// None if not computable, and the solver's report), all in one step: the next arrival prior is the new estimate (prediction form)
     /// or its one-step prediction m_x(x̄_t, u(t)) (filtering form); when the next window starts
     /// one node later, the arrival cost moves with it (the smoothed mean and the EKF weight,
     /// `arrival.rs`). Returns (x_window, x_prior of the window). On error nothing changes.
@@ -616,7 +615,6 @@ impl MovingHorizon {
         &mut self,
         model: &mut dyn StageModel,
         z: Vec<f64>,
-        covariance: Option<Vec<f64>>,
         window_covariance: Option<Vec<f64>>,
         cost: f64,
         solved: &Solved,
@@ -628,10 +626,6 @@ impl MovingHorizon {
             .ok_or_else(|| Error::invalid("z", "no window staged: call prepare first"))?;
         check_len("z", &z, data.nodes * n)?;
         check_finite("z", &z)?;
-        if let Some(c) = &covariance {
-            check_len("P", c, n * n)?;
-            check_finite("P", c)?;
-        }
         if let Some(c) = &window_covariance {
             check_len("P_window", c, data.nodes * n * n)?;
             check_finite("P_window", c)?;
@@ -684,7 +678,6 @@ impl MovingHorizon {
         let x_before = before[before.len() - n..].to_vec();
         let outcome = self.history.outcome().record(
             x_prior.clone(),
-            covariance,
             window_covariance,
             nodes,
             x_before,
@@ -919,7 +912,7 @@ mod tests {
             message: String::new(),
         };
         assert!(est
-            .commit(&mut model, vec![0.0; 4], None, None, 0.0, &solved)
+            .commit(&mut model, vec![0.0; 4], None, 0.0, &solved)
             .is_err()); // nothing left staged
                         // Bad input is refused before anything is staged.
         model.fail_at = usize::MAX;

@@ -69,13 +69,13 @@ impl Outcome {
     }
 
     /// The outcome of a solved window of `nodes` nodes that started from the estimate
-    /// `x_before` (with `self`'s covariance); `covariance` None (H singular) keeps `self`'s,
-    /// `window_covariance` None gives NaN blocks.
+    /// `x_before` (with `self`'s covariance), with the covariance blocks of its nodes
+    /// `window_covariance`: its last block is the new covariance; None (H singular) keeps
+    /// `self`'s covariance and gives NaN blocks.
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
         x_prior: Vec<f64>,
-        covariance: Option<Vec<f64>>,
         window_covariance: Option<Vec<f64>>,
         nodes: usize,
         x_before: Vec<f64>,
@@ -106,7 +106,10 @@ impl Outcome {
         };
         Self {
             x_prior,
-            covariance: covariance.unwrap_or_else(|| self.covariance.clone()),
+            covariance: window_covariance.as_deref().map_or_else(
+                || self.covariance.clone(),
+                |b| last_block(b, self.covariance.len()),
+            ),
             cost,
             success,
             nit,
@@ -139,6 +142,11 @@ impl Outcome {
         }
         Ok(())
     }
+}
+
+/// The last block of a stack of blocks of `nn` values each (n × n covariances: nn = n²).
+pub fn last_block(blocks: &[f64], nn: usize) -> Vec<f64> {
+    blocks[blocks.len() - nn..].to_vec()
 }
 
 /// `v` with two decimals and a signed two-digit exponent, as Python's `format(v, ".2e")`
@@ -185,23 +193,14 @@ mod tests {
             nit: 3,
             message: "ok".into(),
         };
-        let next = first.record(vec![0.5], None, None, 2, vec![1.0], 1.5, &solved, false);
+        let next = first.record(vec![0.5], None, 2, vec![1.0], 1.5, &solved, false);
         assert_eq!(next.covariance, vec![2.0]);
         assert_eq!((next.nit, next.nfev, next.cost), (3, 0, 1.5));
         // The window's blocks are unknown, and said so; what the update started from is kept.
         assert!(next.window_covariance.len() == 2 && next.window_covariance[0].is_nan());
         assert_eq!((next.x_before[0], next.covariance_before[0]), (1.0, 2.0));
         let blocks = Some(vec![4.0, 3.0]);
-        let next = next.record(
-            vec![0.5],
-            Some(vec![3.0]),
-            blocks,
-            2,
-            vec![0.7],
-            1.0,
-            &solved,
-            true,
-        );
+        let next = next.record(vec![0.5], blocks, 2, vec![0.7], 1.0, &solved, true);
         assert_eq!(next.covariance, vec![3.0]);
         assert_eq!(next.window_covariance, vec![4.0, 3.0]);
         assert_eq!((next.x_before[0], next.covariance_before[0]), (0.7, 2.0));

@@ -120,7 +120,33 @@ impl BlockTridiagCholesky {
     }
 }
 
+/// Which diagonal blocks of A⁻¹ [`BlockTridiagCholesky::inverse_blocks`] returns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InverseBlocks {
+    Last,
+    All,
+}
+
 impl BlockTridiagCholesky {
+    /// The `which` diagonal n×n blocks of A⁻¹ (row-major, stacked) after a successful
+    /// [`factor`](Self::factor); None if one is not finite.
+    pub fn inverse_blocks(&self, which: InverseBlocks) -> Option<Vec<f64>> {
+        let n = self.n;
+        let out = match which {
+            InverseBlocks::Last => {
+                let mut out = vec![0.0; n * n];
+                self.last_block_of_inverse(&mut out);
+                out
+            }
+            InverseBlocks::All => {
+                let mut out = vec![0.0; self.l.len() * n * n];
+                self.diagonal_blocks_of_inverse(&mut out);
+                out
+            }
+        };
+        out.iter().all(|v| v.is_finite()).then_some(out)
+    }
+
     /// The last n×n diagonal block of A⁻¹ (row-major into `out`) after a successful
     /// [`factor`](Self::factor): L is block lower-bidiagonal, so (A⁻¹)_NN = L_N⁻ᵀ L_N⁻¹.
     pub fn last_block_of_inverse(&self, out: &mut [f64]) {
@@ -177,53 +203,11 @@ pub fn gauss_newton_last_block_inverse(
 ) -> Option<Vec<f64>> {
     let zero = vec![0.0; nodes * n];
     let free = vec![false; nodes * n];
-    undamped_last_block_inverse(
-        &mut BlockTridiagCholesky::default(),
-        nodes,
-        n,
-        diag,
-        off,
-        &zero,
-        &free,
-    )
-}
-
-/// The last n×n block of the inverse of the undamped block-tridiagonal matrix (`zero` shifts,
-/// nothing held), factored in `chol`; None if not positive definite or not finite.
-pub(super) fn undamped_last_block_inverse(
-    chol: &mut BlockTridiagCholesky,
-    nodes: usize,
-    n: usize,
-    diag: &[f64],
-    off: &[f64],
-    zero: &[f64],
-    free: &[bool],
-) -> Option<Vec<f64>> {
-    if !chol.factor(nodes, n, diag, off, zero, free) {
+    let mut chol = BlockTridiagCholesky::default();
+    if !chol.factor(nodes, n, diag, off, &zero, &free) {
         return None;
     }
-    let mut out = vec![0.0; n * n];
-    chol.last_block_of_inverse(&mut out);
-    out.iter().all(|v| v.is_finite()).then_some(out)
-}
-
-/// Every diagonal block of the inverse of the undamped block-tridiagonal matrix (`zero` shifts,
-/// nothing held), factored in `chol`; None if not positive definite or not finite.
-pub(super) fn undamped_diagonal_blocks_of_inverse(
-    chol: &mut BlockTridiagCholesky,
-    nodes: usize,
-    n: usize,
-    diag: &[f64],
-    off: &[f64],
-    zero: &[f64],
-    free: &[bool],
-) -> Option<Vec<f64>> {
-    if !chol.factor(nodes, n, diag, off, zero, free) {
-        return None;
-    }
-    let mut out = vec![0.0; nodes * n * n];
-    chol.diagonal_blocks_of_inverse(&mut out);
-    out.iter().all(|v| v.is_finite()).then_some(out)
+    chol.inverse_blocks(InverseBlocks::Last)
 }
 
 /// y = A x for a block-tridiagonal symmetric A given by row-major `diag`/`off` blocks.

@@ -6,9 +6,7 @@
 // better than zipped iterator chains.
 #![allow(clippy::needless_range_loop)]
 
-use super::block_tridiag::{
-    undamped_diagonal_blocks_of_inverse, undamped_last_block_inverse, BlockTridiagCholesky,
-};
+use super::block_tridiag::{BlockTridiagCholesky, InverseBlocks};
 use super::{
     projected_gradient_norm, BlockLsqProblem, InteriorMode, SolveReport, SolverOptions, Status,
 };
@@ -202,50 +200,40 @@ impl BoxLsqSolver {
     /// of the last node when J is 4× a negative log-likelihood, as in GP-MHE. None before any
     /// solve, or if H is singular or the block is not finite.
     pub fn last_node_covariance(&mut self) -> Option<Vec<f64>> {
-        let (nodes, n) = (self.nodes, self.n);
-        if nodes == 0 {
-            return None;
-        }
-        // The solver's own factor and scratch (`shift`, `fixed`), so no per-update allocation
-        // of blocks.
-        self.work.shift.fill(0.0);
-        self.work.fixed.fill(false);
-        let b = undamped_last_block_inverse(
-            &mut self.chol,
-            nodes,
-            n,
-            &self.diag,
-            &self.off,
-            &self.work.shift,
-            &self.work.fixed,
-        )?;
-        Some(symmetrised(&b, n))
+        let b = self.undamped_inverse_blocks(InverseBlocks::Last)?;
+        Some(symmetrised(&b, self.n))
     }
 
     /// 4·sym of every diagonal n×n block of H⁻¹ (nodes × n × n; see `last_node_covariance`,
     /// whose block is the last one, bit for bit): the Laplace covariance of every node of the
     /// window. None as for `last_node_covariance`.
     pub fn window_covariance(&mut self) -> Option<Vec<f64>> {
-        let (nodes, n) = (self.nodes, self.n);
-        if nodes == 0 {
-            return None;
-        }
-        self.work.shift.fill(0.0);
-        self.work.fixed.fill(false);
-        let b = undamped_diagonal_blocks_of_inverse(
-            &mut self.chol,
-            nodes,
-            n,
-            &self.diag,
-            &self.off,
-            &self.work.shift,
-            &self.work.fixed,
-        )?;
+        let n = self.n;
+        let b = self.undamped_inverse_blocks(InverseBlocks::All)?;
         Some(
             b.chunks(n * n)
                 .flat_map(|block| symmetrised(block, n))
                 .collect(),
         )
+    }
+
+    /// The `which` diagonal blocks of H⁻¹ (see `last_node_covariance`), factored in the
+    /// solver's own factor with its own scratch (`shift`, `fixed`), so no per-update allocation
+    /// of blocks.
+    fn undamped_inverse_blocks(&mut self, which: InverseBlocks) -> Option<Vec<f64>> {
+        if self.nodes == 0 {
+            return None;
+        }
+        self.work.shift.fill(0.0);
+        self.work.fixed.fill(false);
+        let (diag, off, work) = (&self.diag, &self.off, &self.work);
+        if !self
+            .chol
+            .factor(self.nodes, self.n, diag, off, &work.shift, &work.fixed)
+        {
+            return None;
+        }
+        self.chol.inverse_blocks(which)
     }
 
     /// Minimises J(z) over lower ≤ z ≤ upper starting from `z` (a warm start; projected onto the

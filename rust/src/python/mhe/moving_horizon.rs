@@ -280,10 +280,11 @@ impl PyMovingHorizon {
     }
 
     /// Records the staged window's solution z with how another solver found it: its `cost`
-    /// (None: J(z) evaluated here), `success`, `nit`, `message` and the covariance `P` (n, n)
-    /// of the last node (None: not computable, the previous one is kept). Returns (x_window
-    /// (nodes, n), x_prior). On error nothing changes.
-    #[pyo3(signature = (z, cost=None, success=true, nit=0, message=String::new(), P=None, P_window=None))]
+    /// (None: J(z) evaluated here), `success`, `nit`, `message` and the covariance blocks of the
+    /// window's nodes `P_window` (nodes·n·n, flattened; the last block is the estimate's; None:
+    /// not computable, the previous covariance is kept). Returns (x_window (nodes, n),
+    /// x_prior). On error nothing changes.
+    #[pyo3(signature = (z, cost=None, success=true, nit=0, message=String::new(), P_window=None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn commit<'py>(
         &mut self,
@@ -293,17 +294,14 @@ impl PyMovingHorizon {
         success: bool,
         nit: usize,
         message: String,
-        P: Option<PyReadonlyArray2<'py, f64>>,
         P_window: Option<PyReadonlyArray1<'py, f64>>,
     ) -> PyResult<(Arr2<'py>, Arr1<'py>)> {
         let z = slice1("z", &z)?.to_vec();
-        let cov = P.as_ref().map(|a| slice2("P", a)).transpose()?;
-        let cov = cov.map(|(c, _, _)| c.to_vec());
         let blocks = P_window
             .as_ref()
             .map(|a| slice1("P_window", a))
-            .transpose()?;
-        let blocks = blocks.map(<[f64]>::to_vec);
+            .transpose()?
+            .map(<[f64]>::to_vec);
         let solved = Solved::Other {
             success,
             nit,
@@ -315,7 +313,7 @@ impl PyMovingHorizon {
                 Some(c) => c,
                 None => core.evaluate(model, &z, false)?.cost(),
             };
-            core.commit(model, z, cov, blocks, cost, &solved)
+            core.commit(model, z, blocks, cost, &solved)
         })?;
         self.staged_cache = None;
         let rows = x_window.len() / n;
