@@ -90,11 +90,10 @@ def mhe_rows(model, x0, P0, Q, R, horizon, bounds=None, etas=(1.0,)):
     return out
 
 
-def kalman_row():
+def filterpy_row(name, build):
+    """A row of a filterpy filter made by ``build()``: predict (after the first sample), update."""
     def make():
-        kf = KalmanFilter(dim_x=2, dim_z=1)
-        kf.F, kf.H, kf.Q, kf.R, kf.P, kf.x = A, C, Q_LIN, R_LIN, np.eye(2), np.zeros(2)
-        first = [True]
+        kf, first = build(), [True]
 
         def step(y):
             if not first[0]:
@@ -102,25 +101,15 @@ def kalman_row():
             first[0] = False
             kf.update(y)
             nu = kf.y.ravel()
-            return kf.x.copy(), kf.P.copy(), float(nu @ np.linalg.solve(kf.S, nu))
+            return np.ravel(kf.x).copy(), kf.P.copy(), float(nu @ np.linalg.solve(kf.S, nu))
         return step
-    return ("filterpy KalmanFilter", make)
+    return (name, make)
 
 
-def ekf_row(P0, Q, R):
-    def make():
-        ekf = ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_TRUE0, P0, Q, R)
-        first = [True]
-
-        def step(y):
-            if not first[0]:
-                ekf.predict()
-            first[0] = False
-            ekf.update(y)
-            nu = ekf.y.ravel()
-            return ekf.x.ravel().copy(), ekf.P.copy(), float(nu @ np.linalg.solve(ekf.S, nu))
-        return step
-    return ("filterpy EKF, exact model", make)
+def kalman():
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.F, kf.H, kf.Q, kf.R, kf.P, kf.x = A, C, Q_LIN, R_LIN, np.eye(2), np.zeros(2)
+    return kf
 
 
 def evaluate(rows, simulate, plant, runs, steps):
@@ -161,12 +150,13 @@ def main():
     args = ap.parse_args()
     lin = mhe_rows(LINEAR, [0.0, 0.0], np.eye(2), Q_LIN, R_LIN, 5)
     lin += mhe_rows(LINEAR, [0.0, 0.0], np.eye(2), Q_LIN, R_LIN, 15)[1:]
-    lin.append(kalman_row())
+    lin.append(filterpy_row("filterpy KalmanFilter", kalman))
     print_table("(a) linear-Gaussian plant (n = 2, p = 1)",
                 evaluate(lin, linear_run, 0, args.runs, args.steps))
     Q, R, P0 = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1), 0.01 * np.eye(2)
     react = mhe_rows(REACTOR, br.X_TRUE0, P0, Q, R, 15, br.X_BOUNDS)
-    react.append(ekf_row(P0, Q, R))
+    react.append(filterpy_row("filterpy EKF, exact model", lambda: ExactEKF(
+        br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_TRUE0, P0, Q, R)))
     print_table("(b) batch reactor, exact model",
                 evaluate(react, reactor_run, 1, args.runs, args.steps))
     gp = LearnedModel.from_trajectories(*br.training_data(5, rng=np.random.default_rng(0)),

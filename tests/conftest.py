@@ -73,6 +73,34 @@ def h3_no_feedthrough(x, u):
     return np.array([x[0], x[0] * x[1]])
 
 
+class Affine:
+    """x ↦ M x (+ B u): a model function of a linear test plant that pickles (a class of this
+    module, where a lambda would not)."""
+
+    def __init__(self, M, B=None):
+        self.M, self.B = M, B
+
+    def __call__(self, x, u):
+        return self.M @ x if self.B is None else self.M @ x + self.B @ u
+
+
+class Constant:
+    """(x, u) ↦ M: the Jacobian of `Affine`."""
+
+    def __init__(self, M):
+        self.M = M
+
+    def __call__(self, x, u):
+        return self.M
+
+
+def linear_model(A, C, B=None):
+    """The known model x(t+1) = A x (+ B u), y = C x, with its exact Jacobians."""
+    return KnownModel(Affine(A, B), Affine(C), dim_x=A.shape[0], dim_y=C.shape[0],
+                      dim_u=0 if B is None else B.shape[1], f_jacobian=Constant(A),
+                      h_jacobian=Constant(C))
+
+
 def check_window_derivatives(win, z, h=1e-6):
     """A core window's gradient and Jacobian at z against central differences of its cost and
     residuals (step h), and the gradient against 2 Jᵀr."""

@@ -11,9 +11,8 @@ import pytest
 
 from gpmhe import GPMHE, EstimatorBank, KnownModel, _core
 from gpmhe.mhe import solvers
-from gpmhe.systems import batch_reactor as br
 
-from conftest import check_window_derivatives, f3, h3, synthetic_learned_model
+from conftest import check_window_derivatives, f3, h3, linear_model, synthetic_learned_model
 
 
 def rho(loss, k, e):
@@ -98,22 +97,6 @@ A = np.array([[1.0, 0.1], [-0.2, 0.95]])
 C = np.array([[1.0, 0.0]])
 
 
-def f_lin(x, u):
-    return A @ x
-
-
-def h_lin(x, u):
-    return C @ x
-
-
-def f_jac(x, u):
-    return A
-
-
-def h_jac(x, u):
-    return C
-
-
 def linear_plant(steps, rng, outliers=()):
     """x(t+1) = A x + w, y = x_0 + v (σ_v = 0.1), with 20σ outliers at the given times."""
     x = np.zeros((steps + 1, 2))
@@ -123,8 +106,7 @@ def linear_plant(steps, rng, outliers=()):
     y = x[:steps, :1] + 0.1 * rng.standard_normal((steps, 1))
     for t in outliers:
         y[t] += 2.0
-    model = KnownModel(f_lin, h_lin, dim_x=2, dim_y=1, f_jacobian=f_jac, h_jacobian=h_jac)
-    return model, x, y
+    return linear_model(A, C), x, y
 
 
 def run(est, y):

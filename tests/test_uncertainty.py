@@ -12,35 +12,17 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from gpmhe import GPMHE, KnownModel
+from gpmhe import GPMHE
 from gpmhe.consistency import chi2_test, nees
 
-from conftest import synthetic_learned_model
+from conftest import linear_model, synthetic_learned_model
 
 A = np.array([[0.9, 0.2], [-0.1, 0.8]])
 B = np.array([[0.0], [0.5]])
 C = np.array([[1.0, 0.0], [0.5, 1.0]])
 Q = np.array([[0.01, 0.004], [0.004, 0.02]])
 R = np.array([[0.04, 0.01], [0.01, 0.02]])
-
-
-def f_lin(x, u):
-    return A @ x + B @ u
-
-
-def h_lin(x, u):
-    return C @ x
-
-
-def f_jac(x, u):
-    return A
-
-
-def h_jac(x, u):
-    return C
-
-
-LINEAR = KnownModel(f_lin, h_lin, 2, 2, 1, f_jacobian=f_jac, h_jacobian=h_jac)
+LINEAR = linear_model(A, C, B)
 
 
 def data(steps=30, seed=0):

@@ -301,10 +301,7 @@ class DiscreteDynamics:
         [1.         1.33333333]
         """
         X2, U2, one = self._points(X, U)
-        if self.method == "rk4":
-            Z = self._rk4(X2, U2, jacobian=False)[0]
-        else:
-            Z = self._implicit(X2, U2, jacobian=False)[0]
+        Z = self._integrate(X2, U2, jacobian=False)[0]
         return Z[0] if one else Z
 
     def jacobian(self, X, U=None):
@@ -374,13 +371,16 @@ class DiscreteDynamics:
         [[1.80952381]] [[[0.9047619]]]
         """
         X2, U2, one = self._points(X, U)
-        if self.method == "rk4":
-            Z, S = self._rk4(X2, U2, jacobian=True)
-        else:
-            Z, S = self._implicit(X2, U2, jacobian=True)
+        Z, S = self._integrate(X2, U2, jacobian=True)
         return (Z[0], S[0]) if one else (Z, S)
 
     # ---- internals --------------------------------------------------------------------------
+    def _integrate(self, X, U, jacobian, dt=None):
+        """(Z, S) of the scheme over every row (S None without ``jacobian``); ``dt`` None: the
+        map's own interval, else a (k, 1) column of each row's."""
+        scheme = self._rk4 if self.method == "rk4" else self._implicit
+        return scheme(X, U, jacobian, dt)
+
     @staticmethod
     def _points(X, U):
         """X (k, n), U (k, m) as float64 arrays and whether X was one 1-D state."""
@@ -505,14 +505,9 @@ class TimedDynamics:
     def __init__(self, dynamics):
         self.dynamics = dynamics
 
-    def _split(self, X, U):
-        X2, U2, one = self.dynamics._points(X, U)
-        return X2, U2[:, :-1], U2[:, -1:], one
-
     def _run(self, X, U, jacobian):
-        X2, U2, dt, one = self._split(X, U)
-        d = self.dynamics
-        Z, S = (d._rk4 if d.method == "rk4" else d._implicit)(X2, U2, jacobian, dt)
+        X2, U2, one = self.dynamics._points(X, U)
+        Z, S = self.dynamics._integrate(X2, U2[:, :-1], jacobian, U2[:, -1:])
         return (Z[0], None if S is None else S[0]) if one else (Z, S)
 
     def __call__(self, X, U):

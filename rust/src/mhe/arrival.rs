@@ -56,11 +56,11 @@ pub fn evaluate_at(model: &mut dyn StageModel, x: &[f64], u: &[f64]) -> Result<S
 /// output y_0 with NaN for channels not measured, None if not measured or not in the window):
 /// the measurement update W⁺ = W + Cᵀ R⁻¹ C with W = SᵀS, then the time update
 /// Π' = A (W⁺)⁻¹ Aᵀ + Q, with A = ∂m_x/∂x, C = ∂m_y/∂x, Q = diag σ²_x + Q0, R = diag σ²_y + R0
-/// (R0: the covariance given with y_0, if any, [`WindowProblem::output_cov`]) at d̄_0 = [x̄_0; u_0], read from the first point of `st` (the model's values there: the
-/// window's last evaluation, or [`evaluate_at`]). Returns S' (n × n, row-major) with
-/// S'ᵀS' = Π'⁻¹ (with a robust penalty, each whitened output row of y_0 weighted by ψ′ of its
-/// residual, `loss.rs`); a numerical error if a matrix is not positive definite (the caller keeps the
-/// old weight).
+/// (R0: the covariance given with y_0, if any, [`WindowProblem::output_cov`]) at
+/// d̄_0 = [x̄_0; u_0], read from the first point of `st` (the model's values there: the window's
+/// last evaluation, or [`evaluate_at`]). Returns S' (n × n, row-major) with S'ᵀS' = Π'⁻¹ (with a
+/// robust penalty, each whitened output row of y_0 weighted by ψ′ of its residual, `loss.rs`);
+/// a numerical error if a matrix is not positive definite (the caller keeps the old weight).
 pub fn ekf_step(
     st: &StageEval,
     problem: &WindowProblem,

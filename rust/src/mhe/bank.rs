@@ -144,7 +144,8 @@ pub struct EstimatorBank<M> {
 
 impl<M: Clone + ModelState> EstimatorBank<M> {
     /// One estimator per entry of `settings`, each with `template`'s horizon, weights η, P2,
-    /// form, output loss, arrival cost and solver settings (its history is not used) and a clone of `model`.
+    /// form, output loss, arrival cost and solver settings (its history is not used) and a
+    /// clone of `model`.
     pub fn new(template: &MovingHorizon, model: &M, settings: &[MemberSettings]) -> Result<Self> {
         if settings.is_empty() {
             return Err(Error::invalid("n", "must be at least 1"));

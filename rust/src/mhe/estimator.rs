@@ -607,10 +607,10 @@ impl MovingHorizon {
 
     /// Records the staged window's solution z (nodes × n) with how it was solved (its cost,
     /// the covariance estimates of its nodes, nodes × n × n, whose last block is the estimate's,
-    /// None if not computable, and the solver's report), all in one step: the next arrival prior is the new estimate (prediction form)
-    /// or its one-step prediction m_x(x̄_t, u(t)) (filtering form); when the next window starts
-    /// one node later, the arrival cost moves with it (the smoothed mean and the EKF weight,
-    /// `arrival.rs`). Returns (x_window, x_prior of the window). On error nothing changes.
+    /// None if not computable, and the solver's report), all in one step: the next arrival prior
+    /// is the new estimate (prediction form) or its one-step prediction m_x(x̄_t, u(t))
+    /// (filtering form); when the next window starts one node later, the arrival cost moves with
+    /// it (the smoothed or filtered mean and the EKF weight, `arrival.rs`). Returns (x_window, x_prior of the window). On error nothing changes.
     pub fn commit(
         &mut self,
         model: &mut dyn StageModel,

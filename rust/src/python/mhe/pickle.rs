@@ -52,8 +52,8 @@ fn state_usize(state: &Bound<'_, PyDict>, key: &str) -> PyResult<usize> {
 }
 
 /// The estimator's state as a dict of plain values: the history (`t`, `window_t0` (ints), `u`
-/// (rows, m), `y` (rows, p), `present` (rows,) bool, `r_given` (rows,) bool and `r` (rows, p²), `priors` (k, n), `x_window` (nodes, n),
-/// `arrival_sqrt` (n, n)), the last update's report (`outcome_*`, see `outcome_items`) and, for
+/// (rows, m), `y` (rows, p), `present` (rows,) bool, `r_given` (rows,) bool and `r` (rows, p²),
+/// `priors` (k, n), `x_window` (nodes, n), `arrival_sqrt` (n, n)), the last update's report (`outcome_*`, see `outcome_items`) and, for
 /// the learned model, its evaluation cache (`cache_*`).
 pub(super) fn get_state<'py>(
     py: Python<'py>,
