@@ -317,30 +317,19 @@ impl MovingHorizon {
         u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<UpdateReport> {
-        self.update_with(model, u, y, None)
-    }
-
-    /// [`MovingHorizon::update`] with the covariance `r` of y(t) (p or p² values, as R0; None:
-    /// R0), which the sample keeps while it is in the window.
-    pub fn update_with(
-        &mut self,
-        model: &mut dyn StageModel,
-        u: Option<&[f64]>,
-        y: Option<&[f64]>,
-        r: Option<&[f64]>,
-    ) -> Result<UpdateReport> {
         self.update_step(
             model,
             Step {
                 u,
                 y,
-                r,
-                u_last: None,
+                ..Step::default()
             },
         )
     }
 
-    /// One whole update with the data of `step` (see [`MovingHorizon::update`]).
+    /// One whole update with the data of `step`: (u(t), y(t)) as for [`MovingHorizon::update`],
+    /// the covariance of y(t) (kept while the sample is in the window) and the revised last
+    /// input row.
     pub fn update_step(
         &mut self,
         model: &mut dyn StageModel,
@@ -411,25 +400,12 @@ impl MovingHorizon {
         u: Option<&[f64]>,
         y: Option<&[f64]>,
     ) -> Result<Vec<f64>> {
-        self.prepare_with(model, u, y, None)
-    }
-
-    /// [`MovingHorizon::prepare`] with the covariance `r` of y(t) (see
-    /// [`MovingHorizon::update_with`]).
-    pub fn prepare_with(
-        &mut self,
-        model: &mut dyn StageModel,
-        u: Option<&[f64]>,
-        y: Option<&[f64]>,
-        r: Option<&[f64]>,
-    ) -> Result<Vec<f64>> {
         self.prepare_step(
             model,
             Step {
                 u,
                 y,
-                r,
-                u_last: None,
+                ..Step::default()
             },
         )
     }
