@@ -217,21 +217,18 @@ mod tests {
         }
     }
 
+    const Q0: [f64; 4] = [0.01, 0.002, 0.002, 0.02];
+
+    /// The window problem of `Linear` with Q0, R0 = 0.1, η = 1 and P2 = I.
+    fn linear_problem() -> WindowProblem {
+        let p2 = [1.0, 0.0, 0.0, 1.0];
+        WindowProblem::new(2, 0, 1, 1.0, &Q0, &[0.1], &p2, Form::Prediction).unwrap()
+    }
+
     /// On a linear-Gaussian model the step is the Kalman filter's covariance recursion.
     #[test]
     fn ekf_step_is_the_kalman_covariance_recursion() {
-        let q0 = [0.01, 0.002, 0.002, 0.02];
-        let problem = WindowProblem::new(
-            2,
-            0,
-            1,
-            1.0,
-            &q0,
-            &[0.1],
-            &[1.0, 0.0, 0.0, 1.0],
-            Form::Prediction,
-        )
-        .unwrap();
+        let (q0, problem) = (Q0, linear_problem());
         let s = [2.0, 0.0, 0.5, 1.0];
         let st = evaluate_at(&mut Linear, &[0.3, -0.2], &[]).unwrap();
         let next = ekf_step(&st, &problem, Some(&[0.1]), &s).unwrap();
@@ -258,18 +255,7 @@ mod tests {
     /// wherever the model is linearised.
     #[test]
     fn ekf_mean_step_is_the_kalman_mean_recursion() {
-        let q0 = [0.01, 0.002, 0.002, 0.02];
-        let problem = WindowProblem::new(
-            2,
-            0,
-            1,
-            1.0,
-            &q0,
-            &[0.1],
-            &[1.0, 0.0, 0.0, 1.0],
-            Form::Prediction,
-        )
-        .unwrap();
+        let problem = linear_problem();
         let s = [2.0, 0.0, 0.5, 1.0];
         let (prior, y) = ([0.4, -0.1], 0.7);
         let sm = DMatrix::from_row_slice(2, 2, &s);
