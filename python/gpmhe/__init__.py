@@ -2,8 +2,8 @@
 
 GP-based moving horizon estimation (``GPMHE``) after Wolff, Lopez & Müller, and a recursive GP
 inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numerical core
-(``gpmhe._core``). The estimators follow filterpy's conventions (``update``, ``predict``,
-``batch_filter``, attributes ``x`` and ``P``).
+(``gpmhe._core``). The estimators follow filterpy's conventions (``update``, ``batch_filter``,
+attributes ``x`` and ``P``; `RGPEKF` also ``predict``).
 
 * Gaussian processes: `GaussianProcess`, `MultiOutputGP` (with `ConvergenceWarning`,
   `NotFittedError`), their fit diagnostics `FitDiagnostics`, `FitWarning`, and their sparse
@@ -13,7 +13,8 @@ inside an EKF (``RGPEKF``) after Husmann, Weishaupt & Aschemann, on a Rust numer
   Python callables, CasADi functions or a continuous-time model sampled by `discretize`), and
   `EstimatorBank`, many of them updated together (in parallel);
 * the RGP-dKF: `RecursiveGP`, `RGPEKF`;
-* `NumericalError`: a numerical failure on valid input;
+* `NumericalError`: a numerical failure on valid input; `SettingsWarning`: a setting assumed
+  (identity weights when no noise information is given) or without effect;
 * `monte_carlo`: Monte Carlo studies of estimators over many seeds, serially or on a Dask cluster
   (`gpmhe.study`);
 * `gpmhe.consistency`: χ² tests of an estimator's uncertainty over a run (NEES, NIS);
@@ -23,6 +24,7 @@ See the user guide, starting with *Notation*.
 """
 
 from gpmhe._core import NumericalError
+from gpmhe._validation import SettingsWarning
 from gpmhe.gp import (ConvergenceWarning, FitDiagnostics, FitWarning, GaussianProcess,
                       MultiOutputGP, NotFittedError, SEKernel, SparseGaussianProcess, SparseMultiOutputGP)
 from gpmhe.mhe import GPMHE, EstimatorBank
@@ -33,6 +35,7 @@ from gpmhe.study import monte_carlo
 
 __all__ = [
     "NumericalError",
+    "SettingsWarning",
     # GP
     "GaussianProcess",
     "MultiOutputGP",

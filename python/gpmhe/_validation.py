@@ -26,6 +26,7 @@ __all__ = [
     "MAX_ABS",
     "MAX_COUNT",
     "MagnitudeError",
+    "SettingsWarning",
     "within_limits",
     "real_array",
     "float_array",
@@ -56,6 +57,30 @@ class MagnitudeError(ValueError, NumericalError):
     """A value too large for float64 arithmetic (magnitude > MAX_ABS): bad input and a numerical
     failure at once, so either ``except ValueError`` or ``except gpmhe.NumericalError`` catches
     it."""
+
+
+class SettingsWarning(UserWarning):
+    """A setting that gpmhe had to assume, or one that has no effect with the others given.
+
+    Emitted once per construction or fit (for example an estimator built without any noise
+    information, which gets identity weights). Silence a reviewed case with
+    ``warnings.filterwarnings("ignore", category=gpmhe.SettingsWarning)``.
+
+    Examples
+    --------
+    Turn it into an error, for a plant's deployment script that must give every setting:
+
+    >>> import warnings
+    >>> from gpmhe import GPMHE, KnownModel, SettingsWarning
+    >>> plant = KnownModel(lambda x, u: 0.9 * x, lambda x, u: x, dim_x=1, dim_y=1)
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("error", SettingsWarning)
+    ...     try:
+    ...         GPMHE(plant, x0=[0.0])
+    ...     except SettingsWarning as w:
+    ...         print(str(w)[:47])
+    Q0, R0 and P2/P0 are all None: identity weights
+    """
 
 
 def _not_numbers(name: str, value: Any) -> str:

@@ -176,7 +176,7 @@ def GPEKF(model, x0, P0, Q, R):
     >>> from gpmhe.baselines import GPEKF
     >>> from gpmhe.systems import batch_reactor as br
     >>> states, outputs = br.training_data(3, rng=0, steps=10)
-    >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True)
+    >>> model = LearnedModel.from_trajectories(states, outputs)
     >>> x_true, y = br.simulate(br.X_TRUE0, 10, np.random.default_rng(0))
     >>> ekf = GPEKF(model, x0=[3.0, 1.0], P0=0.1 * np.eye(2), Q=1e-3 * np.eye(2), R=1e-2)
     >>> for t in range(10):

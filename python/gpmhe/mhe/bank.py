@@ -15,10 +15,12 @@ import warnings
 import numpy as np
 
 from gpmhe import _core
+from gpmhe._filterpy import (REQUIRED, missing_attribute, one_argument_update, renamed, required,
+                             window_attribute)
 from gpmhe._threads import exclusive
-from gpmhe._validation import (MAX_ABS, box, float_array, integer, output_sample,
-                               positive_diagonal, real_array, within_limits)
-from gpmhe.mhe.estimator import GPMHE, check_interval
+from gpmhe._validation import (MAX_ABS, SettingsWarning, box, float_array, integer,
+                               output_sample, positive_diagonal, real_array, within_limits)
+from gpmhe.mhe.estimator import GPMHE, NO_NOISE_INFORMATION, check_interval
 from gpmhe.mhe.settings import sample_covariance
 
 __all__ = ["EstimatorBank"]
@@ -96,8 +98,9 @@ class EstimatorBank:
         Row i is estimator i's current estimate (`GPMHE.x`).
     P : ndarray of shape (n, dim_x, dim_x)
         The covariance estimates (`GPMHE.P`).
-    x_prior : ndarray of shape (n, dim_x)
-        The arrival priors of the last windows.
+    x_arrival : ndarray of shape (n, dim_x)
+        The arrival priors of the last windows (`GPMHE.x_arrival`; ``x_prior`` is a deprecated
+        alias, removed in the next release).
     x_window : ndarray of shape (n, M_t + 1, dim_x)
         The last windows' optimal trajectories.
     cost : ndarray of shape (n,)
@@ -183,6 +186,8 @@ class EstimatorBank:
         bad = np.flatnonzero(np.any((x0 < lb) | (x0 > ub), axis=1))
         if bad.size:
             raise ValueError(f"x0: must lie inside x_bounds (estimator {bad[0]})")
+        if all(gpmhe_options.get(w) is None for w in ("Q0", "R0", "P2", "P0")):
+            warnings.warn(NO_NOISE_INFORMATION, SettingsWarning, stacklevel=2)
         # Estimator 0 as a GPMHE: validates the common settings once and is the core's template.
         template = GPMHE(model, x0=x0[0], Q0=q0[0], R0=r0[0] if p else None,
                          x_bounds=(lb[0], ub[0]), **opts)
@@ -212,11 +217,11 @@ class EstimatorBank:
         return self._core.x
 
     @property
-    def x_prior(self):
-        """The last arrival priors (n, dim_x)."""
+    def x_arrival(self):
+        """The last arrival priors (n, dim_x) (``x_prior`` is their deprecated alias)."""
         return self._core.x_prior
 
-    @property
+    @window_attribute  # (not a property: see gpmhe/_filterpy.py)
     def x_window(self):
         """The last windows' optimal trajectories (n, M_t + 1, dim_x)."""
         return self._core.x_window
@@ -255,6 +260,15 @@ class EstimatorBank:
     def __len__(self):
         return len(self._core)
 
+    def __getattr__(self, name):  # only for names the class and the instance do not have
+        new = renamed(type(self), name)
+        if new is None:
+            raise missing_attribute(self, name)
+        return getattr(self, new)
+
+    def __setattr__(self, name, value):
+        object.__setattr__(self, renamed(type(self), name) or name, value)
+
     @property
     def threads(self):
         """The number of threads an update runs on (1 for a `KnownModel`)."""
@@ -286,7 +300,8 @@ class EstimatorBank:
         Y[~present] = 0.0
         return U, Y, present
 
-    def update(self, U, Y, R=None, dt=None):
+    @required
+    def update(self, U, Y=REQUIRED, R=None, dt=None):
         """Add one sample for every estimator, solve their windows and update the estimates.
 
         Row i of ``U`` and ``Y`` is estimator i's (u(t), y(t)) (`GPMHE.update`). All estimators
@@ -325,6 +340,9 @@ class EstimatorBank:
             estimator unchanged).
         RuntimeError
             If the bank is already being updated (from another thread).
+        TypeError
+            If called with one argument: the inputs come first, ``update(None, Y)`` when the
+            model has none.
 
         Warns
         -----
@@ -342,6 +360,8 @@ class EstimatorBank:
         [[1.]
          [0.]]
         """
+        if Y is REQUIRED:
+            raise one_argument_update(type(self), "U", "Y")
         U, Y, present = self._check_sample(U, Y)
         R = None if R is None else np.ascontiguousarray(_per_estimator("R", R, len(self), self.dim_y))
         self._step(U, Y, present, R, self._intervals(dt))

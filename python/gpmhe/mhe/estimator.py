@@ -16,8 +16,10 @@ import warnings
 import numpy as np
 
 from gpmhe import _core
+from gpmhe._filterpy import (REQUIRED, missing_attribute, one_argument_update, renamed, required,
+                             window_attribute)
 from gpmhe._threads import exclusive
-from gpmhe._validation import finite_vector, integer, output_sample, positive_scalar
+from gpmhe._validation import SettingsWarning, finite_vector, integer, output_sample, positive_scalar
 from gpmhe.mhe import checkpoint, solvers
 from gpmhe.mhe.runs import Runs
 from gpmhe.mhe.settings import WEIGHTS, MHESettings, sample_covariance
@@ -39,6 +41,14 @@ def check_interval(dt, time_step, form, horizon):
                          "never holds the stage the interval belongs to); use horizon >= 2 "
                          "or the filtering form")
     return positive_scalar("dt", dt)
+
+
+#: The warning of an estimator built without Q0, R0 and P2/P0 (each defaults to the identity).
+NO_NOISE_INFORMATION = (
+    "Q0, R0 and P2/P0 are all None: identity weights are assumed (unit process and output noise "
+    "covariances and a unit initial covariance), which suits only a plant whose noises and "
+    "initial error are of order one in its units. Give the noise covariances Q0 and R0 and the "
+    "initial covariance P0; see the user guide, 'Weights from the GP variances'.")
 
 
 class GPMHE(Runs):
@@ -168,8 +178,11 @@ class GPMHE(Runs):
         J (J is 4× a negative log-likelihood). A rough indication, exact only for linear-Gaussian
         models and η = 1. Before the first update it is P2⁻¹; if H is singular it keeps its
         previous value.
-    x_prior : ndarray of shape (dim_x,)
-        Arrival prior x̂(t−M_t) used in the last window.
+    x_arrival : ndarray of shape (dim_x,)
+        Arrival prior x̂(t−M_t) used in the last window: the mean the window's first node is
+        tied to (not filterpy's ``x_prior``, the one-step prediction, which is ``x`` in the
+        prediction form). ``x_prior`` is a deprecated alias of it (a `DeprecationWarning` on
+        every use), removed in the next release.
     x_window : ndarray of shape (M_t + 1, dim_x)
         Optimal window trajectory z of the last update, oldest first (``x`` is its last row).
     P_window : ndarray of shape (M_t + 1, dim_x, dim_x)
@@ -235,6 +248,22 @@ class GPMHE(Runs):
         If a setting is invalid (not real numbers, shapes, P2, Q0 or R0 not symmetric positive
         definite, lower >= upper, x0 outside the bounds, an unknown solver or solver option).
 
+    Warns
+    -----
+    gpmhe.SettingsWarning
+        If Q0, R0, P2 and P0 are all None: every weight is then the identity, which is right
+        only for a plant whose noises and initial error are of order one in its units:
+
+        >>> import warnings
+        >>> from gpmhe import GPMHE, KnownModel, SettingsWarning
+        >>> plant = KnownModel(lambda x, u: 0.9 * x, lambda x, u: x, dim_x=1, dim_y=1)
+        >>> with warnings.catch_warnings(record=True) as caught:
+        ...     warnings.simplefilter("always")
+        ...     _ = GPMHE(plant, x0=[0.0])               # no noise information: warns
+        ...     _ = GPMHE(plant, x0=[0.0], R0=0.01)      # any of them given: silent
+        >>> [(w.category.__name__, str(w.message)[:47]) for w in caught]
+        [('SettingsWarning', 'Q0, R0 and P2/P0 are all None: identity weights')]
+
     See Also
     --------
     LearnedModel : The GP model of the GP-MHE.
@@ -268,9 +297,11 @@ class GPMHE(Runs):
     the solver's last finite iterate and the warm start costs less; ``x`` is never NaN. Bad
     input to ``update`` raises ValueError and leaves the estimator unchanged.
 
-    With filterpy's ``Saver`` every attribute is recorded; ``Saver.to_array()`` needs equal
-    shapes, so pass ``ignore=("x_window", "P_window")`` if you save during the
-    full-information phase (t < M), where the window grows.
+    filterpy's ``Saver`` records every attribute of fixed shape (``x``, ``P``, ``x_arrival``,
+    ``innovation``, ``S``, ``nis``, ``log_likelihood``, ``cost``, the solver statistics, ...), so
+    ``Saver.to_array()`` works from the first update on. ``x_window`` and ``P_window``, whose
+    length grows until the window is full, are not among them (they are read-only attributes
+    but not properties, which ``Saver`` leaves out): record them yourself if you need them.
 
     See the user guide, *The window problem*, *Weights from GP variances* and *The window
     solver*.
@@ -315,6 +346,8 @@ class GPMHE(Runs):
             solver=solver, solver_options=solver_options, P0=P0, arrival_mean=arrival_mean,
             arrival_weight=arrival_weight, p0=p0, P_p0=P_p0, p_bounds=p_bounds, p_drift=p_drift,
             loss=loss, loss_scale=loss_scale)
+        if Q0 is None and R0 is None and P2 is None and P0 is None:
+            warnings.warn(NO_NOISE_INFORMATION, SettingsWarning, stacklevel=2)
         self._init(model, settings, x0)
 
     @classmethod
@@ -347,6 +380,7 @@ class GPMHE(Runs):
                      "M": "horizon (fixed: build a new GPMHE)", "N": "horizon (fixed)"}
 
     def __setattr__(self, name, value):
+        name = renamed(type(self), name) or name
         if name in self._SETTABLE:
             self._set_weights(**{name: value})
             return
@@ -362,6 +396,12 @@ class GPMHE(Runs):
         raise AttributeError(f"GPMHE.{name} is read-only; the settable attributes are "
                              f"{', '.join(sorted(self._SETTABLE))} (the other settings are fixed "
                              "at construction, the estimate changes only through update and reset)")
+
+    def __getattr__(self, name):  # only for names the class and the instance do not have
+        new = renamed(type(self), name)
+        if new is None:
+            raise missing_attribute(self, name)
+        return getattr(self, new)
 
     def _set_weights(self, **changes):
         """A new settings value with ``changes``; exactly the changed weights go to the core
@@ -498,7 +538,7 @@ class GPMHE(Runs):
     def reset(self, x0, p0=None):
         """Forget the history and restart from the estimate x̂(0) = x0.
 
-        Sets ``t`` to 0, ``x``, ``x_prior`` to x0, ``x_window`` to x0 as one row, ``P`` to
+        Sets ``t`` to 0, ``x``, ``x_arrival`` to x0, ``x_window`` to x0 as one row, ``P`` to
         ``P0`` (= P2⁻¹), ``p`` to ``p0`` and ``P_p`` to ``P_p0``, and the solver statistics to
         their initial values. The settings (and weights set since construction) are kept.
 
@@ -541,15 +581,16 @@ class GPMHE(Runs):
         x = self._core.x
         return x[:self.dim_x].copy() if self.dim_p else x
 
-    @property
+    @window_attribute  # (not a property: see gpmhe/_filterpy.py)
     def x_window(self):
         """The last window's optimal trajectory (M_t + 1, dim_x), oldest first."""
         w = self._core.x_window
         return np.ascontiguousarray(w[:, :self.dim_x]) if self.dim_p else w
 
     @property
-    def x_prior(self):
-        """The arrival prior x̂(t−M_t) of the last window."""
+    def x_arrival(self):
+        """The arrival prior x̂(t−M_t) of the last window (``x_prior`` is its deprecated
+        alias)."""
         x = self._core.x_prior
         return x[:self.dim_x].copy() if self.dim_p else x
 
@@ -559,7 +600,7 @@ class GPMHE(Runs):
         c = self._core.covariance
         return np.ascontiguousarray(c[:self.dim_x, :self.dim_x]) if self.dim_p else c
 
-    @property
+    @window_attribute  # (not a property: see gpmhe/_filterpy.py)
     def P_window(self):  # noqa: N802
         """The covariance of every node of ``x_window`` (M_t + 1, dim_x, dim_x), see the class
         docstring; NaN when the last window's was not computable."""
@@ -712,7 +753,8 @@ class GPMHE(Runs):
         u = finite_vector("u", u, self.dim_u, flatten=True)
         self._core.set_last_input(self._core_input(u))  # refused unless an update waits for it
 
-    def update(self, u, y, R=None, dt=None):
+    @required
+    def update(self, u, y=REQUIRED, R=None, dt=None):
         """Add the input and output of the next step, solve the window and update the estimate.
 
         The t-th call appends (u(t), y(t)), slides the window (it grows until it holds M stages),
@@ -766,6 +808,9 @@ class GPMHE(Runs):
         RuntimeError
             If the estimator is already being updated (from another thread, or from inside its
             own model callable).
+        TypeError
+            If called with one argument, as filterpy's ``update(z)``: the input comes first,
+            ``update(None, y)`` when there is none.
 
         Warns
         -----
@@ -791,6 +836,8 @@ class GPMHE(Runs):
         >>> print(np.round(same.update([0.0], [4.0], R=3.0), 3))  # a noisier sample moves x̂ less
         [2.968]
         """
+        if y is REQUIRED:
+            raise one_argument_update(type(self))
         self._step(*self._check_step(u, y, R, dt))
         return self.x
 

@@ -8,11 +8,13 @@ itself (`_stage_model`). See the user guide, *Learned models* and *Weights from 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from gpmhe import _core
 from gpmhe._npz import NpzReader
-from gpmhe._validation import boolean, integer, points
+from gpmhe._validation import SettingsWarning, boolean, integer, points
 from gpmhe.models import training
 from gpmhe.models.base import SharedOnCopy, point
 from gpmhe.models.known import KnownModel
@@ -123,7 +125,7 @@ class LearnedModel(SharedOnCopy):
     >>> from gpmhe import LearnedModel
     >>> from gpmhe.systems import batch_reactor as br
     >>> states, outputs = br.training_data(3, rng=0, steps=10)
-    >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True)
+    >>> model = LearnedModel.from_trajectories(states, outputs)
     >>> model.dim_x, model.dim_y, model.dim_u
     (2, 1, 0)
     >>> print(np.round(model.predict([2.0, 4.0]), 2), np.round(br.f([2.0, 4.0]), 2))
@@ -193,6 +195,9 @@ class LearnedModel(SharedOnCopy):
             the output y(T) is not used.
         f_residual : bool, default False
             Regress the increments x(t+1) − x(t) (the nominal f0(x, u) = x, computed in Rust).
+            It changes the fit only with ``mean="zero"`` or ``"constant"``: the default
+            ``mean="linear"`` fits a linear function of d = [x; u] already, which contains x, so
+            with it the increments give the same GPs (a `gpmhe.SettingsWarning` says so).
         f_nominal, h_nominal : callable or None, default None
             Nominal model f0(x, u) and h0(x, u) in `KnownModel`'s form (per point, or
             vectorised with ``nominal_options={"vectorized": True}``); the GPs learn what it
@@ -273,6 +278,10 @@ class LearnedModel(SharedOnCopy):
         nominal = training.nominal_model(f_nominal, h_nominal, n, p, m, nominal_options)
         if nominal is not None and f_residual:
             raise ValueError("f_nominal, f_residual: give one (f_residual is the nominal f0(x, u) = x)")
+        if f_residual and gp_options.get("mean") == "linear":
+            warnings.warn("f_residual=True has no effect with mean='linear' (the default): the linear "
+                          "mean contains x already, so the increments give the same GPs; use it with "
+                          "mean='zero' or 'constant'", SettingsWarning, stacklevel=2)
         Df, Xn, Xc, Dh, Yh = training.regression_data(states, outputs, inputs, n, p, m)
         Df, Xn, Xc = training.subsample(max_points, Df, Xn, Xc)
         Dh, Yh = training.subsample(max_points, Dh, Yh)
@@ -313,8 +322,8 @@ class LearnedModel(SharedOnCopy):
         >>> from gpmhe import LearnedModel
         >>> from gpmhe.systems import batch_reactor as br
         >>> states, outputs = br.training_data(3, rng=0, steps=10)
-        >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True,
-        ...                                        optimizer=None, sigma_eps=0.01)
+        >>> model = LearnedModel.from_trajectories(states, outputs, optimizer=None,
+        ...                                        sigma_eps=0.01)
         >>> print(np.round(model.predict([2.0, 4.0]), 1), np.round(br.f([2.0, 4.0]), 1))
         [1.9 4.1] [1.9 4.1]
         """
@@ -361,8 +370,8 @@ class LearnedModel(SharedOnCopy):
         >>> from gpmhe import LearnedModel
         >>> from gpmhe.systems import batch_reactor as br
         >>> states, outputs = br.training_data(3, rng=0, steps=10)
-        >>> model = LearnedModel.from_trajectories(states, outputs, f_residual=True,
-        ...                                        optimizer=None, sigma_eps=0.01)
+        >>> model = LearnedModel.from_trajectories(states, outputs, optimizer=None,
+        ...                                        sigma_eps=0.01)
         >>> mx, vx, dmx, dvx, my, vy, dmy, dvy = model.stage_eval([[2.0, 4.0], [1.0, 3.0]])
         >>> mx.shape, vx.shape, dmx.shape, my.shape, dmy.shape
         ((2, 2), (2, 2), (2, 2, 2), (2, 1), (2, 1, 2))
