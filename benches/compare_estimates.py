@@ -59,7 +59,13 @@ def run_mhe(mhe, ys, steps):
             Ps.append(mhe.P.copy())
             costs.append(mhe.cost)
     return {"x": np.array(xs), "P": np.array(Ps), "cost": np.array(costs),
-            "x_window": mhe.x_window.copy(), "x_prior": mhe.x_prior.copy()}
+            "x_window": mhe.x_window.copy(), "x_arrival": arrival_prior(mhe).copy()}
+
+
+def arrival_prior(mhe):
+    """The last window's arrival prior, under its name in the build that runs (x_prior in
+    builds before it was renamed x_arrival), so that builds on either side can be compared."""
+    return mhe.x_arrival if hasattr(type(mhe), "x_arrival") else mhe.x_prior
 
 
 def mhe_entries(model, seed, out):

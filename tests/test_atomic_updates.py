@@ -15,7 +15,7 @@ import pytest
 from gpmhe import GPMHE, EstimatorBank, KnownModel
 from gpmhe.systems import batch_reactor as br
 
-ATTRS = ("t", "x", "P", "x_window", "x_prior", "cost", "success", "nit", "nfev",
+ATTRS = ("t", "x", "P", "x_window", "x_arrival", "cost", "success", "nit", "nfev",
          "projected_gradient", "message")
 TRIES = 40
 

@@ -68,7 +68,7 @@ def _step_separate(mhes, u_rows, y_rows):
 
 
 def _assert_same(bank, mhes):
-    for name in ("x", "P", "cost", "success", "nfev", "nit", "x_window", "x_prior",
+    for name in ("x", "P", "cost", "success", "nfev", "nit", "x_window", "x_arrival",
                  "projected_gradient"):
         assert_array_equal(getattr(bank, name), np.array([getattr(m, name) for m in mhes]),
                            err_msg=name)

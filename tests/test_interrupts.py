@@ -16,7 +16,7 @@ import pytest
 from gpmhe import GPMHE, GaussianProcess, KnownModel, RecursiveGP, _core
 from gpmhe.systems import batch_reactor as br
 
-ATTRS = ("x", "P", "x_window", "x_prior", "cost", "success", "nit", "message", "t",
+ATTRS = ("x", "P", "x_window", "x_arrival", "cost", "success", "nit", "message", "t",
          "projected_gradient", "nfev")
 
 

@@ -82,7 +82,7 @@ def test_filtering_form_and_its_prior(gp5):
     est2.batch_filter(y[:40])
     x_prev = est2.x.copy()  # x̂(39)
     est2.batch_filter(y[40:56])  # now t = 55, window 40..55, prior for x(40) = m_x(x̂(39))
-    np.testing.assert_allclose(est2.x_prior, gp5.predict(x_prev), rtol=1e-12)
+    np.testing.assert_allclose(est2.x_arrival, gp5.predict(x_prev), rtol=1e-12)
     assert est2.x_window.shape == (16, 2)
 
 
@@ -160,7 +160,7 @@ def test_bad_inputs_raise_and_leave_the_state(gp5, known):
         GPMHE(object(), br.X_PRIOR0)
     est = GPMHE(gp5, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver="least-squares", **br.MHE_SETTINGS)
     est.update(None, [3.9])
-    before = {k: np.copy(getattr(est, k)) for k in ("x", "x_prior", "x_window", "P", "cost", "t")}
+    before = {k: np.copy(getattr(est, k)) for k in ("x", "x_arrival", "x_window", "P", "cost", "t")}
     for bad in ([np.inf], [1.0, 2.0], np.inf, (None,)):
         with pytest.raises(ValueError, match="y"):
             est.update(None, bad)
@@ -209,7 +209,7 @@ def test_saver_reset_and_batch_filter_match_update(gp5):
 
     x, y = br.simulate(br.X_TRUE0, 20, np.random.default_rng(3))
     est = GPMHE(gp5, br.X_PRIOR0, x_bounds=br.X_BOUNDS, solver="least-squares", **br.MHE_SETTINGS)
-    saver = Saver(est, ignore=("x_window", "P_window"))  # the window grows while t < M
+    saver = Saver(est)  # from t = 0, while the window still grows
     xs_loop = []
     for t in range(20):
         est.update(None, y[t])

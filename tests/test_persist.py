@@ -103,7 +103,7 @@ def test_gpmhe_copy_is_independent():
 def test_filterpy_saver_records_independent_states():
     filterpy = pytest.importorskip("filterpy.common")
     mhe = _mhe(LEARNED, "prediction", "gauss-newton")
-    saver = filterpy.Saver(mhe, ignore=("x_window", "P_window"))
+    saver = filterpy.Saver(mhe)
     for t in range(8):
         mhe.update(US[t], YS[t])
         saver.save()
