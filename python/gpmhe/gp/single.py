@@ -20,11 +20,12 @@ class GaussianProcess(_OneOutput):
 
     Model, for training inputs d_i (rows of D, n_d columns) and targets y_i::
 
-        y_i = f(d_i) + eps_i,   eps_i ~ N(0, sigma_eps^2),   f ~ GP(0, k),
-        k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d')).
+        y_i = f(d_i) + eps_i,   eps_i ~ N(0, sigma_eps^2),   f ~ GP(m0, k),
+        k(d, d') = sigma_f^2 exp(-1/2 (d - d')^T diag(lengthscales)^-2 (d - d')),
 
-    The posterior at a test point d* has mean m(d*) = k*^T (K + sigma_eps^2 I)^-1 y and latent
-    (noise-free) variance var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*. With an
+    with the prior mean m0 = 0 by default (``mean``). The posterior at a test point d* has mean
+    m(d*) = m0(d*) + k*^T (K + sigma_eps^2 I)^-1 (y - m0(D)) and latent (noise-free) variance
+    var(d*) = sigma_f^2 - k*^T (K + sigma_eps^2 I)^-1 k*. With an
     optimizer, ``fit`` chooses theta = log([sigma_f, lengthscales..., sigma_eps]) by maximising
     the log marginal likelihood.
 

@@ -69,7 +69,7 @@ class _Inducing:
 class SparseGaussianProcess(_Inducing, _OneOutput):
     """Sparse GP regression of one output with the SE-ARD kernel and m inducing points.
 
-    The model of `GaussianProcess` (y_i = f(d_i) + eps_i, f ~ GP(0, k)), approximated through the
+    The model of `GaussianProcess` (y_i = f(d_i) + eps_i, f ~ GP(m0, k)), approximated through the
     values of f at m inducing inputs Z: fitting costs O(N m^2) per objective evaluation and
     O(N + m^2) memory instead of O(N^3) and O(N^2), and a prediction O(m^2) per point instead of
     O(N^2). With Kuu = K(Z, Z), Kuf = K(Z, D), Qff = Kfu Kuu^-1 Kuf and the diagonal noise
@@ -80,7 +80,8 @@ class SparseGaussianProcess(_Inducing, _OneOutput):
     and with P = Kuu + Kuf Lambda^-1 Kfu the posterior at d* has mean
     k*^T P^-1 Kuf Lambda^-1 y and latent variance sigma_f^2 - k*^T (Kuu^-1 - P^-1) k*, which
     returns to sigma_f^2 far from the inducing points (it does not collapse to 0 as DTC's
-    does). With Z equal to the training inputs both methods reproduce `GaussianProcess`.
+    does); with a prior mean m0 (``mean``), y stands for y - m0(D) and the mean adds m0(d*).
+    With Z equal to the training inputs both methods reproduce `GaussianProcess`.
 
     It has every attribute and method of `GaussianProcess` and works wherever the exact GP does
     in `LearnedModel`, `GPMHE` and the GP-EKF (it is not a subclass of it: test for a sparse GP

@@ -81,8 +81,9 @@ class EstimatorBank:
         The initial estimates x̂(0): one for all estimators or one row per estimator; each must
         lie in its ``x_bounds``.
     **gpmhe_options
-        The settings of `GPMHE`: ``horizon``, ``eta``, ``P2``, ``form``, ``solver_options`` as
-        there (the same for all estimators), and
+        The settings of `GPMHE`: ``horizon``, ``eta``, ``P2``, ``form``, ``solver_options``,
+        ``arrival_mean``, ``arrival_weight``, ``loss``, ``loss_scale`` as there (the same for all
+        estimators; ``P0`` and the parameter settings are not taken), and
 
         * ``Q0``, ``R0``: one value as `GPMHE` takes it (a scalar, the diagonal or a diagonal
           matrix) or one per estimator: shape (n,) scalars, (n, dim) diagonals or
@@ -128,8 +129,8 @@ class EstimatorBank:
     ------
     ValueError
         If a setting is invalid (as for `GPMHE`, naming the argument and, for a per-estimator
-        value, the estimator), a keyword is not a setting of `GPMHE`, or ``solver`` is not
-        "gauss-newton".
+        value, the estimator; ``Q0`` and ``R0`` must be diagonal), a keyword is not among the
+        settings above, ``solver`` is not "gauss-newton", or the model has parameters.
 
     See Also
     --------

@@ -245,8 +245,12 @@ class GPMHE(Runs):
     Raises
     ------
     ValueError
-        If a setting is invalid (not real numbers, shapes, P2, Q0 or R0 not symmetric positive
-        definite, lower >= upper, x0 outside the bounds, an unknown solver or solver option).
+        If ``model`` is not a `LearnedModel` or `KnownModel`, or a setting is invalid, the
+        message naming it: not real numbers or the wrong shape; P2, P0, Q0 or R0 not symmetric
+        positive definite, or both P2 and P0 given; ``eta`` outside [0, 1]; ``horizon`` < 1;
+        lower >= upper; x0 outside the bounds; an unknown form, solver, solver option, arrival
+        mean, arrival weight or loss; ``loss_scale`` with the squared loss; ``p0`` missing for
+        a model with parameters, or a parameter setting for a model without.
 
     Warns
     -----
@@ -329,6 +333,15 @@ class GPMHE(Runs):
     (10, True, (6, 2))
     >>> print(np.round(mhe.x, 1), np.round(x_true[10], 1))  # x̂(10) and x(10)
     [1.6 1.6] [1.5 1.8]
+
+    Full covariances are accepted; an invalid setting is refused, named in the message:
+
+    >>> GPMHE(model, x0=[3.0, 1.0], Q0=[[1e-3, 5e-4], [5e-4, 1e-3]], R0=1e-2).Q0.shape
+    (2, 2)
+    >>> GPMHE(model, x0=[3.0, 1.0], Q0=1e-3, R0=1e-2, eta=1.5)
+    Traceback (most recent call last):
+        ...
+    ValueError: eta: must be in [0, 1], got 1.5
     """
 
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
@@ -491,7 +504,7 @@ class GPMHE(Runs):
 
     @property
     def arrival_mean(self):
-        """The arrival mean, "smoothed" or "estimate"."""
+        """The arrival mean, "smoothed", "estimate" or "filtered"."""
         return self._settings.arrival_mean
 
     @property

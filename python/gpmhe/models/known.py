@@ -107,10 +107,10 @@ class KnownModel(SharedOnCopy):
 
     Every returned array is checked for its shape and for NaN or inf in both modes; a violation
     raises ValueError naming the callable. At the window's start point, `GPMHE.update` then
-    raises it and leaves the estimator's state unchanged. NaN or inf (or a ValueError the
-    callable raises) at a point a solver only tries rejects that step, for every solver: the
-    model may be undefined outside the region the estimates lie in. A wrong shape is an error
-    wherever it happens.
+    raises it and leaves the estimator's state unchanged. NaN or inf (or a ValueError,
+    ArithmeticError or RuntimeError the callable raises) at a point a solver only tries rejects
+    that step, for every solver: the model may be undefined outside the region the estimates lie
+    in. A wrong shape is an error wherever it happens, and any other exception is passed on.
 
     Gradients with respect to u are not needed by the estimator (u is data) and are reported as
     zero.

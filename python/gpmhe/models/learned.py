@@ -99,8 +99,9 @@ class LearnedModel(SharedOnCopy):
     Raises
     ------
     ValueError
-        If a GP is not a fitted `MultiOutputGP` or its input dimension is not n + m, or the
-        nominal model is not a `KnownModel` of the model's dimensions.
+        If a GP is not a fitted `MultiOutputGP` (or `SparseMultiOutputGP`) or its input dimension
+        is not n + m, or the nominal model is not a `KnownModel` of the model's dimensions or is
+        given together with ``f_residual``.
 
     See Also
     --------
@@ -235,6 +236,8 @@ class LearnedModel(SharedOnCopy):
             If a hyperparameter fit did not converge.
         FitWarning
             If a fitted GP looks unreliable (with ``warn``); the message has the numbers.
+        SettingsWarning
+            If ``f_residual=True`` with ``mean="linear"`` (the default), where it has no effect.
 
         Examples
         --------
