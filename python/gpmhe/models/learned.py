@@ -210,8 +210,8 @@ class LearnedModel(SharedOnCopy):
             Use at most this many regression points per GP (evenly spaced over the data);
             exact GPs cost O(N³) to fit and O(N²) per window point.
         warn : bool, default True
-            Warn (`gpmhe.FitWarning`) when a fitted GP sits at a bound, has
-            collapsed or is miscalibrated (see `diagnostics`).
+            Warn (`gpmhe.FitWarning`) when a fitted GP sits at a bound or has collapsed (see
+            `diagnostics`; a miscalibrated GP is reported there, not warned about).
         **gp_options
             Passed to both `MultiOutputGP` constructors (e.g. ``n_restarts``, ``random_state``,
             ``optimizer``, ``sigma_eps``, ``mean``, ``normalize``, ``hyperprior``, ``bounds``).
