@@ -280,8 +280,50 @@ def test_demo_runs_and_prints_the_table(capsys, tmp_path):
     args = ["--steps", "21", "--restarts", "0"] + (["--out", str(tmp_path / "fig.png")] if plot else [])
     assert main(args) == 0
     out = capsys.readouterr().out
-    for name in ("GP-MHE (5 traj.)", "GP-MHE (3 traj.)", "exact-model MHE", "filterpy EKF (exact)",
-                 "GP-EKF (5 traj.)", "MHE solver: gauss-newton"):
+    for name in ("gpmhe's defaults", "the paper's setup", "GP-MHE, 5 trajectories",
+                 "GP-MHE, 3 trajectories", "MHE, exact model", "EKF, GP model (5 traj.)",
+                 "filterpy EKF, exact model", "MHE solver: gauss-newton", "Reading the table"):
         assert name in out
+    assert out.count("GP-MHE, 5 trajectories") == 3  # a row per setup and the reading
     if plot:
         assert (tmp_path / "fig.png").stat().st_size > 0
+
+
+def test_the_demo_reading_follows_the_numbers():
+    """The sentences under the table are worded from its numbers: swap which setup wins and the
+    words change with them."""
+    from gpmhe.demos import batch_reactor as demo
+
+    truth = np.zeros((22, 2))
+
+    def row(err, low=0.2):  # x̂ off by err in both states after the transient, x̂1 once at low
+        xs = np.full((21, 2), err)
+        xs[0, 0] = low
+        return xs, np.zeros(21), 0
+
+    results = {s: {r: row(0.1 if s == "gpmhe's defaults" else 0.3) for r in demo.ROWS}
+               for s in demo.SETUPS}
+    results[None] = {demo.EKF_ROW: row(0.2)}
+    text = " ".join(demo._reading(truth, results).split())
+    assert "lower than" in text and "comes from the arrival cost" in text
+    assert "below zero" not in text and "wrong state" not in text
+    results = {s: {r: row(0.3 if s == "gpmhe's defaults" else 0.1, low=-0.5) for r in demo.ROWS}
+               for s in demo.SETUPS}
+    results[None] = {demo.EKF_ROW: row(3.0, low=-3.0)}
+    text = " ".join(demo._reading(truth, results).split())
+    assert "higher than" in text and "below zero" in text and "wrong state" in text
+
+
+def test_the_command_line_help_is_plain_text(capsys):
+    from gpmhe.__main__ import main
+
+    for argv in (["--help"], ["demo", "--help"], ["demo", "rgp", "--help"]):
+        try:
+            code = main(argv)
+        except SystemExit as exc:  # argparse's --help
+            code = exc.code
+        assert code == 0
+        text = capsys.readouterr().out
+        assert "usage: python -m gpmhe demo" in text
+        for markup in ("``", ":doc:", ":func:", ".rst", ".py"):
+            assert markup not in text, (argv, markup)

@@ -1,8 +1,9 @@
-"""``python -m gpmhe demo rgp``: the RGP-dKF learning the hidden disturbance of the second-order
-system (scenario S2: low noise, both states measured), as in the paper's Figs. 1–2.
+"""RGP-dKF demo: ``python -m gpmhe demo rgp [options]``.
 
-Prints the RMSE and NLL of the learned z(ζ) over the visited ζ range after 0.5 s and after the whole
-run, and writes a figure of the GP mean ±2σ against the truth at both times (needs matplotlib).
+The RGP-dKF learning the hidden disturbance of the second-order system (scenario S2: low noise,
+both states measured), as in the paper's Figs. 1-2. Prints the RMSE and NLL of the learned z(ζ)
+over the visited ζ range after 0.5 s and after the whole run, and writes a figure of the GP mean
+±2σ against the truth at both times (needs matplotlib).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def write_figure(path: str, panels: Sequence[tuple[RecursiveGP, so.Run, str]]) -
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        print("matplotlib is not installed: no figure written (pip install 'gpmhe[plot]')")
+        print("matplotlib is not installed: no figure written (pip install matplotlib)")
         return False
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
     for ax, (gp, run, title) in zip(axes[0], panels):
@@ -60,7 +61,8 @@ def write_figure(path: str, panels: Sequence[tuple[RecursiveGP, so.Run, str]]) -
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m gpmhe demo rgp", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m gpmhe demo rgp",
+                                     description=__doc__.split("\n", 2)[2].strip())
     parser.add_argument("--out", default="rgp_s2.png", help="figure path (default: rgp_s2.png)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--duration", type=float, default=so.DURATION, help="seconds of data")

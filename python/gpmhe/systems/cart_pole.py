@@ -40,7 +40,11 @@ PROCESS_WEIGHTS = 1.0 / SIGMA_W**2
 #: The arrival weight relative to the process weights: P2 = 0.005 Q0⁻¹.
 ARRIVAL_FACTOR = 0.005
 #: `gpmhe.GPMHE` settings: horizon 10, Q0 and R0 the noise covariances, the arrival weight
-#: P2 = ARRIVAL_FACTOR · Q0⁻¹ and little discounting.
+#: P2 = ARRIVAL_FACTOR · Q0⁻¹ and little discounting. The arrival cost is gpmhe's default (the
+#: smoothed mean of the previous window, its weight updated as an EKF's covariance from P2): on
+#: this swinging pendulum the smoothed mean re-anchors each window, where the estimator's own
+#: earlier estimate (``arrival_mean="estimate"``) doubles the error with the EKF weight and
+#: diverges with the paper's constant one (the user guide's *The window problem* compares them).
 MHE_SETTINGS = dict(horizon=10, eta=0.99, Q0=np.diag(SIGMA_W**2), R0=np.diag(SIGMA_V**2),
                     P2=ARRIVAL_FACTOR * np.diag(PROCESS_WEIGHTS))
 

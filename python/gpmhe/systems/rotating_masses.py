@@ -56,7 +56,9 @@ P_P = 10.0
 P_V = np.eye(DIM_Y)
 #: `gpmhe.GPMHE` settings for the states: P2 = P_X, R0 = P_V⁻¹, "no process noise" as a
 #: process weight Q0⁻¹ = 1e8 I, and do-mpc's arrival cost (the previous window's estimate of
-#: the new first node, constant weights).
+#: the new first node, ``arrival_mean="smoothed"``, with constant weights,
+#: ``arrival_weight="constant"``), so that the comparison with do-mpc's example runs the same
+#: estimation problem.
 MHE_SETTINGS = dict(horizon=HORIZON, eta=0.99, P2=P_X, R0=np.linalg.inv(P_V), Q0=1e-8 * np.eye(DIM_X),
                     arrival_mean="smoothed", arrival_weight="constant")
 #: `gpmhe.GPMHE`'s parameter settings for Θ1 unknown (with ``known_model(theta1=None)``): the
