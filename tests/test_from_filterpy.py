@@ -179,3 +179,14 @@ def test_other_missing_attributes_raise_the_usual_error():
     pickle.dump(est, buf)  # pickle's look-ups of optional methods are unaffected
     buf.seek(0)
     assert pickle.load(buf).t == 0
+
+
+def test_batch_filter_takes_filterpys_rs_with_one_r_for_every_row():
+    rows = [YS[0], None, YS[2]]
+    est, other = _mhe(), _mhe()
+    xs, _ = est.batch_filter(rows, Rs=[0.04, 0.04, 0.01])
+    for y, r in zip(rows, [0.04, None, 0.01]):
+        other.update(None, y, R=r)
+    assert_array_equal(xs[-1], other.x)
+    with pytest.raises(ValueError, match="R: given without an output y"):
+        other.update(None, None, R=0.04)  # a single update still refuses it

@@ -31,7 +31,7 @@ class Runs:
             Inputs u(t); None when the model has no input.
         Rs : sequence of (float, array_like or None), length T, or None, default None
             Each sample's output covariance (`update`'s ``R``; a row None: ``R0``), as filterpy's
-            ``Rs``. None: ``R0`` for all.
+            ``Rs``: the R of a row whose output is None is not used. None: ``R0`` for all.
         dts : sequence of (float or None), length T, or None, default None
             Each sample's interval since the previous one (`update`'s ``dt``; a row None: the
             model's ``dt``). None: the model's ``dt`` for all.
@@ -74,8 +74,8 @@ class Runs:
                              + ", ".join(f"{name} has {len(other[name])}" for name in wrong))
         steps = []
         for i, (u, y, R, dt) in enumerate(zip(us, ys, Rs, dts)):
-            try:
-                steps.append(self._check_step(u, y, R, dt))
+            try:  # (no R without an output: filterpy's Rs has one for every row)
+                steps.append(self._check_step(u, y, None if y is None else R, dt))
             except ValueError as e:  # "y: ..." -> "ys[i]: ... (at row i)"
                 name, _, detail = str(e).partition(": ")
                 raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
