@@ -99,9 +99,9 @@ class GPMHE(Runs):
         Window length M >= 1 (number of stages).
     eta : float, default 0.91
         Discount factor η in [0, 1]: older terms are weighted by η^{j−1} (1: no discount).
-    P2 : array_like of shape (dim_x, dim_x) or None, default None
-        Symmetric positive definite weight of the arrival prior, the inverse of the arrival
-        covariance ``P0``; None is the identity. Give P2 or P0, not both.
+    P2 : float, array_like of shape (dim_x, dim_x), or None, default None
+        Symmetric positive definite weight of the arrival prior (a scalar: times I), the inverse
+        of the arrival covariance ``P0``; None is the identity. Give P2 or P0, not both.
     Q0 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
         Process-noise covariance: a scalar (times I), the diagonal, or a full symmetric positive
         definite matrix. Its inverse (with the GP variances added to the diagonal) weights w̄.
@@ -135,8 +135,9 @@ class GPMHE(Runs):
         "least-squares" the keywords of `scipy.optimize.least_squares` (defaults
         ftol=xtol=gtol=1e-10, max_nfev=200).
 
-    P0 : array_like of shape (dim_x, dim_x) or None, default None
-        The arrival covariance, the covariance form of ``P2`` (P2 = P0⁻¹, as filterpy's ``P``).
+    P0 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
+        The arrival covariance, the covariance form of ``P2`` (P2 = P0⁻¹, as filterpy's ``P``),
+        in the forms ``Q0`` takes.
     arrival_mean : {"smoothed", "estimate", "filtered"}, default "smoothed"
         The arrival prior x̂(t−M_t) once the window slides: "smoothed" is the previous window's
         estimate of the new first node; "estimate" is the estimator's own earlier estimate of
