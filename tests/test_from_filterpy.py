@@ -7,6 +7,7 @@ import copy
 import inspect
 import io
 import pickle
+import re
 import warnings
 
 import numpy as np
@@ -160,14 +161,22 @@ def test_filterpys_one_argument_update_says_what_to_call(make, call):
     assert all(p.default is inspect.Parameter.empty for p in list(signature.parameters.values())[:2])
 
 
-@pytest.mark.parametrize("name, use", [("predict", "update(u, y)"), ("x_post", "form='filtering'"),
-                                       ("P_prior", "P "), ("P_post", "P "), ("y", "innovation"),
+@pytest.mark.parametrize("name, use", [("predict", "update"), ("x_post", "x"), ("P_prior", "P"),
+                                       ("P_post", "P"), ("y", "innovation"),
                                        ("likelihood", "log_likelihood"), ("mahalanobis", "nis")])
 def test_filterpys_attribute_names_say_what_to_use(name, use):
-    for est in (_mhe(), _bank()):
+    ests = [_mhe(), _bank()] if name in ("predict", "x_post", "P_prior", "P_post") else [_mhe()]
+    for est in ests:
         with pytest.raises(AttributeError, match=f"filterpy's {name}") as error:
             getattr(est, name)
-        assert use in str(error.value)
+        assert re.search(rf"; use {use}[ ,]", str(error.value))
+        assert hasattr(est, use)  # what it names is there
+
+
+@pytest.mark.parametrize("name", ["y", "likelihood", "mahalanobis"])
+def test_a_bank_names_no_innovation_attribute_it_does_not_have(name):
+    with pytest.raises(AttributeError, match=rf"^'EstimatorBank' object has no attribute '{name}'$"):
+        getattr(_bank(), name)
 
 
 def test_other_missing_attributes_raise_the_usual_error():

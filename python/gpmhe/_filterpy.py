@@ -7,7 +7,7 @@
   ...) raise an AttributeError that names the estimator's own (`missing_attribute`).
 * filterpy's one-argument ``update(z)`` raises a TypeError that shows gpmhe's ``update(u, y)``
   (`REQUIRED`, `required`, `one_argument_update`).
-* Attributes whose shape grows while the window fills are `window_attribute`\\ s, not
+* Attributes whose shape grows while the window fills are `window_attribute` descriptors, not
   properties: filterpy's ``Saver`` records every property at each ``save()``, and its
   ``to_array()`` needs one shape per attribute.
 """
@@ -17,15 +17,15 @@ from __future__ import annotations
 import inspect
 import warnings
 
-__all__ = ["RENAMED", "REQUIRED", "renamed", "missing_attribute", "required",
-           "one_argument_update", "window_attribute"]
+__all__ = ["RENAMED", "FILTERPY_NAMES", "BANK_NAMES", "REQUIRED", "renamed",
+           "missing_attribute", "required", "one_argument_update", "window_attribute"]
 
 #: Renamed attributes, old name -> new name: the old name works for one release, with a warning.
 RENAMED = {"x_prior": "x_arrival"}
 
 #: filterpy's attributes the estimators do not have -> what to use instead.
 FILTERPY_NAMES = {
-    "predict": "update(u, y), which predicts too: with form='prediction' x is then x̂(t+1), "
+    "predict": "update, which predicts too: with form='prediction' x is then x̂(t+1), "
                "filterpy's x after predict",
     "x_post": "x with form='filtering' (x̂(t) from y(0..t))",
     "P_prior": "P (the covariance of x in either form)",
@@ -34,6 +34,10 @@ FILTERPY_NAMES = {
     "likelihood": "log_likelihood (numpy.exp of it)",
     "mahalanobis": "nis (the square of filterpy's mahalanobis)",
 }
+
+#: The names of `FILTERPY_NAMES` whose replacement an `EstimatorBank` has (it reports no
+#: innovations).
+BANK_NAMES = ("predict", "x_post", "P_prior", "P_post")
 
 
 def renamed(owner, name):
@@ -50,11 +54,12 @@ def renamed(owner, name):
     return new
 
 
-def missing_attribute(obj, name):
+def missing_attribute(obj, name, names=tuple(FILTERPY_NAMES)):
     """The AttributeError for attribute ``name`` that ``obj`` does not have, naming what to use
-    instead when the name is filterpy's."""
+    instead when the name is one of filterpy's ``names`` (those `FILTERPY_NAMES` that ``obj``
+    has a replacement for)."""
     message = f"{type(obj).__name__!r} object has no attribute {name!r}"
-    hint = FILTERPY_NAMES.get(name)
+    hint = FILTERPY_NAMES.get(name) if name in names else None
     if hint is not None:
         message += f" (filterpy's {name}); use {hint}"
     error = AttributeError(message)

@@ -15,8 +15,8 @@ import warnings
 import numpy as np
 
 from gpmhe import _core
-from gpmhe._filterpy import (REQUIRED, missing_attribute, one_argument_update, renamed, required,
-                             window_attribute)
+from gpmhe._filterpy import (BANK_NAMES, REQUIRED, missing_attribute, one_argument_update,
+                             renamed, required, window_attribute)
 from gpmhe._threads import exclusive
 from gpmhe._validation import (MAX_ABS, SettingsWarning, box, float_array, integer,
                                output_sample, positive_diagonal, real_array, within_limits)
@@ -264,7 +264,7 @@ class EstimatorBank:
     def __getattr__(self, name):  # only for names the class and the instance do not have
         new = renamed(type(self), name)
         if new is None:
-            raise missing_attribute(self, name)
+            raise missing_attribute(self, name, BANK_NAMES)
         return getattr(self, new)
 
     def __setattr__(self, name, value):
