@@ -167,6 +167,84 @@ def test_bad_settings_raise_naming_the_argument(kwargs, arg):
         EstimatorBank(object(), K, X0)
 
 
+@pytest.mark.parametrize("name, value", [
+    ("Q0", np.array([3e-2, 1e-3, 2e-2, 1e-2])),  # one per estimator
+    ("R0", np.array([[2e-1, 1e-1], [1e-1, 5e-2], [5e-2, 5e-2], [1e-1, 3e-1]])),
+    ("eta", 0.8),
+    ("P2", np.array([[2.0, 0.3], [0.3, 1.0]])),
+])
+@pytest.mark.parametrize("model, form", [(LEARNED, "prediction"), (KNOWN, "filtering")],
+                         ids=["learned", "known"])
+def test_a_weight_set_between_updates_acts_as_on_separate_estimators(model, form, name, value):
+    bank, mhes = _bank(model, form), _separate(model, form)
+    for t in range(8):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    setattr(bank, name, value)
+    for i, mhe in enumerate(mhes):
+        setattr(mhe, name, value[i] if name in ("Q0", "R0") else value)
+    assert bank.t == 8 and all(bank[i].t == 8 for i in range(K))  # the histories are kept
+    for t in range(8, T):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    _assert_same(bank, mhes)
+    if name in ("Q0", "R0"):  # the bank's are the diagonals
+        assert_array_equal(getattr(bank, name), [np.diag(getattr(m, name)) for m in mhes])
+    else:
+        assert_array_equal(getattr(bank, name), value)
+    assert_array_equal(getattr(bank[2], name), getattr(mhes[2], name))
+
+
+@pytest.mark.parametrize("name, value", [("Q0", -1.0), ("Q0", np.ones((3, 2))),
+                                         ("Q0", [[1.0, 0.5], [0.5, 1.0]]), ("R0", np.nan),
+                                         ("eta", 1.5), ("P2", -np.eye(2)), ("P2", "1")])
+def test_a_refused_weight_raises_naming_it_and_changes_nothing(name, value):
+    bank, twin = _bank(KNOWN, "prediction"), _bank(KNOWN, "prediction")
+    for b in (bank, twin):
+        b.update(U_DATA[0], Y_DATA[0])
+    core = bank._core
+    with pytest.raises(ValueError, match=f"^{name}"):
+        setattr(bank, name, value)
+    assert bank._core is core
+    for w in ("Q0", "R0", "eta", "P2"):
+        assert_array_equal(getattr(bank, w), getattr(twin, w))
+    for b in (bank, twin):
+        b.update(U_DATA[1], Y_DATA[1])
+    assert_array_equal(bank.x, twin.x)
+
+
+@pytest.mark.parametrize("name, message", [
+    ("horizon", "EstimatorBank.horizon is read-only; the settable attributes are P2, Q0, R0, "
+                "eta (the other settings are fixed at construction: build a new EstimatorBank"),
+    ("x0", "EstimatorBank.x0 is read-only"),
+    ("x_bounds", "EstimatorBank.x_bounds is read-only"),
+    ("form", "EstimatorBank.form is read-only"),
+    ("x", "EstimatorBank.x is read-only; .* the estimates change only through update"),
+    ("R", "no settable attribute 'R': did you mean R0"),
+    ("P0", "no settable attribute 'P0': did you mean P2, the arrival weight P0⁻¹"),
+    ("horizn", "EstimatorBank has no attribute 'horizn'; the settable ones are P2, Q0, R0, eta"),
+])
+def test_other_attributes_cannot_be_set(name, message):
+    bank = _bank(KNOWN, "prediction")
+    before = {n: copy.deepcopy(getattr(bank, n)) for n in ("horizon", "x0", "form", "x")}
+    with pytest.raises(AttributeError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        setattr(bank, name, 3)
+    assert not hasattr(bank, "horizn")
+    for n, v in before.items():
+        assert_array_equal(getattr(bank, n), v)
+
+
+@pytest.mark.parametrize("key, message", [
+    ("P0", "P0: a setting of GPMHE that EstimatorBank does not take; .*give P2 = P0⁻¹"),
+    ("p0", "p0: a setting of GPMHE that EstimatorBank does not take; the bank runs models "
+           "without parameters only"),
+    ("x_bound", "x_bound: not a setting of EstimatorBank"),
+])
+def test_a_keyword_the_bank_does_not_take_is_named_with_what_to_give(key, message):
+    with pytest.raises(ValueError, match=message):
+        EstimatorBank(KNOWN, K, X0, **{key: 1.0})
+
+
 def test_a_solver_failure_in_one_estimator_does_not_stop_the_others():
     # max_iter=1 stops most windows before convergence: those report success False.
     bank = _bank(LEARNED, "prediction", solver_options=dict(max_iter=1))

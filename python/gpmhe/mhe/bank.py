@@ -57,6 +57,41 @@ def _rows(name, value, k, d):
     return np.ascontiguousarray(a)
 
 
+#: GPMHE's keyword settings the bank does not take, and why (what to use instead).
+_NOT_TAKEN = {
+    "P0": "the bank takes the arrival weight as its inverse only: give P2 = P0⁻¹ "
+          "(numpy.linalg.inv(P0), or 1/P0 for a scalar)",
+    **{name: "the bank runs models without parameters only (dim_p = 0): estimate parameters "
+             "with GPMHE" for name in ("p0", "P_p0", "p_bounds", "p_drift")},
+}
+
+#: The settings a user may set between updates: GPMHE's weights (P0 only as P2, as above).
+_SETTABLE = ("P2", "Q0", "R0", "eta")
+
+#: Names users of GPMHE or of other filters try to set, and what to use instead.
+_DID_YOU_MEAN = {"R": "R0 (or update's R, for one sample)", "Q": "Q0",
+                 "P0": "P2, the arrival weight P0⁻¹ (the bank takes no P0)",
+                 "M": "horizon (fixed: build a new EstimatorBank)",
+                 "N": "horizon (fixed: build a new EstimatorBank)"}
+
+
+def _not_taken(key):
+    """The ValueError message for a keyword of the bank's constructor it does not take."""
+    why = _NOT_TAKEN.get(key)
+    if why is not None:
+        return f"{key}: a setting of GPMHE that EstimatorBank does not take; {why}"
+    return (f"{key}: not a setting of EstimatorBank (it takes x0 and {', '.join(_SETTINGS)})")
+
+
+def _build(model, x0, lb, ub, q0, r0, common):
+    """A `GPMHE` with estimator 0's settings (which validates the common settings) and the core
+    bank made from it as its template: row i of the arrays for estimator i."""
+    p = model.dim_y
+    template = GPMHE(model, x0=x0[0], Q0=q0[0], R0=r0[0] if p else None,
+                     x_bounds=(lb[0], ub[0]), **common)
+    return template, _core.EstimatorBank(template._core, x0, lb, ub, q0, np.ascontiguousarray(r0))
+
+
 class EstimatorBank:
     """n independent `GPMHE` estimators on one model, updated together with one call per sample.
 
@@ -83,7 +118,9 @@ class EstimatorBank:
     **gpmhe_options
         The settings of `GPMHE`: ``horizon``, ``eta``, ``P2``, ``form``, ``solver_options``,
         ``arrival_mean``, ``arrival_weight``, ``loss``, ``loss_scale`` as there (the same for all
-        estimators; ``P0`` and the parameter settings are not taken), and
+        estimators; the arrival weight is taken as ``P2`` only: for an arrival covariance P0
+        give ``P2`` = P0⁻¹; the parameter settings are not taken, a model with parameters runs
+        in `GPMHE`), and
 
         * ``Q0``, ``R0``: one value as `GPMHE` takes it (a scalar, the diagonal or a diagonal
           matrix) or one per estimator: shape (n,) scalars, (n, dim) diagonals or
@@ -116,12 +153,18 @@ class EstimatorBank:
         Number of updates since construction.
     threads : int
         The number of threads an update runs on (1 for a `KnownModel`).
-    model, horizon, eta, form, P2, solver_options
-        The common settings.
-    x0, Q0, R0 : ndarray of shape (n, dim_x), (n, dim_x), (n, dim_y)
-        Each estimator's x̂(0) and the diagonals of its Q0 and R0.
+    Q0, R0 : ndarray of shape (n, dim_x), (n, dim_y)
+        The diagonals of each estimator's Q0 and R0; settable between updates (see Notes).
+    eta : float
+        The discount factor η of every estimator; settable.
+    P2 : ndarray of shape (dim_x, dim_x)
+        The arrival weight of every estimator; settable.
+    model, horizon, form, solver, solver_options, arrival_mean, arrival_weight, loss, loss_scale
+        The common settings, read-only.
+    x0 : ndarray of shape (n, dim_x)
+        Each estimator's x̂(0), read-only.
     x_bounds : tuple of two ndarrays of shape (n, dim_x)
-        Each estimator's box (lower, upper).
+        Each estimator's box (lower, upper), read-only.
     dim_x, dim_y, dim_u : int
         The model's dimensions.
 
@@ -130,7 +173,8 @@ class EstimatorBank:
     ValueError
         If a setting is invalid (as for `GPMHE`, naming the argument and, for a per-estimator
         value, the estimator; ``Q0`` and ``R0`` must be diagonal), a keyword is not among the
-        settings above, ``solver`` is not "gauss-newton", or the model has parameters.
+        settings above (``P0`` and the parameter settings included, the message says what to
+        give instead), ``solver`` is not "gauss-newton", or the model has parameters.
 
     See Also
     --------
@@ -138,6 +182,15 @@ class EstimatorBank:
 
     Notes
     -----
+    ``Q0``, ``R0``, ``P2`` and ``eta`` can be set between updates, as `GPMHE`'s weights: the new
+    value is validated as in the constructor (``Q0`` and ``R0`` once for all or once per
+    estimator), and every estimator uses it from the next update on exactly as a `GPMHE` whose
+    weight was set; nothing else changes (only ``P2`` restarts the "ekf" arrival weight). A
+    refused value raises ValueError and leaves the bank as it was. Setting any other name raises
+    AttributeError: the other settings are fixed at construction (build a new bank), and an
+    arrival covariance P0 is set as ``P2`` = P0⁻¹. Setting a weight builds a new core with it
+    and moves every estimator's state over, in a time that grows with n.
+
     A solver failure of one estimator (its ``success`` False) does not stop the others; one
     `RuntimeWarning` per update names the estimators that failed. An error (bad input, or an
     exception raised by a `KnownModel` function) leaves every estimator as it was.
@@ -160,12 +213,23 @@ class EstimatorBank:
     ((3, 2), 10, True)
     >>> len(bank), bank[1].t
     (3, 10)
+
+    The weights can be set between updates (once for all or once per estimator); the other
+    settings are fixed:
+
+    >>> bank.R0 = [2e-2, 1e-2, 5e-3]                  # one R0 per estimator
+    >>> bank.R0.ravel()
+    array([0.02 , 0.01 , 0.005])
+    >>> bank.horizon = 10
+    Traceback (most recent call last):
+        ...
+    AttributeError: EstimatorBank.horizon is read-only; the settable attributes are P2, Q0, R0, eta ...
     """
 
     def __init__(self, model, n, x0, **gpmhe_options):
         for key in gpmhe_options:
             if key not in _SETTINGS:
-                raise ValueError(f"{key}: not a setting of GPMHE (expected one of {', '.join(_SETTINGS)})")
+                raise ValueError(_not_taken(key))
         from gpmhe.models import KnownModel, LearnedModel
 
         if not isinstance(model, (KnownModel, LearnedModel)):
@@ -187,23 +251,27 @@ class EstimatorBank:
         bad = np.flatnonzero(np.any((x0 < lb) | (x0 > ub), axis=1))
         if bad.size:
             raise ValueError(f"x0: must lie inside x_bounds (estimator {bad[0]})")
-        if all(gpmhe_options.get(w) is None for w in ("Q0", "R0", "P2", "P0")):
+        if all(gpmhe_options.get(w) is None for w in ("Q0", "R0", "P2")):
             warnings.warn(NO_NOISE_INFORMATION, SettingsWarning, stacklevel=2)
-        # Estimator 0 as a GPMHE: validates the common settings once and is the core's template.
-        template = GPMHE(model, x0=x0[0], Q0=q0[0], R0=r0[0] if p else None,
-                         x_bounds=(lb[0], ub[0]), **opts)
-        self._core = _core.EstimatorBank(template._core, x0, lb, ub, q0,
-                                         np.ascontiguousarray(r0))
-        self.model = model
-        self._dt = template._dt
-        self.dim_x, self.dim_y, self.dim_u = d, p, model.dim_u
-        self.horizon, self.eta, self.form = template.horizon, template.eta, template.form
-        self.P2, self.solver_options = template.P2, template.solver_options
-        self.solver = "gauss-newton"
-        self.arrival_mean, self.arrival_weight = template.arrival_mean, template.arrival_weight
-        self.loss = template.loss
-        self.loss_scale = template.loss_scale if template.loss != "squared" else None
-        self.x0, self.Q0, self.R0, self.x_bounds = x0, q0, r0, (lb, ub)
+        template, core = _build(model, x0, lb, ub, q0, r0, opts)
+        # (Set through __dict__: the bank's own __setattr__ is for its users.)
+        self.__dict__.update(
+            _core=core, model=model, _dt=template._dt, dim_x=d, dim_y=p, dim_u=model.dim_u,
+            horizon=template.horizon, eta=template.eta, form=template.form, P2=template.P2,
+            solver_options=template.solver_options, solver="gauss-newton",
+            arrival_mean=template.arrival_mean, arrival_weight=template.arrival_weight,
+            loss=template.loss,
+            loss_scale=template.loss_scale if template.loss != "squared" else None,
+            x0=x0, Q0=q0, R0=r0, x_bounds=(lb, ub))
+
+    def _common(self, **changes):
+        """The settings every estimator shares, as `GPMHE` takes them, with ``changes``."""
+        common = dict(horizon=self.horizon, eta=self.eta, P2=self.P2, form=self.form,
+                      solver="gauss-newton", solver_options=self.solver_options,
+                      arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight,
+                      loss=self.loss, loss_scale=self.loss_scale)
+        common.update(changes)
+        return common
 
     # ---- the estimates and what the last update reported: read from the core ---------------
     # (The core records an update of every estimator in one step, or none.)
@@ -268,7 +336,48 @@ class EstimatorBank:
         return getattr(self, new)
 
     def __setattr__(self, name, value):
-        object.__setattr__(self, renamed(type(self), name) or name, value)
+        name = renamed(type(self), name) or name
+        if name in _SETTABLE:
+            self._set_weight(name, value)
+            return
+        if name.startswith("_"):  # the class's own (and tests') private attributes
+            object.__setattr__(self, name, value)
+            return
+        settable = ", ".join(_SETTABLE)
+        hint = _DID_YOU_MEAN.get(name)
+        if hint is not None:
+            raise AttributeError(f"EstimatorBank has no settable attribute {name!r}: did you "
+                                 f"mean {hint}?")
+        if not hasattr(self, name):
+            raise AttributeError(f"EstimatorBank has no attribute {name!r}; the settable ones "
+                                 f"are {settable}")
+        raise AttributeError(f"EstimatorBank.{name} is read-only; the settable attributes are "
+                             f"{settable} (the other settings are fixed at construction: build "
+                             "a new EstimatorBank; the estimates change only through update)")
+
+    @exclusive  # not while an update runs (gpmhe/_threads.py)
+    def _set_weight(self, name, value):
+        """Set weight ``name`` of every estimator, validated as in the constructor, from the next
+        update on, as `GPMHE`'s setter does (only P2 restarts the arrival weight). The core bank
+        has no setter: a new one is built with the new weight and every estimator's state (its
+        history and arrival weight) moved into it; the bank changes only once that is done."""
+        k, d, p = len(self), self.dim_x, self.dim_y
+        q0, r0, common = self.Q0, self.R0, self._common()
+        if name == "Q0":
+            q0 = _per_estimator("Q0", value, k, d)
+        elif name == "R0":
+            r0 = _per_estimator("R0", value, k, p) if p else r0
+        else:
+            common[name] = value
+        lb, ub = self.x_bounds
+        template, core = _build(self.model, self.x0, lb, ub, q0, r0, common)
+        arrival = template._settings.core_weights(("P2",))["p2_sqrt"] if name == "P2" else None
+        for i in range(k):
+            state = self._core.member_state(i)
+            if arrival is not None:  # a new P2 is the next window's arrival weight
+                state["arrival_sqrt"] = arrival
+            core.set_member_state(i, state)
+        self.__dict__.update(_core=core, Q0=q0, R0=r0, eta=template.eta, P2=template.P2)
 
     @property
     def threads(self):
@@ -451,11 +560,9 @@ class EstimatorBank:
     def _gpmhe(self, i):
         """A GPMHE with estimator i's settings (and a fresh history)."""
         lb, ub = self.x_bounds
-        return GPMHE(self.model, x0=self.x0[i], horizon=self.horizon, eta=self.eta, P2=self.P2,
-                     Q0=self.Q0[i], R0=self.R0[i] if self.dim_y else None,
-                     x_bounds=(lb[i], ub[i]), form=self.form, solver="gauss-newton",
-                     solver_options=self.solver_options, arrival_mean=self.arrival_mean,
-                     arrival_weight=self.arrival_weight, loss=self.loss, loss_scale=self.loss_scale)
+        return GPMHE(self.model, x0=self.x0[i], Q0=self.Q0[i],
+                     R0=self.R0[i] if self.dim_y else None, x_bounds=(lb[i], ub[i]),
+                     **self._common())
 
     def _index(self, i):
         """Estimator i's position (negative i counts from the end); IndexError if none."""
