@@ -107,3 +107,34 @@ def test_an_interrupt_around_a_setter_keeps_settings_and_core_together(ys, befor
         twin.Q0 = 4e-3
     np.testing.assert_array_equal(est.Q0, twin.Q0)
     np.testing.assert_array_equal(est.batch_filter(ys[10:])[0], twin.batch_filter(ys[10:])[0])
+
+
+@pytest.mark.parametrize("name", ["Q0", "P2", "P0"])
+@pytest.mark.parametrize("form, matrix", [(0.5, 0.5 * np.eye(2)),
+                                          ([0.5, 2.0], np.diag([0.5, 2.0])),
+                                          ([[0.5, 0.1], [0.1, 2.0]], [[0.5, 0.1], [0.1, 2.0]])],
+                         ids=["scalar", "diagonal", "matrix"])
+def test_the_weight_matrices_take_the_same_forms_in_the_constructor_and_when_set(name, form,
+                                                                                matrix):
+    """Q0, P2 and P0 (R0 is checked by the same code as Q0): a scalar times I, the diagonal or
+    a symmetric positive definite matrix, in the constructor and when set."""
+    expect = np.linalg.inv(matrix) if name == "P0" else np.asarray(matrix)
+    shown = "P2" if name == "P0" else name
+    built = reactor(**{name: form})
+    np.testing.assert_allclose(getattr(built, shown), expect, rtol=1e-15)
+    est = reactor()
+    setattr(est, name, form)
+    np.testing.assert_allclose(getattr(est, shown), expect, rtol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["Q0", "R0", "P2", "P0"])
+@pytest.mark.parametrize("bad", [[0.5, -1.0], [[1.0, 0.5], [0.4, 1.0]], np.ones(3), [np.nan, 1.0]],
+                         ids=["negative", "asymmetric", "shape", "nan"])
+def test_the_weight_matrices_refuse_the_same_values(name, bad):
+    est = reactor()
+    before = est.Q0, est.R0, est.P2
+    for build in (lambda: reactor(**{name: bad}), lambda: setattr(est, name, bad)):
+        with pytest.raises(ValueError, match=f"^{name}: "):
+            build()
+    for a, b in zip(before, (est.Q0, est.R0, est.P2)):
+        np.testing.assert_array_equal(a, b)

@@ -99,9 +99,10 @@ class GPMHE(Runs):
         Window length M >= 1 (number of stages).
     eta : float, default 0.91
         Discount factor η in [0, 1]: older terms are weighted by η^{j−1} (1: no discount).
-    P2 : float, array_like of shape (dim_x, dim_x), or None, default None
-        Symmetric positive definite weight of the arrival prior (a scalar: times I), the inverse
-        of the arrival covariance ``P0``; None is the identity. Give P2 or P0, not both.
+    P2 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
+        Weight of the arrival prior, the inverse of the arrival covariance ``P0``: a scalar
+        (times I), the diagonal, or a full symmetric positive definite matrix, as ``Q0``. None
+        is the identity. Give P2 or P0, not both.
     Q0 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
         Process-noise covariance: a scalar (times I), the diagonal, or a full symmetric positive
         definite matrix. Its inverse (with the GP variances added to the diagonal) weights w̄.

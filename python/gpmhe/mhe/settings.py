@@ -67,8 +67,8 @@ def _eta(value):
 
 
 def _covariance(name, value, n):
-    """A symmetric positive definite covariance (n, n) from None (the identity), a scalar, the
-    diagonal or the matrix."""
+    """A symmetric positive definite (n, n) matrix (Q0, R0, P2, P0: each takes the same forms)
+    from None (the identity), a scalar, the diagonal or the matrix."""
     if n == 0:
         return np.zeros((0, 0))
     return symmetric_matrix(name, 1.0 if value is None else value, n, definite=True,
@@ -133,7 +133,7 @@ class MHESettings:
         if P2 is not None and P0 is not None:
             raise ValueError("P2, P0: give the arrival weight P2 or its covariance P0, not both")
         P2 = (np.linalg.inv(_covariance("P0", P0, n)) if P0 is not None
-              else symmetric_matrix("P2", np.eye(n) if P2 is None else P2, n, definite=True))
+              else _covariance("P2", P2, n))
         lb, ub = box("x_bounds", x_bounds, n)
         return cls(
             dims=tuple(dims), horizon=integer("horizon", horizon, low=1, high=MAX_HORIZON),
@@ -194,7 +194,7 @@ class MHESettings:
             elif name == "R0":
                 new["R0"] = _frozen(_covariance("R0", value, p))
             elif name == "P2":
-                new["P2"] = _frozen(symmetric_matrix("P2", value, n, definite=True))
+                new["P2"] = _frozen(_covariance("P2", value, n))
             elif name == "P0":
                 new["P2"] = _frozen(np.linalg.inv(_covariance("P0", value, n)))
             elif name == "eta":
