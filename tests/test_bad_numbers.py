@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from gpmhe import (GPMHE, RGPEKF, EstimatorBank, GaussianProcess, KnownModel, LearnedModel,
-                   MultiOutputGP, RecursiveGP, SparseGaussianProcess, discretize)
+                   MultiOutputGP, NumericalError, RecursiveGP, SparseGaussianProcess, discretize)
+from gpmhe._validation import MagnitudeError
 from gpmhe.systems import batch_reactor as br
 
 SCALARS = {"numeric string": "0.5", "complex": 0.5 + 0j, "bool": True, "huge": 1e200,
@@ -117,6 +118,19 @@ def cases():
 def test_a_bad_number_is_refused_naming_the_argument(name, call, value):
     with pytest.raises(ValueError, match="^" + re.escape(name) + r"(?!\w)"):
         call(value)
+
+
+@pytest.mark.parametrize(
+    "name, call, value",
+    [pytest.param(name, call, 1e200 if shape == "scalar" else vectors(shape)["huge"],
+                  id=f"{name}-{call.__code__.co_firstlineno}")
+     for name, shape, call, _ in ENTRY_POINTS if name != "n"])  # n: not an integer
+def test_a_too_large_number_raises_magnitude_error_everywhere(name, call, value):
+    """The outputs (y, Y, a row of batch_filter) as every other argument: a MagnitudeError, both
+    a ValueError and a gpmhe.NumericalError (docs/reliability.rst)."""
+    with pytest.raises(MagnitudeError, match="^" + re.escape(name) + r"(?!\w)") as err:
+        call(value)
+    assert isinstance(err.value, ValueError) and isinstance(err.value, NumericalError)
 
 
 @pytest.mark.parametrize("setter", ["Q0", "R0", "P2", "P0", "eta"])

@@ -235,9 +235,9 @@ def box(name: str, bounds: Any, n: int, rows: Optional[int] = None) -> Tuple[np.
 
 def output_sample(name: str, y: Any, p: int) -> Tuple[np.ndarray, bool]:
     """One output sample y(t) of p values (NaN entries are channels not measured; inf, values of
-    magnitude > MAX_ABS and anything but real numbers are refused) and whether any channel is
-    measured. A Python loop over the values: cheaper than numpy's reductions for the few values
-    of one sample."""
+    magnitude > MAX_ABS (a `MagnitudeError`) and anything but real numbers are refused) and
+    whether any channel is measured. A Python loop over the values: cheaper than numpy's
+    reductions for the few values of one sample."""
     try:
         a = np.asarray(y)
         if a.dtype.kind not in _REAL_KINDS or (isinstance(y, (list, tuple)) and _has_bool(y)):
@@ -251,8 +251,10 @@ def output_sample(name: str, y: Any, p: int) -> Tuple[np.ndarray, bool]:
     for v in a.tolist():
         if v == v:  # not NaN
             if not -MAX_ABS <= v <= MAX_ABS:
-                raise ValueError(f"{name}: contains inf or a value of magnitude > {MAX_ABS:g} "
-                                 "(NaN marks a channel not measured)")
+                if math.isinf(v):
+                    raise ValueError(f"{name}: contains inf (NaN marks a channel not measured)")
+                raise MagnitudeError(f"{name}: contains a value of magnitude > {MAX_ABS:g} (its "
+                                     "square overflows)")
             measured = True
     return a, measured
 
@@ -272,8 +274,16 @@ def positive(name: str, value: Any, *, allow_zero: bool = False) -> np.ndarray:
     ``allow_zero``)."""
     a = real_array(name, value)
     if not np.all(np.isfinite(a)) or np.any(a < 0 if allow_zero else a <= 0) or np.any(a > MAX_ABS):
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
+        raise _not_positive(name, value, allow_zero, huge=bool(np.any(np.isfinite(a) & (np.abs(a) > MAX_ABS))))
     return a
+
+
+def _not_positive(name: str, value: Any, allow_zero: bool, huge: bool) -> ValueError:
+    """The error of `positive` and `positive_scalar`: a `MagnitudeError` for a finite value of
+    magnitude > MAX_ABS (``huge``), as everywhere."""
+    error = MagnitudeError if huge else ValueError
+    return error(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most "
+                 f"{MAX_ABS:g}), got {value!r}")
 
 
 def positive_scalar(name: str, value: Any, *, allow_zero: bool = False) -> float:
@@ -283,7 +293,7 @@ def positive_scalar(name: str, value: Any, *, allow_zero: bool = False) -> float
         raise ValueError(f"{name}: must be a number, got an array of shape {a.shape}")
     v = float(a)
     if not (math.isfinite(v) and (v >= 0.0 if allow_zero else v > 0.0) and v <= MAX_ABS):
-        raise ValueError(f"{name}: must be finite and {'>= 0' if allow_zero else '> 0'} (at most {MAX_ABS:g}), got {value!r}")
+        raise _not_positive(name, value, allow_zero, huge=math.isfinite(v) and abs(v) > MAX_ABS)
     return v
 
 
@@ -445,7 +455,8 @@ def options(name: str, value: Any, spec: dict) -> dict:
                 v = positive_scalar(str(key), v, allow_zero=kind == "tol")
             elif isinstance(kind, tuple):
                 v = one_of(str(key), v, kind)
-        except ValueError as exc:
-            raise ValueError(f"{name}: {exc}") from None
+        except ValueError as exc:  # (a MagnitudeError stays one)
+            raise (MagnitudeError if isinstance(exc, MagnitudeError) else ValueError)(
+                f"{name}: {exc}") from None
         out[key] = v
     return out

@@ -18,7 +18,7 @@ from gpmhe import _core
 from gpmhe._filterpy import (BANK_NAMES, REQUIRED, missing_attribute, one_argument_update,
                              renamed, required, window_attribute)
 from gpmhe._threads import exclusive
-from gpmhe._validation import (MAX_ABS, SettingsWarning, box, float_array, integer,
+from gpmhe._validation import (MAX_ABS, MagnitudeError, SettingsWarning, box, float_array, integer,
                                output_sample, positive_diagonal, real_array, within_limits)
 from gpmhe.mhe.estimator import GPMHE, NO_NOISE_INFORMATION, check_interval
 from gpmhe.mhe.settings import sample_covariance
@@ -406,7 +406,8 @@ class EstimatorBank:
         if not within_limits(Y):
             if not np.all(np.isfinite(Y)):
                 raise ValueError("Y: contains inf (NaN marks a missing value)")
-            raise ValueError(f"Y: contains a value of magnitude > {MAX_ABS:g}")
+            raise MagnitudeError(f"Y: contains a value of magnitude > {MAX_ABS:g} (its square "
+                                 "overflows)")
         Y[~present] = 0.0
         return U, Y, present
 

@@ -14,6 +14,15 @@ from gpmhe._validation import sequence_rows
 __all__ = ["Runs"]
 
 
+def _renamed(error, message):
+    """``error`` (a ValueError) with ``message``, of its class where that takes a message alone
+    (a `gpmhe.MagnitudeError` stays one), else a plain ValueError."""
+    try:
+        return type(error)(message)
+    except Exception:  # a class whose constructor wants more
+        return ValueError(message)
+
+
 class Runs:
     """`GPMHE`'s methods over whole runs (see the module docstring)."""
 
@@ -76,9 +85,9 @@ class Runs:
         for i, (u, y, R, dt) in enumerate(zip(us, ys, Rs, dts)):
             try:  # (no R without an output: filterpy's Rs has one for every row)
                 steps.append(self._check_step(u, y, None if y is None else R, dt))
-            except ValueError as e:  # "y: ..." -> "ys[i]: ... (at row i)"
+            except ValueError as e:  # "y: ..." -> "ys[i]: ... (at row i)", of the same class
                 name, _, detail = str(e).partition(": ")
-                raise ValueError(f"{name}s[{i}]: {detail} (at row {i})") from None
+                raise _renamed(e, f"{name}s[{i}]: {detail} (at row {i})") from None
         xs = np.empty((len(steps), self.dim_x))
         Ps = np.empty((len(steps), self.dim_x, self.dim_x))
         if self.dim_u and any(step[0] is None for step in steps):
