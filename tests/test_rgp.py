@@ -350,10 +350,10 @@ def test_x_and_P_are_settable_filterpy_style():
 
 
 def test_indefinite_innovation_raises_numerical_error_and_keeps_state():
+    # S = H P Hᵀ + R_x = 0: P stays 0 (no process noise, e = 0) and R_x = 0 is semi-definite
     ekf = RGPEKF(1, f=lambda x, u, z: x, A=[[1.0]], e=[0.0], h=lambda x: x, H=lambda x: [[1.0]],
                  Q_x=0.0, R_x=np.array([[1e-3]]), x0=[0.0], P0=0.0, gps=RecursiveGP(0, 1, 3))
-    ekf.R_x = np.array([[-1.0]])
-    ekf._R_full = ekf.R_x
+    ekf.R_x = np.array([[0.0]])
     ekf.predict(None, 0.5)
     mu, C = ekf.mu, ekf.C
     with pytest.raises(gpmhe.NumericalError):
@@ -479,3 +479,75 @@ def test_reassigned_noise_covariances_take_effect():
     # e = [0, 0.1]: the first state's variance is (A P Aᵀ)₀₀ + Q₀₀, without GP terms
     A0 = np.array([[1.0, 0.1], [-0.2, 0.9]])
     assert ekf.P[0, 0] == pytest.approx((A0 @ P @ A0.T)[0, 0] + 0.3, rel=1e-12)
+
+
+@pytest.mark.parametrize("name, bad, message", [
+    ("R_x", -100.0, "R_x: must be finite and > 0"),
+    ("R_x", 0.0, "R_x: must be finite and > 0"),
+    ("R_x", -np.eye(2), "R_x: must be positive semi-definite"),
+    ("R_x", [[1.0, 0.5], [0.0, 1.0]], "R_x: must be symmetric"),
+    ("R_x", np.eye(3), r"R_x: expected a scalar or shape \(2, 2\)"),
+    ("R_x", [0.1, 0.1], r"R_x: expected a \(p, p\) matrix or a scalar"),
+    ("R_x", [[np.nan, 0.0], [0.0, 1.0]], "R_x: contains NaN"),
+    ("R_x", [[1e200, 0.0], [0.0, 1.0]], "R_x: contains a value of magnitude"),
+    ("Q_x", -1.0, "Q_x: must be positive semi-definite"),
+    ("Q_x", [[1.0, 2.0], [2.0, 1.0]], "Q_x: must be positive semi-definite"),
+    ("Q_x", [[1.0, 0.5], [0.0, 1.0]], "Q_x: must be symmetric"),
+    ("Q_x", np.eye(3), r"Q_x: expected a scalar or shape \(2, 2\)"),
+    ("Q_x", [[np.inf, 0.0], [0.0, 1.0]], "Q_x: contains NaN or inf"),
+    ("Q_x", "0.1", "Q_x: must be real numbers"),
+])
+def test_an_assigned_noise_covariance_is_validated_as_in_the_constructor(name, bad, message):
+    ekf, twin = _linear_filter(), _linear_filter()
+    with pytest.raises(ValueError, match=name):  # (a wrong shape as "H, R_x: ...")
+        RGPEKF(2, f=lambda x, u, z: x, A=np.eye(2), e=[0.0, 0.1], h=lambda x: x, H=np.eye(2),
+               **{"Q_x": 1e-3, "R_x": 0.1, name: bad}, x0=[0.0, 0.0], P0=0.5,
+               gps=RecursiveGP(-1, 1, 7))
+    before = getattr(ekf, name).copy()
+    with pytest.raises(ValueError, match=message):
+        setattr(ekf, name, bad)
+    np.testing.assert_array_equal(getattr(ekf, name), before)
+    for f in (ekf, twin):  # the filter runs on as if nothing had been assigned
+        f.predict(None, 0.3)
+        f.update([0.1, 0.2])
+    np.testing.assert_array_equal(ekf.mu, twin.mu)
+    np.testing.assert_array_equal(ekf.C, twin.C)
+    assert np.all(np.linalg.eigvalsh(ekf.P) > 0)
+
+
+def test_valid_noise_covariances_are_taken_as_in_the_constructor():
+    ekf = _linear_filter()
+    ekf.R_x = 0.3  # a scalar times I, as in the constructor
+    np.testing.assert_array_equal(ekf.R_x, 0.3 * np.eye(2))
+    ekf.Q_x = 0.0
+    np.testing.assert_array_equal(ekf.Q_x, np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="read-only"):  # not changed behind the validation
+        ekf.R_x[0, 0] = -1.0
+    np.testing.assert_array_equal(ekf.R_x, 0.3 * np.eye(2))
+    # p unknown (H a function, R_x a scalar) until the first update, which fixes it
+    late = _linear_filter(H=lambda x: np.eye(2))
+    assert late.dim_y is None and late.y.shape == (0,)
+    late.R_x = 0.2
+    late.predict(None, 0.3)
+    late.update([0.1, 0.2])
+    assert late.dim_y == 2
+    np.testing.assert_array_equal(late.R_x, 0.2 * np.eye(2))
+    with pytest.raises(ValueError, match="y: expected shape"):
+        late.update([0.1, 0.2, 0.3])
+
+
+def test_innovation_and_its_covariance_have_their_shapes_before_the_first_update():
+    from filterpy.common import Saver
+
+    ekf = _linear_filter()
+    assert ekf.y.shape == (2,) and np.all(np.isnan(ekf.y))
+    assert ekf.S.shape == (2, 2) and np.all(np.isnan(ekf.S))
+    saver = Saver(ekf, save_current=True)
+    for k in range(3):
+        ekf.predict(None, 0.1 * k)
+        ekf.update([0.1, 0.2])
+        saver.save()
+    saver.to_array()
+    assert saver.y.shape == (4, 2) and saver.S.shape == (4, 2, 2)
+    assert np.all(np.isnan(saver.y[0])) and np.all(np.isfinite(saver.y[1:]))
+    np.testing.assert_array_equal(saver.S[-1], ekf.S)

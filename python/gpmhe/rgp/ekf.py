@@ -160,9 +160,10 @@ class RGPEKF:
     z_pred : ndarray of shape (q,)
         μ_z^p = J_k μ_z of the last ``predict``.
     y : ndarray of shape (p,)
-        Last innovation y − h(x⁻).
+        Last innovation y − h(x⁻); NaN before the first update (shape (0,) while p is not
+        known), so that filterpy's ``Saver`` records one shape from the start.
     S : ndarray of shape (p, p)
-        Its covariance H̃ C⁻ H̃ᵀ + R_x.
+        Its covariance H̃ C⁻ H̃ᵀ + R_x; NaN before the first update, as ``y``.
     log_likelihood : float
         log N(y; h(x⁻), S) of the last update.
     likelihood : float
@@ -171,8 +172,9 @@ class RGPEKF:
         The model functions. They are read at every step, so they can be reassigned between
         steps.
     Q_x, R_x : ndarray
-        The noise covariances; can be reassigned between steps (then only checked for shape and
-        finiteness).
+        The noise covariances, read at every step; can be reassigned between steps, validated
+        as in the constructor (a bad value raises ValueError naming it and the old value stays).
+        The arrays returned are read-only: assign a new value to change one.
     learning : bool
         Variant 4a (True) or 4b (False); can be changed any time.
     pure_prediction : bool
@@ -265,16 +267,9 @@ class RGPEKF:
         self.f, self.h = f, h
         self._A = _as_fn("A", A, (n, n))
         self._e = _as_fn("e", e, (n, q))
-        self.Q_x = symmetric_matrix("Q_x", Q_x, n)
-        self.R_x = float_array("R_x", R_x, copy=True)
+        self._Q_x = symmetric_matrix("Q_x", Q_x, n)
         self.dim_y: int | None = None
-        if self.R_x.ndim == 2:
-            self.dim_y = self.R_x.shape[0]
-            self.R_x = symmetric_matrix("R_x", self.R_x, self.dim_y)
-        elif self.R_x.ndim == 0:
-            positive_scalar("R_x", float(self.R_x))
-        else:
-            raise ValueError(f"R_x: expected a (p, p) matrix or a scalar, got shape {self.R_x.shape}")
+        self._R_x, self.dim_y = self._noise_r(R_x)
         self._H = H if callable(H) else None
         if not callable(H):
             Ha = float_array("H", H, copy=True)
@@ -285,8 +280,8 @@ class RGPEKF:
                 raise ValueError(f"H, R_x: H has {Ha.shape[0]} rows but R_x is {self.dim_y}x{self.dim_y}")
             self._H = np.ascontiguousarray(Ha)
             self.dim_y = Ha.shape[0]
-        if self.R_x.ndim == 0 and self.dim_y is not None:
-            self.R_x = float(self.R_x) * np.eye(self.dim_y)
+        if self._R_x.ndim == 0 and self.dim_y is not None:
+            self._R_x = float(self._R_x) * np.eye(self.dim_y)
         self.gps = [g.copy() for g in gp_list]
         self._zeta_total = sum(g.dim_zeta for g in self.gps)
         self._scalar_zeta = self._zeta_total == 1
@@ -341,6 +336,58 @@ class RGPEKF:
         # no change on bad input). The states' cross-covariance with the GP weights is reset to 0.
         self._core.set_p(symmetric_matrix("P", value, self.dim_x))
 
+    # -- the noise covariances: read at every step, validated when assigned ----------------------
+    def _noise_r(self, value: Any) -> tuple[np.ndarray, int | None]:
+        """R_x validated as the constructor takes it, as (R_x, p): a symmetric positive
+        semi-definite (p, p) matrix, or a positive scalar (times I once p is known; p stays None
+        while it is not)."""
+        a = float_array("R_x", value, copy=True)
+        if a.ndim == 2:
+            if self.dim_y is not None and a.shape != (self.dim_y, self.dim_y):
+                raise ValueError(f"R_x: expected a scalar or shape ({self.dim_y}, {self.dim_y}), "
+                                 f"got {a.shape}")
+            return symmetric_matrix("R_x", a, a.shape[0]), a.shape[0]
+        if a.ndim == 0:
+            v = positive_scalar("R_x", float(a))
+            return (a if self.dim_y is None else v * np.eye(self.dim_y)), self.dim_y
+        raise ValueError(f"R_x: expected a (p, p) matrix or a scalar, got shape {a.shape}")
+
+    @staticmethod
+    def _read_only(a: np.ndarray) -> np.ndarray:
+        view = a.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def Q_x(self) -> np.ndarray:
+        """State process-noise covariance, shape (n, n).
+
+        Assignable between steps, validated as in the constructor (symmetric positive
+        semi-definite, or a scalar times I; ValueError naming ``Q_x`` and no change on bad
+        input). The array returned is read-only: assign a new value to change it.
+        """
+        return self._read_only(self._Q_x)
+
+    @Q_x.setter
+    def Q_x(self, value: Any) -> None:
+        self._Q_x = symmetric_matrix("Q_x", value, self.dim_x)
+
+    @property
+    def R_x(self) -> np.ndarray:
+        """Measurement-noise covariance, shape (p, p) (a 0-d array while p is not known: H a
+        function and R_x given as a scalar, before the first update).
+
+        Assignable between steps, validated as in the constructor (symmetric positive
+        semi-definite of shape (p, p), or a positive scalar times I; ValueError naming ``R_x``
+        and no change on bad input). The array returned is read-only: assign a new value to
+        change it.
+        """
+        return self._read_only(self._R_x)
+
+    @R_x.setter
+    def R_x(self, value: Any) -> None:
+        self._R_x, self.dim_y = self._noise_r(value)
+
     @property
     def z_pred(self) -> np.ndarray:
         """Predicted disturbances μ_z^p = J_k μ_z of the last ``predict``, shape (q,).
@@ -369,17 +416,20 @@ class RGPEKF:
     def y(self) -> np.ndarray:
         """Innovation y − h(x⁻) of the last update, shape (p,).
 
-        Named as filterpy's ``y``.
+        Named as filterpy's ``y``. NaN before the first update (shape (0,) while p is not
+        known: H a function and R_x a scalar).
         """
-        return self._core.innovation
+        nu = self._core.innovation
+        return np.full(self.dim_y, np.nan) if nu.size == 0 and self.dim_y else nu
 
     @property
     def S(self) -> np.ndarray:
         """Innovation covariance of the last update, shape (p, p).
 
-        S = H̃ C⁻ H̃ᵀ + R_x, as filterpy's ``S``.
+        S = H̃ C⁻ H̃ᵀ + R_x, as filterpy's ``S``. NaN before the first update, as ``y``.
         """
-        return self._core.S
+        S = self._core.S
+        return np.full((self.dim_y,) * 2, np.nan) if S.size == 0 and self.dim_y else S
 
     @property
     def log_likelihood(self) -> float:
@@ -529,7 +579,7 @@ class RGPEKF:
         # z = μ_z^p and predicts C. Finiteness of ζ and of the results is checked there.
         if not (self._scalar_zeta and isinstance(zeta, float) and abs(zeta) <= MAX_ABS):
             zeta = self._zeta(zeta)
-        self._core.predict_step(self.f, u, zeta, self._A_fn, self._e_fn, self.Q_x)
+        self._core.predict_step(self.f, u, zeta, self._A_fn, self._e_fn, self._Q_x)
 
     def update(self, y: ArrayLike) -> None:
         """EKF update with the measurement y (variant 4a, or 4b when ``learning`` is False).
@@ -569,8 +619,11 @@ class RGPEKF:
         else:
             y = finite_vector("y", y, self.dim_y, flatten=True)
         self._core.update_step(
-            y, self.h, self._H_fn, self.R_x, self.dim_y, self.learning and not self.pure_prediction
+            y, self.h, self._H_fn, self._R_x, self.dim_y, self.learning and not self.pure_prediction
         )
+        if self.dim_y is None:  # p is known from the first update on: R_x as the constructor's
+            self.dim_y = len(self._core.innovation)
+            self._R_x = float(self._R_x) * np.eye(self.dim_y)
 
     def __repr__(self) -> str:
         return (
@@ -626,8 +679,8 @@ class RGPEKF:
         """
         entries: dict = dict(
             kind="RGPEKF", format_version=self._CHECKPOINT_VERSION, dim_x=self.dim_x,
-            learning=self.learning, pure_prediction=self.pure_prediction, Q_x=self.Q_x,
-            R_x=self.R_x, n_gps=len(self.gps))
+            learning=self.learning, pure_prediction=self.pure_prediction, Q_x=self._Q_x,
+            R_x=self._R_x, n_gps=len(self.gps))
         for name, value in (("A", self._A), ("e", self._e), ("H", self._H)):
             entries[name + "_is_function"] = callable(value)
             if not callable(value):
