@@ -291,7 +291,8 @@ from typing import Callable
 _F = npt.NDArray[np.float64]
 
 class StageModel:
-    """The model of a `MovingHorizon`: the learned GPs or a known model's Python functions."""
+    """The model of a `MovingHorizon`: the learned GPs, a compiled CasADi model or a known
+    model's Python functions."""
 
     @staticmethod
     def gp(
@@ -313,6 +314,24 @@ class StageModel:
     ) -> StageModel:
         """`predict(x, u)`: the one-step prediction used for warm starts and the filtering
         form's arrival prior (None: the means of `stage_eval` at one point)."""
+        ...
+    @staticmethod
+    def compiled(
+        path: str,
+        stage: str,
+        predict: str,
+        dim_x: int,
+        dim_u: int,
+        dim_y: int,
+        rebuild: Callable[[], StageModel],
+    ) -> StageModel:
+        """The shared library at `path` (CasADi's generated C code, compiled) with the functions
+        `stage` (f, ∂f/∂dᵀ, h, ∂h/∂dᵀ of one point d) and `predict` (f); `rebuild()` returns the
+        model again (pickles call it). ValueError if it does not load or has other shapes."""
+        ...
+    @property
+    def native(self) -> bool:
+        """Whether the model runs without Python (the GPs or a compiled CasADi model)."""
         ...
     @property
     def dims(self) -> tuple[int, int, int]: ...

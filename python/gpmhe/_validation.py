@@ -16,6 +16,8 @@ NaN and inf only where a helper says what they mean.
 from __future__ import annotations
 
 import math
+import os
+import sys
 from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
@@ -27,6 +29,7 @@ __all__ = [
     "MAX_COUNT",
     "MagnitudeError",
     "SettingsWarning",
+    "user_stacklevel",
     "within_limits",
     "real_array",
     "float_array",
@@ -81,6 +84,19 @@ class SettingsWarning(UserWarning):
     ...         print(str(w)[:47])
     Q0, R0 and P2/P0 are all None: identity weights
     """
+
+
+#: Frames in files under this directory are gpmhe's own (see `user_stacklevel`).
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__))
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` that makes a warning raised by the caller point at the first frame
+    outside gpmhe (the user's line that led to it)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _not_numbers(name: str, value: Any) -> str:

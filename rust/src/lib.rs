@@ -3,6 +3,7 @@
 //! inside an EKF. Pure Rust; the pyo3 binding lives in `python/` behind the
 //! `python` cargo feature, so `cargo test` needs no Python.
 
+pub mod compiled;
 pub mod error;
 pub mod gp;
 pub mod gp_model;

@@ -5,8 +5,6 @@ L-BFGS-B from the start and random restarts inside the bounds; the settings ever
 
 from __future__ import annotations
 
-import os
-import sys
 import warnings
 from typing import Any, Callable, NamedTuple, Optional, Tuple
 
@@ -15,13 +13,11 @@ import scipy.optimize
 
 from gpmhe.gp import priors as _priors
 from gpmhe._core import NumericalError
+from gpmhe._validation import user_stacklevel
 
 from gpmhe.gp.errors import ConvergenceWarning
 
 __all__: list = []
-
-#: Frames in files under this directory are gpmhe's own (see `_user_stacklevel`).
-_PACKAGE_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 class Fitting(NamedTuple):
@@ -41,14 +37,6 @@ class Fitting(NamedTuple):
         (q, n_d + 2, 2) and every optimiser run's objective per output."""
         return self.log_bounds[None, :, :] + self.shift[:, :, None], runs
 
-
-def _user_stacklevel() -> int:
-    """The ``stacklevel`` that makes a warning raised by the caller point at the first frame
-    outside gpmhe (the user's call of ``fit`` or of whatever fitted the GP)."""
-    frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
-        frame, level = frame.f_back, level + 1
-    return level
 
 def _posterior(
     lml: Callable[[np.ndarray], Tuple[float, np.ndarray]],
@@ -149,7 +137,7 @@ def _maximise(
             f"one trial point to the next (fewer or less clustered training points, for a sparse GP "
             f"fewer inducing points, or a larger lower bound on sigma_eps)",
             ConvergenceWarning,
-            stacklevel=_user_stacklevel(),
+            stacklevel=user_stacklevel(),
         )
     if _degenerate(best, log_bounds):
         warnings.warn(
@@ -159,7 +147,7 @@ def _maximise(
             "other initial values, n_restarts > 0, normalize=True or other bounds, and compare "
             "log_marginal_likelihood_value",
             ConvergenceWarning,
-            stacklevel=_user_stacklevel(),
+            stacklevel=user_stacklevel(),
         )
     return np.asarray(best.x, dtype=np.float64), -float(best.fun), np.array(values)
 

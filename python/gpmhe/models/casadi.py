@@ -13,6 +13,12 @@ results into one numpy array, without DM conversions. CasADi stores matrices col
 the mapped input (n + m, k) is exactly the C-contiguous (k, n + m) array of the points, and an
 output ``Jᵀ`` of shape (n + m, n) per point is, in k consecutive blocks, the row-major (k, n,
 n + m) array the estimator's core reads.
+
+The estimator's core does not call back into Python when it can avoid it: `CasadiModel.core_model`
+compiles the same stage and prediction functions with CasADi's C code generation
+(`gpmhe.models.compiled`) and hands the core the shared library, so that an update runs without
+the GIL; where that fails (no C compiler) the core calls the functions above back, with one
+warning.
 """
 
 from __future__ import annotations
@@ -23,16 +29,20 @@ import re
 import shutil
 import tempfile
 import threading
+import warnings
 
 import numpy as np
 
+from gpmhe import _core
 from gpmhe._core import NumericalError
-from gpmhe._validation import MAX_ABS, within_limits
+from gpmhe._validation import MAX_ABS, SettingsWarning, user_stacklevel, within_limits
+from gpmhe.models import compiled
 from gpmhe.models.base import ModelDomainError
 
 __all__ = ["import_casadi", "CasadiModel"]
 
-INSTALL_HINT = 'pip install casadi (or pip install "gpmhe[casadi]")'
+INSTALL_HINT = ('pip install casadi (without a network, from a wheelhouse made with --extras casadi: '
+                'pip install --no-index --find-links wheelhouse "gpmhe[casadi]")')
 
 
 def import_casadi(what):
@@ -178,11 +188,13 @@ class CasadiModel:
     """
 
     _PARTS = ("stage", "f", "h", "f_jacobian", "h_jacobian")
+    #: The generated functions' names in the compiled library (its C symbols).
+    _NATIVE = {"stage": "gpmhe_stage", "f": "gpmhe_f"}
 
-    def __init__(self, f, h, jit=False):
+    def __init__(self, f, h, jit=False, native=True):
         ca = import_casadi("KnownModel.from_casadi")
         self.dims = dimensions(ca, f, h)
-        self.f, self.h, self.jit = f, h, bool(jit)
+        self.f, self.h, self.jit, self.native = f, h, bool(jit), bool(native)
         if self.jit:
             check_compiler(ca)
         self._setup()
@@ -200,11 +212,12 @@ class CasadiModel:
 
                 raise pickle.PicklingError(f"the CasADi function {name} cannot be serialised by "
                                            f"CasADi ({str(e).strip().splitlines()[-1]})") from None
-        return {"f": self.f, "h": self.h, "jit": self.jit, "dims": self.dims}
+        return {"f": self.f, "h": self.h, "jit": self.jit, "native": self.native, "dims": self.dims}
 
     def __setstate__(self, state):
         import_casadi("Unpickling a KnownModel.from_casadi model")
         self.f, self.h, self.jit, self.dims = state["f"], state["h"], state["jit"], tuple(state["dims"])
+        self.native = state.get("native", True)
         self._setup()
 
     def _setup(self):
@@ -218,6 +231,8 @@ class CasadiModel:
         # never overwrite them in between (the lock guards building them and `_evaluate`).
         self._callback = {}   # (thread, k) -> (buffer, trigger, results, the 8 arrays)
         self._predictor = {}  # thread -> (buffer, trigger, point, result)
+        self._core_model = None  # the compiled model for the core (`core_model`), once built
+        self._not_native = None  # why it could not be built (then the core calls back)
         # the values each part writes per point, in the order of its outputs
         self._sizes = {"stage": (n, n * nd, p, p * nd), "f": (n,), "h": (p,),
                        "f_jacobian": (n * n,), "h_jacobian": (p * n,)}
@@ -229,10 +244,13 @@ class CasadiModel:
                f"dim_x={n}, dim_u={m}, dim_y={p}>"
 
     # ---- building ------------------------------------------------------------------------------
-    def _build(self, part):
-        """The Function of d for ``part``: from MX symbols x, u; expanded to SX when possible (an
-        MX-only node such as a rootfinder keeps MX); compiled with ``jit``."""
+    def _build(self, part, name=None, jit=None):
+        """The Function of d for ``part`` (named ``name``, default ``part``): from MX symbols x,
+        u; expanded to SX when possible (an MX-only node such as a rootfinder keeps MX); compiled
+        with ``jit`` (default: the model's)."""
         ca = import_casadi("KnownModel.from_casadi")
+        name = part if name is None else name
+        jit = self.jit if jit is None else jit
         n, m, p = self.dims
         x, u, d = ca.MX.sym("x", n), ca.MX.sym("u", m), ca.MX.sym("d", n + m)
         fx = _vec_call(ca, self.f, x, u)
@@ -246,21 +264,21 @@ class CasadiModel:
             outs = [hx]
         else:  # ∂/∂x transposed: row-major (rows, n) per point
             outs = [ca.densify(ca.jacobian(fx if part == "f_jacobian" else hx, x).T)]
-        inner = ca.Function(part, [x, u], outs)
+        inner = ca.Function(name, [x, u], [ca.densify(out) for out in outs])
         xd, ud = (ca.vertsplit(d, [0, n, n + m]) if m else (d, ca.MX(0, 1)))
-        outer = ca.Function(part, [d], inner.call([xd, ud]))
+        outer = ca.Function(name, [d], inner.call([xd, ud]))
         opts = {"cse": True}  # common subexpressions once (about 20% fewer operations for RK4)
-        if not self.jit:
+        if not jit:
             try:
-                return outer.expand(part, opts)
+                return outer.expand(name, opts)
             except RuntimeError:  # not expandable (an MX-only operation inside): MX
                 return outer
         with _jit_directory() as directory:
             opts.update(_jit_options(directory))
             try:
-                return outer.expand(part, opts)
+                return outer.expand(name, opts)
             except RuntimeError:
-                return ca.Function(part, [d], outer.call([d]), opts)
+                return ca.Function(name, [d], outer.call([d]), opts)
 
     def _map(self, part, k):
         entry = self._maps.get((part, k))
@@ -272,6 +290,42 @@ class CasadiModel:
             buf, trigger = mapped.buffer()
             entry = self._maps[(part, k)] = (mapped, buf, trigger)
         return entry
+
+    # ---- the core's model: compiled, else callbacks ------------------------------------------
+    def core_model(self):
+        """The `gpmhe._core.StageModel` an estimator runs: the compiled stage and prediction
+        functions (built once per model, the library from gpmhe's cache when it holds it), or,
+        with ``native=False`` or when compiling fails (one `gpmhe.SettingsWarning` per model),
+        this object's callbacks."""
+        if self.native and self._not_native is None:
+            with self._lock:
+                if self._core_model is None and self._not_native is None:
+                    self._core_model = self._compile()
+            if self._core_model is not None:
+                return self._core_model
+        n, m, p = self.dims
+        return _core.StageModel.callback(self.stage_callback, n, m, p, predict=self.predict_callback)
+
+    def _compile(self):
+        """The compiled model, or None (with the warning) if it cannot be built."""
+        ca = import_casadi("KnownModel.from_casadi")
+        n, m, p = self.dims
+        functions = [self._build(part, name, jit=False) for part, name in self._NATIVE.items()]
+        for rebuild in (False, True):  # a library that does not load is compiled once more
+            try:
+                path = compiled.library(ca, functions, rebuild=rebuild)
+                return _core.StageModel.compiled(path, self._NATIVE["stage"], self._NATIVE["f"],
+                                                 n, m, p, self.core_model)
+            except compiled.CompileError as e:
+                reason = str(e)
+                break
+            except ValueError as e:
+                reason = str(e)
+        self._not_native = reason
+        warnings.warn(f"the CasADi model {self.f.name()!r} runs as Python callbacks (the GIL held "
+                      f"during updates, banks of it serial): it could not be compiled for the "
+                      f"estimator's core: {reason}", SettingsWarning, stacklevel=user_stacklevel())
+        return None
 
     # ---- evaluation ----------------------------------------------------------------------------
     def _evaluate(self, part, d):

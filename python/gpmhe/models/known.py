@@ -166,7 +166,7 @@ class KnownModel(SharedOnCopy):
             self._parameter_source = ("callables",)
 
     @classmethod
-    def from_casadi(cls, f, h, jit=False):
+    def from_casadi(cls, f, h, jit=False, native=True):
         """The model of two CasADi functions, differentiated by CasADi's AD.
 
         The dimensions are read from the functions. The result is a vectorised `KnownModel`: a
@@ -188,6 +188,15 @@ class KnownModel(SharedOnCopy):
             first used, and again after unpickling): several times faster evaluations for
             larger models. The generated files go to a temporary directory of their own, removed
             once the code is loaded: nothing is written to the working directory.
+        native : bool, default True
+            The estimator's core runs the model as compiled C code: CasADi generates the C code
+            of f, h and their Jacobians, a C compiler (``$CC``, default ``cc``) builds it once
+            into a shared library kept in gpmhe's cache directory (``$GPMHE_CACHE_DIR``, else
+            ``~/.cache/gpmhe``), and an update then runs without Python and without the GIL
+            (and `EstimatorBank` updates its estimators in parallel), with the same results
+            as the CasADi functions give. Without a working compiler the core calls the
+            functions back through Python, with a `gpmhe.SettingsWarning`. False: always call
+            back.
 
         Returns
         -------
@@ -242,8 +251,9 @@ class KnownModel(SharedOnCopy):
 
         ca = import_casadi("KnownModel.from_casadi")
         if isinstance(f, ca.Function) and f.n_in() == 3:
-            return cls._parametrised(("casadi", f, h, boolean("jit", jit)), f, h)
-        casadi_model = CasadiModel(f, h, jit=boolean("jit", jit))
+            return cls._parametrised(("casadi", f, h, boolean("jit", jit),
+                                      boolean("native", native)), f, h)
+        casadi_model = CasadiModel(f, h, jit=boolean("jit", jit), native=boolean("native", native))
         n, m, p = casadi_model.dims
         parts = {name: CasadiPart(casadi_model, name) for name in ("f", "h", "f_jacobian", "h_jacobian")}
         model = cls(parts["f"], parts["h"], n, p, m, f_jacobian=parts["f_jacobian"],
@@ -254,7 +264,7 @@ class KnownModel(SharedOnCopy):
     @classmethod
     def from_ode(cls, rhs, h, dt, dim_x=None, dim_y=None, dim_u=None, substeps=1, method="rk4",
                  rhs_jacobian=None, h_jacobian=None, fd_step=1e-6, newton_tol=1e-10,
-                 newton_max_iter=20, jit=False, dim_p=0):
+                 newton_max_iter=20, jit=False, dim_p=0, native=True):
         """The model of a continuous-time system dx/dt = F(x, u), y = h(x, u), sampled every
         ``dt`` with u held constant.
 
@@ -296,12 +306,15 @@ class KnownModel(SharedOnCopy):
         newton_max_iter : int, default 20
             Implicit schemes: the most Newton iterations per sub-step.
         jit : bool, default False
-            CasADi only: compile the model (see `from_casadi`).
+            CasADi only: compile the model for Python's evaluations (see `from_casadi`).
         dim_p : int, default 0
             Numpy only: the number of unknown parameters p; ``rhs(X, U, P)``, ``h(X, U, P)`` and
             the Jacobians (with respect to [x; p]) then take P (k, dim_p). A CasADi ``rhs`` with
             a third input p has parameters without this (see the user guide, *Unknown
             parameters*).
+        native : bool, default True
+            CasADi only: the estimator's core runs the model as compiled C code (see
+            `from_casadi`).
 
         Returns
         -------
@@ -345,7 +358,7 @@ class KnownModel(SharedOnCopy):
         if is_casadi_function(rhs) and rhs.n_in() == 3:
             if h_jacobian is not None or rhs_jacobian is not None:
                 raise ValueError("rhs_jacobian, h_jacobian: not used with CasADi functions")
-            settings["jit"] = boolean("jit", jit)
+            settings.update(jit=boolean("jit", jit), native=boolean("native", native))
             model = cls._parametrised(("ode-casadi", rhs, h, dt, settings), rhs, h)
             model.dt = float(dt)
             return model
@@ -362,13 +375,14 @@ class KnownModel(SharedOnCopy):
         if is_casadi_function(rhs):
             if h_jacobian is not None:
                 raise ValueError("h_jacobian: not used with CasADi functions (CasADi differentiates h)")
-            model = cls.from_casadi(f, h, jit=jit)
+            model = cls.from_casadi(f, h, jit=jit, native=native)
             for name, given, actual in (("dim_x", dim_x, model.dim_x), ("dim_y", dim_y, model.dim_y),
                                         ("dim_u", dim_u, model.dim_u)):
                 if given is not None and given != actual:
                     raise ValueError(f"{name}: {given!r} disagrees with the CasADi functions' {actual}")
             model.dt = float(dt)
-            model._time_step = ("casadi", rhs, h, dict(settings, jit=boolean("jit", jit)))
+            model._time_step = ("casadi", rhs, h, dict(settings, jit=boolean("jit", jit),
+                                                       native=boolean("native", native)))
             return model
         if is_casadi_function(h):
             raise ValueError("h: a casadi.Function needs a CasADi rhs (give both in CasADi, or "
@@ -405,7 +419,8 @@ class KnownModel(SharedOnCopy):
             f = _casadi_discretize(rhs, self.dt, settings["substeps"], settings["method"],
                                    settings["newton_tol"], settings["newton_max_iter"], timed=True)
             model = type(self).from_casadi(
-                f, None if h is None else _casadi_without_time(h, self.dim_u), jit=settings["jit"])
+                f, None if h is None else _casadi_without_time(h, self.dim_u), jit=settings["jit"],
+                native=settings.get("native", True))
         else:
             dynamics, h, h_jacobian = rest
             f = TimedDynamics(dynamics)
@@ -456,8 +471,9 @@ class KnownModel(SharedOnCopy):
                                                  n, n_p, p, scale, self.vectorized, False)
             return cls(fa, ha, n + n_p, p, m, fja, hja, self.fd_step, self.vectorized)
         if kind == "casadi":
-            f, h, jit = rest
-            return cls.from_casadi(*par.augment_casadi(f, h, n, n_p, scale, False), jit=jit)
+            f, h, jit, *native = rest  # (older pickles: no native)
+            return cls.from_casadi(*par.augment_casadi(f, h, n, n_p, scale, False), jit=jit,
+                                   native=native[0] if native else True)
         if kind == "ode-casadi":
             rhs, h, dt, settings = rest
             return cls.from_ode(*par.augment_casadi(rhs, h, n, n_p, scale, True), dt, **settings)
@@ -691,16 +707,14 @@ class KnownModel(SharedOnCopy):
 
     def _stage_model(self):
         """What the Rust core evaluates (a `gpmhe._core.StageModel`): this model's Python
-        functions, called back; a CasADi model's callbacks skip the checks of the points, which
-        the core passes valid."""
+        functions, called back, or a CasADi model's compiled functions (see
+        `gpmhe.models.casadi.CasadiModel.core_model`)."""
         if self.dim_p:
             raise ValueError("model: has parameters; the estimator runs its augmented model")
         if self._casadi is not None:
-            stage, predict = self._casadi.stage_callback, self._casadi.predict_callback
-        else:
-            stage, predict = self.stage_eval, self._predict_f64
-        return _core.StageModel.callback(stage, self.dim_x, self.dim_u, self.dim_y,
-                                         predict=predict)
+            return self._casadi.core_model()
+        return _core.StageModel.callback(self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
+                                         predict=self._predict_f64)
 
 
 def _casadi_without_time(h, m):

@@ -226,7 +226,7 @@ def casadi_functions():
     return F, h
 
 
-def known_model(backend="casadi", jacobian="exact", substeps=SUBSTEPS, jit=False):
+def known_model(backend="casadi", jacobian="exact", substeps=SUBSTEPS, jit=False, native=True):
     """The sampled cart-pole as a `gpmhe.KnownModel` (`gpmhe.KnownModel.from_ode`).
 
     Parameters
@@ -240,7 +240,11 @@ def known_model(backend="casadi", jacobian="exact", substeps=SUBSTEPS, jit=False
     substeps : int, default ``SUBSTEPS`` (4)
         RK4 steps per sample time.
     jit : bool, default False
-        CasADi only: compile the model (see `gpmhe.KnownModel.from_casadi`).
+        CasADi only: compile the model for Python's evaluations (see
+        `gpmhe.KnownModel.from_casadi`).
+    native : bool, default True
+        CasADi only: the estimator's core runs the model compiled, without Python (see
+        `gpmhe.KnownModel.from_casadi`); False: through Python callbacks.
 
     Returns
     -------
@@ -267,7 +271,7 @@ def known_model(backend="casadi", jacobian="exact", substeps=SUBSTEPS, jit=False
 
     if backend == "casadi":
         F, h = casadi_functions()
-        return KnownModel.from_ode(F, h, T, substeps=substeps, jit=jit)
+        return KnownModel.from_ode(F, h, T, substeps=substeps, jit=jit, native=native)
     if backend != "numpy":
         raise ValueError(f"backend: must be 'casadi' or 'numpy', got {backend!r}")
     if jacobian == "exact":

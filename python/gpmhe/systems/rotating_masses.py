@@ -283,7 +283,8 @@ def casadi_functions(theta1=THETA1):
     return F, h
 
 
-def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS, jit=False):
+def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS, jit=False,
+                native=True):
     """The sampled model with inertia Θ1 as a `gpmhe.KnownModel` (`gpmhe.KnownModel.from_ode`).
 
     Parameters
@@ -298,7 +299,10 @@ def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS
     substeps : int, default ``SUBSTEPS`` (10)
         Integration steps per sample time.
     jit : bool, default False
-        CasADi only: compile the model.
+        CasADi only: compile the model for Python's evaluations.
+    native : bool, default True
+        CasADi only: the estimator's core runs the model compiled, without Python (see
+        `gpmhe.KnownModel.from_casadi`); False: through Python callbacks.
 
     Returns
     -------
@@ -326,7 +330,8 @@ def known_model(theta1=THETA1, backend="casadi", method="rk4", substeps=SUBSTEPS
 
     if backend == "casadi":
         F, h = casadi_functions(theta1)
-        return KnownModel.from_ode(F, h, T, substeps=substeps, method=method, jit=jit)
+        return KnownModel.from_ode(F, h, T, substeps=substeps, method=method, jit=jit,
+                                   native=native)
     if backend != "numpy":
         raise ValueError(f"backend: must be 'casadi' or 'numpy', got {backend!r}")
     if theta1 is None:

@@ -13,8 +13,9 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::convert::{slice1, slice2};
-use super::error::{detach_interruptible, interruptible};
+use super::error::{detach_interruptible, interruptible, model_domain_error};
 use super::mhe::{CallbackModel, Model, PyMovingHorizon};
+use crate::compiled::CompiledModel;
 use crate::mhe::{
     bank_threads, BankSample, EstimatorBank, GpStageModel, MemberSettings, MovingHorizon,
 };
@@ -23,7 +24,19 @@ use crate::mhe::{
 /// Python callback model (one for all, kept in `model`).
 enum Inner {
     Gp(EstimatorBank<GpStageModel>),
+    Compiled(EstimatorBank<CompiledModel>),
     Callback(EstimatorBank<()>),
+}
+
+/// `$body` with `$b` bound to the bank inside `$inner`, whatever its model type.
+macro_rules! with_bank {
+    ($inner:expr, $b:ident => $body:expr) => {
+        match $inner {
+            Inner::Gp($b) => $body,
+            Inner::Compiled($b) => $body,
+            Inner::Callback($b) => $body,
+        }
+    };
 }
 
 /// n independent `MovingHorizon` estimators with the settings of a template, updated together
@@ -48,10 +61,7 @@ fn rows(name: &str, a: &PyReadonlyArray2<'_, f64>, k: usize) -> PyResult<Vec<Vec
 
 impl PyEstimatorBank {
     fn len(&self) -> usize {
-        match &self.inner {
-            Inner::Gp(b) => b.len(),
-            Inner::Callback(b) => b.len(),
-        }
+        with_bank!(&self.inner, b => b.len())
     }
 
     /// Estimator i with its model as a standalone `MovingHorizon` (a copy).
@@ -66,6 +76,11 @@ impl PyEstimatorBank {
                     staged_cache: None,
                 }
             }
+            Inner::Compiled(b) => PyMovingHorizon {
+                core: b.member(i).ok_or_else(out_of_range)?.estimator.clone(),
+                model: self.model.clone_ref(py),
+                staged_cache: None,
+            },
             Inner::Callback(b) => PyMovingHorizon {
                 core: b.member(i).ok_or_else(out_of_range)?.estimator.clone(),
                 model: self.model.clone_ref(py),
@@ -82,10 +97,7 @@ impl PyEstimatorBank {
         shape: &[usize],
         f: impl Fn(&MovingHorizon) -> Vec<f64>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        let data: Vec<f64> = match &self.inner {
-            Inner::Gp(b) => b.members().iter().flat_map(|m| f(&m.estimator)).collect(),
-            Inner::Callback(b) => b.members().iter().flat_map(|m| f(&m.estimator)).collect(),
-        };
+        let data: Vec<f64> = with_bank!(&self.inner, b => b.members().iter().flat_map(|m| f(&m.estimator)).collect());
         let mut dims = vec![self.len()];
         dims.extend_from_slice(shape);
         PyArray1::from_vec(py, data).reshape(dims)
@@ -93,10 +105,7 @@ impl PyEstimatorBank {
 
     /// Every estimator's value of `f`, in order.
     fn each<T>(&self, f: impl Fn(&MovingHorizon) -> T) -> Vec<T> {
-        match &self.inner {
-            Inner::Gp(b) => b.members().iter().map(|m| f(&m.estimator)).collect(),
-            Inner::Callback(b) => b.members().iter().map(|m| f(&m.estimator)).collect(),
-        }
+        with_bank!(&self.inner, b => b.members().iter().map(|m| f(&m.estimator)).collect())
     }
 
     /// The state dimension n and the number of nodes of the last windows.
@@ -107,10 +116,7 @@ impl PyEstimatorBank {
     }
 
     fn dims(&self) -> (usize, usize, usize) {
-        match &self.inner {
-            Inner::Gp(b) => b.dims(),
-            Inner::Callback(b) => b.dims(),
-        }
+        with_bank!(&self.inner, b => b.dims())
     }
 }
 
@@ -147,6 +153,9 @@ impl PyEstimatorBank {
             .collect();
         let inner = match &template.model {
             Model::Gp(gp) => Inner::Gp(EstimatorBank::new(&template.core, &**gp, &settings)?),
+            Model::Compiled { model, .. } => {
+                Inner::Compiled(EstimatorBank::new(&template.core, &**model, &settings)?)
+            }
             Model::Callback { .. } => {
                 Inner::Callback(EstimatorBank::new(&template.core, &(), &settings)?)
             }
@@ -161,10 +170,11 @@ impl PyEstimatorBank {
         self.len()
     }
 
-    /// Whether the estimators run in parallel (the learned model) or one after another.
+    /// Whether the estimators run in parallel (the learned model or a compiled CasADi model) or
+    /// one after another (a Python model).
     #[getter]
     fn parallel(&self) -> bool {
-        matches!(self.inner, Inner::Gp(_))
+        !matches!(self.inner, Inner::Callback(_))
     }
 
     /// The number of threads a parallel update runs on (rayon's pool: one per core unless
@@ -207,6 +217,20 @@ impl PyEstimatorBank {
             (Inner::Gp(bank), _) => {
                 detach_interruptible(py, || bank.par_update(sample))?;
             }
+            (Inner::Compiled(bank), _) => {
+                match py.detach(|| interruptible(|| bank.par_update(sample))) {
+                    (Ok(_), _) => {}
+                    (Err(_), Some(raised)) => return Err(raised),
+                    (Err(e), None) => {
+                        let domain = bank.members().iter().any(|m| m.model.is_domain_error(&e));
+                        return Err(if domain {
+                            model_domain_error(py, e)
+                        } else {
+                            e.into()
+                        });
+                    }
+                }
+            }
             (
                 Inner::Callback(bank),
                 Model::Callback {
@@ -238,7 +262,7 @@ impl PyEstimatorBank {
                     (Err(e), None) => return Err(raised_by_model.unwrap_or_else(|| e.into())),
                 }
             }
-            (Inner::Callback(_), Model::Gp(_)) => {
+            (Inner::Callback(_), _) => {
                 return Err(PyValueError::new_err("internal: bank and model disagree"))
             }
         };
@@ -342,10 +366,7 @@ impl PyEstimatorBank {
     ) -> PyResult<()> {
         let r = r.as_ref().map(|r| slice1("R", r)).transpose()?;
         let y = slice1("y", &y)?;
-        let estimator = match &mut self.inner {
-            Inner::Gp(b) => b.member_mut(i).map(|m| &mut m.estimator),
-            Inner::Callback(b) => b.member_mut(i).map(|m| &mut m.estimator),
-        };
+        let estimator = with_bank!(&mut self.inner, b => b.member_mut(i).map(|m| &mut m.estimator));
         let estimator =
             estimator.ok_or_else(|| PyIndexError::new_err(format!("i: no estimator {i}")))?;
         Ok(estimator.add_delayed(y, age, r)?)
@@ -387,6 +408,11 @@ impl PyEstimatorBank {
                     m.estimator = w.core;
                 }
             }
+            (Inner::Compiled(b), _) => {
+                if let Some(m) = b.member_mut(i) {
+                    m.estimator = w.core;
+                }
+            }
             (Inner::Gp(_), _) => return Err(PyValueError::new_err("internal: model kind")),
         }
         Ok(())
@@ -397,6 +423,7 @@ impl PyEstimatorBank {
         Self {
             inner: match &self.inner {
                 Inner::Gp(b) => Inner::Gp(b.clone()),
+                Inner::Compiled(b) => Inner::Compiled(b.clone()),
                 Inner::Callback(b) => Inner::Callback(b.clone()),
             },
             model: self.model.clone_ref(py),

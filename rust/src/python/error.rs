@@ -1,7 +1,8 @@
 //! Error mapping, in one place: the core's `InvalidInput` becomes `ValueError` (naming the
 //! argument), `Numerical` becomes `gpmhe.NumericalError` (a `RuntimeError`), `Interrupted`
 //! the Python exception that interrupted the core (see [`detach_interruptible`]), else
-//! `KeyboardInterrupt`.
+//! `KeyboardInterrupt`. A compiled model's value out of range becomes the
+//! `gpmhe.models.base.ModelDomainError` a Python model raises for it ([`model_domain_error`]).
 
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -27,6 +28,23 @@ impl From<Error> for PyErr {
             Error::Numerical(_) => NumericalError::new_err(err.to_string()),
             Error::Interrupted(msg) => PyKeyboardInterrupt::new_err(msg),
         }
+    }
+}
+
+/// `err` (a compiled model's value out of range) as the `ModelDomainError` a Python model's
+/// callback raises for the same value, so that both kinds of model fail alike.
+pub(super) fn model_domain_error(py: Python<'_>, err: Error) -> PyErr {
+    let msg = match &err {
+        Error::Numerical(msg) => msg.clone(),
+        other => other.to_string(),
+    };
+    match py
+        .import("gpmhe.models.base")
+        .and_then(|m| m.getattr("ModelDomainError"))
+        .and_then(|cls| cls.call1((msg,)))
+    {
+        Ok(exc) => PyErr::from_value(exc),
+        Err(_) => err.into(),
     }
 }
 

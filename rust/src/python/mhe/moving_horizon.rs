@@ -14,7 +14,7 @@ use super::window_solver::PyWindowSolver;
 use crate::error::{check_finite, check_len};
 use crate::mhe::{Arrival, Form, Loss, MovingHorizon, Solved, StageModel, Step, WindowProblem};
 use crate::python::convert::{array2, slice1, slice2};
-use crate::python::error::{detach_interruptible, interruptible};
+use crate::python::error::{detach_interruptible, interruptible, model_domain_error};
 use crate::solver::{BoxLsqSolver, SolverOptions};
 
 type Arr1<'py> = Bound<'py, PyArray1<f64>>;
@@ -50,6 +50,15 @@ impl PyMovingHorizon {
                     let _ = model.set_cache(saved);
                 }
                 r
+            }
+            Model::Compiled { model, .. } => {
+                let m = &mut **model;
+                match py.detach(|| interruptible(|| f(core, &mut *m))) {
+                    (Ok(v), _) => Ok(v),
+                    (Err(_), Some(raised)) => Err(raised),
+                    (Err(e), None) if m.is_domain_error(&e) => Err(model_domain_error(py, e)),
+                    (Err(e), None) => Err(e.into()),
+                }
             }
             Model::Callback {
                 stage_eval,
@@ -423,7 +432,7 @@ impl PyMovingHorizon {
         // later updates reuse).
         let saved = match &self.model {
             Model::Gp(gp) => Some(gp.cache()),
-            Model::Callback { .. } => None,
+            Model::Callback { .. } | Model::Compiled { .. } => None,
         };
         let inn = self.run(py, |core, model| core.innovation(model));
         if let (Some(saved), Model::Gp(gp)) = (saved, &mut self.model) {

@@ -141,7 +141,7 @@ pub(super) fn set_state(
                 .map_err(|e| PyValueError::new_err(format!("cache_{e}")))?;
             Some(gp)
         }
-        Model::Callback { .. } => None,
+        Model::Callback { .. } | Model::Compiled { .. } => None,
     };
     core.set_history_state(s)?;
     Ok(gp)

@@ -1,12 +1,16 @@
-//! The model of a `MovingHorizon` as the core's [`StageModel`]: the learned GPs (run without the
-//! GIL) or a known model's Python functions (`gpmhe.KnownModel.stage_eval`, run with the GIL)
-//! behind [`CallbackModel`], and the Python class `StageModel` that holds either.
+//! The model of a `MovingHorizon` as the core's [`StageModel`]: the learned GPs or a compiled
+//! CasADi model (both run without the GIL), or a known model's Python functions
+//! (`gpmhe.KnownModel.stage_eval`, run with the GIL) behind [`CallbackModel`], and the Python
+//! class `StageModel` that holds one of them.
 
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn};
 use pyo3::exceptions::{PyArithmeticError, PyException, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
+use std::sync::Arc;
+
+use crate::compiled::{CompiledLibrary, CompiledModel};
 use crate::error::Error;
 use crate::mhe::{GpStageModel, StageEval, StageModel};
 use crate::python::convert::{slice1, slice2};
@@ -131,7 +135,8 @@ impl StageModel for CallbackModel<'_, '_> {
     }
 }
 
-/// The model behind an estimator: a Python callback (known model) or the learned GPs.
+/// The model behind an estimator: a Python callback (known model), the learned GPs, or a
+/// compiled CasADi model with the Python callable that builds it again (for pickles).
 pub(crate) enum Model {
     Callback {
         stage_eval: Py<PyAny>,
@@ -139,6 +144,10 @@ pub(crate) enum Model {
         dims: (usize, usize, usize),
     },
     Gp(Box<GpStageModel>),
+    Compiled {
+        model: Box<CompiledModel>,
+        rebuild: Py<PyAny>,
+    },
 }
 
 impl Model {
@@ -154,6 +163,10 @@ impl Model {
                 dims: *dims,
             },
             Model::Gp(gp) => Model::Gp(gp.clone()),
+            Model::Compiled { model, rebuild } => Model::Compiled {
+                model: Box::new(CompiledModel::new(Arc::clone(model.library()))),
+                rebuild: rebuild.clone_ref(py),
+            },
         }
     }
 
@@ -161,6 +174,7 @@ impl Model {
         match self {
             Model::Callback { dims, .. } => *dims,
             Model::Gp(gp) => (gp.dim_x(), gp.dim_u(), gp.dim_y()),
+            Model::Compiled { model, .. } => model.library().dims(),
         }
     }
 }
@@ -168,7 +182,8 @@ impl Model {
 // ---- copies and pickles ---------------------------------------------------------------------
 impl Model {
     /// `(constructor, args)` rebuilding this model: `StageModel.callback(stage_eval, dims...,
-    /// predict)` or `StageModel.gp(f, h, dim_u, f_residual)`.
+    /// predict)`, `StageModel.gp(f, h, dim_u, f_residual)` or the compiled model's `rebuild()`
+    /// (which compiles again, or loads from gpmhe's cache, where the pickle is read).
     pub(crate) fn reduce<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
         let cls = py.get_type::<PyStageModel>();
         match self {
@@ -193,6 +208,7 @@ impl Model {
                 let args = (f, h, gp.dim_u(), gp.f_residual());
                 (cls.getattr("gp")?, args).into_pyobject(py)
             }
+            Model::Compiled { rebuild, .. } => (rebuild.clone_ref(py), ()).into_pyobject(py),
         }
     }
 }
@@ -247,6 +263,39 @@ impl PyStageModel {
             dims: (dim_x, dim_u, dim_y),
         };
         Ok(Self { model })
+    }
+
+    /// A compiled CasADi model: the shared library at `path` (written by gpmhe from CasADi's
+    /// generated C code) with the functions `stage` (f, ∂f/∂dᵀ, h, ∂h/∂dᵀ of one point d) and
+    /// `predict` (f), for the dimensions given; `rebuild()` returns this model again (pickles
+    /// call it). ValueError if the library cannot be loaded or its functions have other shapes.
+    #[staticmethod]
+    #[allow(clippy::too_many_arguments)]
+    fn compiled(
+        path: &str,
+        stage: &str,
+        predict: &str,
+        dim_x: usize,
+        dim_u: usize,
+        dim_y: usize,
+        rebuild: Bound<'_, PyAny>,
+    ) -> PyResult<Self> {
+        if !rebuild.is_callable() {
+            return Err(PyValueError::new_err("rebuild: must be callable"));
+        }
+        let lib = CompiledLibrary::load(path, stage, predict, (dim_x, dim_u, dim_y))?;
+        Ok(Self {
+            model: Model::Compiled {
+                model: Box::new(CompiledModel::new(Arc::new(lib))),
+                rebuild: rebuild.unbind(),
+            },
+        })
+    }
+
+    /// Whether the model runs compiled code without Python (the GPs or a compiled CasADi model).
+    #[getter]
+    fn native(&self) -> bool {
+        !matches!(self.model, Model::Callback { .. })
     }
 
     /// (dim_x, dim_u, dim_y).

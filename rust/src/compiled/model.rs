@@ -1,0 +1,138 @@
+//! [`CompiledModel`]: a compiled CasADi model as the estimator's stage model. Known models have
+//! no variances (zero), and every value is checked as a Python model's output is: NaN, ±inf or a
+//! magnitude beyond `MAX_ABS` rejects the point (a numerical failure, see `mhe::stage`).
+
+use std::sync::Arc;
+
+use super::function::Function;
+use super::CompiledLibrary;
+use crate::error::{Error, Result};
+use crate::mhe::{StageEval, StageModel};
+
+/// The largest magnitude a model value may have (gpmhe._validation.MAX_ABS): beyond it squares
+/// overflow.
+const MAX_ABS: f64 = 1e150;
+
+/// The stage model of one estimator on a shared [`CompiledLibrary`], with work buffers of its
+/// own. `domain_error` keeps the message of the last value the model returned out of range (a
+/// `ModelDomainError` for Python), to tell it from a failure its generated code reported.
+#[derive(Debug, Clone)]
+pub struct CompiledModel {
+    lib: Arc<CompiledLibrary>,
+    iw: Vec<i64>,
+    w: Vec<f64>,
+    domain_error: Option<String>,
+}
+
+impl CompiledModel {
+    pub fn new(lib: Arc<CompiledLibrary>) -> Self {
+        let (a, b) = (&lib.stage.sizes, &lib.predict.sizes);
+        Self {
+            iw: vec![0; a[2].max(b[2]).max(1)],
+            w: vec![0.0; a[3].max(b[3]).max(1)],
+            lib,
+            domain_error: None,
+        }
+    }
+
+    pub fn library(&self) -> &Arc<CompiledLibrary> {
+        &self.lib
+    }
+
+    /// Whether `err` is the last value out of range this model reported (rather than a failed
+    /// evaluation or an error of the solver's own).
+    pub fn is_domain_error(&self, err: &Error) -> bool {
+        matches!((err, &self.domain_error), (Error::Numerical(a), Some(b)) if a == b)
+    }
+
+    fn run(&mut self, f: &Function, d: &[f64], res: &mut [&mut [f64]]) -> Result<()> {
+        if !f.call(d, res, &mut self.iw, &mut self.w) {
+            return Err(Error::numerical(format!(
+                "{}: the compiled CasADi model's evaluation failed at this point (an implicit \
+                 integration step whose Newton iteration did not converge: try more substeps \
+                 or a larger newton_max_iter)",
+                f.name()
+            )));
+        }
+        Ok(())
+    }
+
+    fn check(&mut self, part: &str, values: &[f64]) -> Result<()> {
+        if values.iter().all(|v| v.abs() <= MAX_ABS) {
+            return Ok(());
+        }
+        let msg =
+            format!("{part}: returned NaN or inf or a value of magnitude > 1e+150 (CasADi model)");
+        self.domain_error = Some(msg.clone());
+        Err(Error::numerical(msg))
+    }
+}
+
+impl StageModel for CompiledModel {
+    fn dim_x(&self) -> usize {
+        self.lib.dims.0
+    }
+    fn dim_u(&self) -> usize {
+        self.lib.dims.1
+    }
+    fn dim_y(&self) -> usize {
+        self.lib.dims.2
+    }
+
+    fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+        let (n, m, p) = self.lib.dims;
+        let nd = n + m;
+        if nd == 0 || d.len() % nd != 0 {
+            return Err(Error::invalid("d", format!("expected rows of {nd} values")));
+        }
+        let k = d.len() / nd;
+        out.resize(k, n, m, p);
+        for v in [
+            &mut out.var_x,
+            &mut out.dvar_x,
+            &mut out.var_y,
+            &mut out.dvar_y,
+        ] {
+            v.fill(0.0);
+        }
+        let lib = Arc::clone(&self.lib);
+        for i in 0..k {
+            let mut res: [&mut [f64]; 4] = [
+                &mut out.mean_x[i * n..(i + 1) * n],
+                &mut out.dmean_x[i * n * nd..(i + 1) * n * nd],
+                &mut out.mean_y[i * p..(i + 1) * p],
+                &mut out.dmean_y[i * p * nd..(i + 1) * p * nd],
+            ];
+            self.run(&lib.stage, &d[i * nd..(i + 1) * nd], &mut res)?;
+        }
+        for (part, values) in [("f", &out.mean_x), ("f_jacobian", &out.dmean_x)] {
+            self.check(part, values)?;
+        }
+        for (part, values) in [("h", &out.mean_y), ("h_jacobian", &out.dmean_y)] {
+            self.check(part, values)?;
+        }
+        Ok(())
+    }
+
+    fn predict_state(&mut self, x: &[f64], u: &[f64], out: &mut [f64]) -> Result<()> {
+        let (n, m, _) = self.lib.dims;
+        if x.len() != n || u.len() != m || out.len() != n {
+            return Err(Error::invalid(
+                "x",
+                format!("expected {n} states and {m} inputs"),
+            ));
+        }
+        let mut d = Vec::with_capacity(n + m);
+        d.extend_from_slice(x);
+        d.extend_from_slice(u);
+        let lib = Arc::clone(&self.lib);
+        self.run(&lib.predict, &d, &mut [out])?;
+        self.check("f", out)
+    }
+}
+
+impl crate::mhe::bank::ModelState for CompiledModel {
+    type State = ();
+    fn save_state(&self) {}
+    fn restore_state(&mut self, _: ()) {}
+}
