@@ -234,6 +234,22 @@ def test_known_model_weight_bounds_are_the_inverse_covariances(exact):
     np.testing.assert_allclose(wb.R_min_inv, [[100.0]])
 
 
+def test_full_covariances_are_taken_by_the_theory_and_by_the_estimator_it_tunes(gp3):
+    """docs/user_guide/stability.rst: Q0 and R0 may be full symmetric positive definite matrices,
+    in the theory functions as in GPMHE; the bounds (14)-(17) hold in the Loewner order."""
+    Q_full = np.array([[1e-3, 4e-4], [4e-4, 2e-3]])
+    wb = weight_bounds(gp3, Q_full, R0)
+    np.testing.assert_allclose(wb.Q_max_inv, np.linalg.inv(Q_full))
+    np.testing.assert_allclose(wb.Q_min_inv, np.linalg.inv(np.diag(wb.var_x_max) + Q_full))
+    gap = np.linalg.eigvalsh(wb.Q_max_inv - wb.Q_min_inv)
+    assert np.all(gap >= -1e-9 * np.abs(wb.Q_max_inv).max())
+    model = linear_model([[0.5, 0.1], [0.0, 0.6]], [[1.0, 0.0]])
+    cert = certify_ioss(model, (-np.ones(2), np.ones(2)), Q_full, R0, cells=1)
+    assert cert.feasible
+    est = GPMHE(model, [0.0, 0.0], **cert.mhe_options(cert.min_horizon()))
+    np.testing.assert_array_equal(est.Q0, Q_full)
+
+
 # ------------------------------------------------------------------------------ horizon and bound
 
 
