@@ -101,43 +101,68 @@ impl Function {
     }
 
     /// Evaluates at the input `arg` into the output slices `res` (their sizes checked at load),
-    /// with the work buffers `iw` and `w` (at least `sizes[2]` and `sizes[3]` long). Returns
-    /// false if the generated code reports a failure.
-    pub(super) fn call(
-        &self,
-        arg: &[f64],
-        res: &mut [&mut [f64]],
-        iw: &mut [i64],
-        w: &mut [f64],
-    ) -> bool {
+    /// with the work buffers of `work` (sized for this function by [`Work::fit`]). Returns false
+    /// if the generated code reports a failure.
+    pub(super) fn call(&self, arg: &[f64], res: &mut [&mut [f64]], work: &mut Work) -> bool {
+        let Work { args, outs, iw, w } = work;
+        debug_assert!(args.len() >= self.sizes[0] && outs.len() >= self.sizes[1]);
         debug_assert!(iw.len() >= self.sizes[2] && w.len() >= self.sizes[3]);
-        let mut args: Vec<*const f64> = vec![std::ptr::null(); self.sizes[0]];
-        args[0] = arg.as_ptr();
-        let mut outs: Vec<*mut f64> = vec![std::ptr::null_mut(); self.sizes[1]];
+        args.fill(0);
+        outs.fill(0);
+        args[0] = arg.as_ptr() as usize;
         for (o, r) in outs.iter_mut().zip(res.iter_mut()) {
             *o = if r.is_empty() {
-                std::ptr::null_mut()
+                0
             } else {
-                r.as_mut_ptr()
+                r.as_mut_ptr() as usize
             };
         }
         let _guard = self
             .lock
             .as_ref()
             .map(|l| l.lock().unwrap_or_else(|e| e.into_inner()));
-        // SAFETY: the pointers cover the sizes the library reported and checked at load; the
-        // library stays loaded while `self` exists (see `CompiledLibrary`).
+        // SAFETY: the pointers (kept as addresses, so that the work buffers stay `Send`) cover
+        // the sizes the library reported and checked at load; the library stays loaded while
+        // `self` exists (see `CompiledLibrary`).
         unsafe {
             let mem = (self.checkout)();
             let status = (self.eval)(
-                args.as_ptr(),
-                outs.as_mut_ptr(),
+                args.as_ptr() as *const *const f64,
+                outs.as_mut_ptr() as *mut *mut f64,
                 iw.as_mut_ptr(),
                 w.as_mut_ptr(),
                 mem,
             );
             (self.release)(mem);
             status == 0
+        }
+    }
+}
+
+/// The work buffers of calls: pointers to the inputs and outputs (as addresses), integer and
+/// real work; one set per evaluating model, sized for every function it calls.
+#[derive(Debug, Clone, Default)]
+pub(super) struct Work {
+    args: Vec<usize>,
+    outs: Vec<usize>,
+    iw: Vec<i64>,
+    w: Vec<f64>,
+}
+
+impl Work {
+    /// Grows the buffers to fit `f`'s work sizes.
+    pub(super) fn fit(&mut self, f: &Function) {
+        let [a, r, iw, w] = f.sizes;
+        for (v, len) in [(&mut self.args, a), (&mut self.outs, r)] {
+            if v.len() < len {
+                v.resize(len, 0);
+            }
+        }
+        if self.iw.len() < iw.max(1) {
+            self.iw.resize(iw.max(1), 0);
+        }
+        if self.w.len() < w.max(1) {
+            self.w.resize(w.max(1), 0.0);
         }
     }
 }

@@ -4,7 +4,7 @@
 
 use std::sync::Arc;
 
-use super::function::Function;
+use super::function::{Function, Work};
 use super::CompiledLibrary;
 use crate::error::{Error, Result};
 use crate::mhe::{StageEval, StageModel};
@@ -16,22 +16,30 @@ const MAX_ABS: f64 = 1e150;
 /// The stage model of one estimator on a shared [`CompiledLibrary`], with work buffers of its
 /// own. `domain_error` keeps the message of the last value the model returned out of range (a
 /// `ModelDomainError` for Python), to tell it from a failure its generated code reported.
+///
+/// The points and values of the last evaluation are kept: a point given again with the same
+/// bits is copied, not recomputed (a window's first evaluation after it slid repeats all but its
+/// newest point). Each point's values depend on that point alone, so copies equal recomputation.
 #[derive(Debug, Clone)]
 pub struct CompiledModel {
     lib: Arc<CompiledLibrary>,
-    iw: Vec<i64>,
-    w: Vec<f64>,
+    work: Work,
     domain_error: Option<String>,
+    last_d: Vec<f64>,
+    last: StageEval,
 }
 
 impl CompiledModel {
     pub fn new(lib: Arc<CompiledLibrary>) -> Self {
-        let (a, b) = (&lib.stage.sizes, &lib.predict.sizes);
+        let mut work = Work::default();
+        work.fit(&lib.stage);
+        work.fit(&lib.predict);
         Self {
-            iw: vec![0; a[2].max(b[2]).max(1)],
-            w: vec![0.0; a[3].max(b[3]).max(1)],
             lib,
+            work,
             domain_error: None,
+            last_d: Vec::new(),
+            last: StageEval::default(),
         }
     }
 
@@ -46,7 +54,7 @@ impl CompiledModel {
     }
 
     fn run(&mut self, f: &Function, d: &[f64], res: &mut [&mut [f64]]) -> Result<()> {
-        if !f.call(d, res, &mut self.iw, &mut self.w) {
+        if !f.call(d, res, &mut self.work) {
             return Err(Error::numerical(format!(
                 "{}: the compiled CasADi model's evaluation failed at this point (an implicit \
                  integration step whose Newton iteration did not converge: try more substeps \
@@ -55,6 +63,23 @@ impl CompiledModel {
             )));
         }
         Ok(())
+    }
+
+    /// Index of a point of the last evaluation with the bits of `di` (trying `hint` first: a
+    /// slid window finds its point i at i + 1 of the last one).
+    fn find_last(&self, di: &[f64], hint: usize) -> Option<usize> {
+        let nd = di.len();
+        let same = |j: usize| {
+            self.last_d[j * nd..(j + 1) * nd]
+                .iter()
+                .zip(di)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        };
+        let k_last = self.last_d.len() / nd;
+        if hint < k_last && same(hint) {
+            return Some(hint);
+        }
+        (0..k_last).find(|&j| same(j))
     }
 
     fn check(&mut self, part: &str, values: &[f64]) -> Result<()> {
@@ -96,14 +121,18 @@ impl StageModel for CompiledModel {
             v.fill(0.0);
         }
         let lib = Arc::clone(&self.lib);
-        for i in 0..k {
+        for (i, di) in d.chunks_exact(nd).enumerate() {
+            if let Some(j) = self.find_last(di, i + 1) {
+                out.copy_point(i, &self.last, j, n, p, nd);
+                continue;
+            }
             let mut res: [&mut [f64]; 4] = [
                 &mut out.mean_x[i * n..(i + 1) * n],
                 &mut out.dmean_x[i * n * nd..(i + 1) * n * nd],
                 &mut out.mean_y[i * p..(i + 1) * p],
                 &mut out.dmean_y[i * p * nd..(i + 1) * p * nd],
             ];
-            self.run(&lib.stage, &d[i * nd..(i + 1) * nd], &mut res)?;
+            self.run(&lib.stage, di, &mut res)?;
         }
         for (part, values) in [("f", &out.mean_x), ("f_jacobian", &out.dmean_x)] {
             self.check(part, values)?;
@@ -111,6 +140,9 @@ impl StageModel for CompiledModel {
         for (part, values) in [("h", &out.mean_y), ("h_jacobian", &out.dmean_y)] {
             self.check(part, values)?;
         }
+        self.last_d.clear();
+        self.last_d.extend_from_slice(d);
+        self.last.clone_from(out);
         Ok(())
     }
 

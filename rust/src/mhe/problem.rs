@@ -793,21 +793,32 @@ impl WindowEval {
         let nn = n * n;
         diag.iter_mut().for_each(|v| *v = 0.0);
         off.iter_mut().for_each(|v| *v = 0.0);
+        // The diagonal blocks' upper triangles, mirrored at the end: 2·a·b and 2·b·a are the
+        // same number (doubling is exact), so the blocks are what the full sums give.
         for k in 0..self.r.len() {
             let i = self.node[k];
             let ja = &self.ja[k * n..(k + 1) * n];
             for a in 0..n {
-                for b in 0..n {
+                for b in a..n {
                     diag[i * nn + a * n + b] += 2.0 * ja[a] * ja[b];
                 }
             }
             if self.process[k] {
                 let jb = &self.jb[k * n..(k + 1) * n];
                 for a in 0..n {
-                    for b in 0..n {
+                    for b in a..n {
                         diag[(i + 1) * nn + a * n + b] += 2.0 * jb[a] * jb[b];
+                    }
+                    for b in 0..n {
                         off[i * nn + a * n + b] += 2.0 * ja[a] * jb[b];
                     }
+                }
+            }
+        }
+        for block in diag.chunks_exact_mut(nn) {
+            for a in 0..n {
+                for b in 0..a {
+                    block[a * n + b] = block[b * n + a];
                 }
             }
         }

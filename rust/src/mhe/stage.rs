@@ -59,7 +59,7 @@ impl StageEval {
 
 impl StageEval {
     /// Copies point `i` of `src` into point `j` of `self` (both sized for dimensions n, p, nd).
-    pub(super) fn copy_point(
+    pub(crate) fn copy_point(
         &mut self,
         j: usize,
         src: &StageEval,

@@ -204,9 +204,10 @@ impl BoxLsqSolver {
         lambda: f64,
     ) {
         let len = z.len();
+        let floor = self.scale_floor(n);
         let mut eps = 0.0f64;
         for k in 0..len {
-            let d = self.scale(n, k);
+            let d = self.scale(n, k, floor);
             eps = eps.max((z[k] - (z[k] - self.g[k] / d).clamp(lower[k], upper[k])).abs());
         }
         for k in 0..len {
@@ -215,7 +216,7 @@ impl BoxLsqSolver {
             let at_l = finite_lower(lower[k]) && z[k] - lower[k] <= e_l && self.g[k] > 0.0;
             let at_u = finite_upper(upper[k]) && upper[k] - z[k] <= e_u && self.g[k] < 0.0;
             self.work.fixed[k] = self.fixed_bound[k] || at_l || at_u;
-            self.work.shift[k] = lambda * self.scale(n, k);
+            self.work.shift[k] = lambda * self.scale(n, k, floor);
         }
     }
 

@@ -256,6 +256,7 @@ impl BoxLsqSolver {
         mu: f64,
         lambda: f64,
     ) -> bool {
+        let floor = self.scale_floor(n);
         for k in 0..z.len() {
             let (sl, su) = (z[k] - lower[k], upper[k] - z[k]);
             let mut sigma = 0.0;
@@ -268,7 +269,7 @@ impl BoxLsqSolver {
                 sigma += self.duals.yu[k] / su;
                 rhs -= mu / su;
             }
-            self.work.shift[k] = sigma + lambda * self.scale(n, k);
+            self.work.shift[k] = sigma + lambda * self.scale(n, k, floor);
             self.work.step[k] = if self.work.fixed[k] { 0.0 } else { rhs };
         }
         let w = &mut self.work;

@@ -182,17 +182,22 @@ impl BoxLsqSolver {
         prob.gauss_newton_blocks_into(&mut self.diag, &mut self.off);
     }
 
-    /// Marquardt scaling: the diagonal of the Gauss-Newton Hessian, floored.
-    pub(super) fn scale(&self, n: usize, k: usize) -> f64 {
+    /// Marquardt scaling: the diagonal of the Gauss-Newton Hessian, floored at
+    /// [`Self::scale_floor`] (computed once by the caller for a whole loop over k).
+    pub(super) fn scale(&self, n: usize, k: usize, floor: f64) -> f64 {
         let (i, r) = (k / n, k % n);
-        let d = self.diag[i * n * n + r * n + r];
-        let floor = 1e-10
+        self.diag[i * n * n + r * n + r].max(floor)
+    }
+
+    /// The floor of the Marquardt scaling: 1e-10 × the largest magnitude among every
+    /// (n + 1)-th entry of the Gauss-Newton blocks (at least 1e-10).
+    pub(super) fn scale_floor(&self, n: usize) -> f64 {
+        1e-10
             * self
                 .diag
                 .iter()
                 .step_by(n + 1)
-                .fold(1.0f64, |a, &b| a.max(b.abs()));
-        d.max(floor)
+                .fold(1.0f64, |a, &b| a.max(b.abs()))
     }
 
     /// 4·sym(last n×n block of H⁻¹), H the Gauss-Newton Hessian at the point the last successful

@@ -52,9 +52,10 @@ impl BoxLsqSolver {
     /// κ = sᵀHs / sᵀDs for the step in `work.step` over the free variables, given sᵀHs and with
     /// D the scaling at z; NaN when either is not positive.
     pub(super) fn step_curvature(&self, shs: f64) -> f64 {
+        let floor = self.scale_floor(self.n);
         let sds: f64 = (0..self.g.len())
             .filter(|&k| !self.work.fixed[k])
-            .map(|k| self.scale(self.n, k) * self.work.step[k] * self.work.step[k])
+            .map(|k| self.scale(self.n, k, floor) * self.work.step[k] * self.work.step[k])
             .sum();
         if shs > 0.0 && sds > 0.0 {
             shs / sds
