@@ -34,7 +34,9 @@ x̂(t), Θ̂1(t) for t = 1..T. Estimators, each a function run_<name>(data, sett
   throws Θ̂1 to a bound.
 * gpmhe's GPMHE with the exact model (`run_gpmhe_casadi`, `run_gpmhe_numpy`), Θ1 the model's
   parameter: rm.known_model(theta1=None) (KnownModel.from_ode on the right-hand side of (x, u, Θ1),
-  CasADi, or numpy with the analytic Jacobian; 10 RK4 sub-steps), rm.PARAMETER_SETTINGS (p0 =
+  CasADi, or numpy with the analytic Jacobian; 10 RK4 sub-steps); the CasADi model compiled in
+  the core (the default) and on Python callbacks (``native=False``, on CasADi's virtual machine
+  and compiled by CasADi's JIT), rm.PARAMETER_SETTINGS (p0 =
   the guess, P_p0 = P_p⁻¹, p_bounds = Θ1's bounds); rm.MHE_SETTINGS for the states (P2 = P_x, R0 = P_v⁻¹,
   Q0 = 1e-8 I for "no process noise", η = 0.99) with gpmhe's default arrival cost (smoothed
   mean, EKF weight); the filtering form, the default Rust Gauss-Newton solver. The row
@@ -330,29 +332,36 @@ def _run_gpmhe(est, split, data):
     return np.array(xs), np.array(thetas), times, len(caught)
 
 
-def _parameter_gpmhe(data, backend, arrival=None, jit=False):
+def _parameter_gpmhe(data, backend, arrival=None, jit=False, native=True):
     """GPMHE with the exact model and Θ1 as its parameter (rm.known_model(theta1=None),
     rm.PARAMETER_SETTINGS), rm.MHE_SETTINGS for the states with gpmhe's default arrival cost
     unless `arrival` (arrival_mean, arrival_weight) is given."""
     settings = {k: v for k, v in rm.MHE_SETTINGS.items() if not k.startswith("arrival_")}
     if arrival is not None:
         settings.update(arrival_mean=arrival[0], arrival_weight=arrival[1])
-    est = GPMHE(rm.known_model(None, backend=backend, jit=jit), data["x0"], form="filtering",
+    est = GPMHE(rm.known_model(None, backend=backend, jit=jit, native=native), data["x0"],
+                form="filtering",
                 **rm.PARAMETER_SETTINGS, **settings)
     return est, lambda e: (e.x.copy(), float(e.p[0]))
 
 
 def run_gpmhe_casadi(data, settings):
-    """GPMHE, exact model in CasADi, Θ1 estimated as the model's parameter."""
+    """GPMHE, exact model in CasADi compiled in the core, Θ1 estimated as the model's
+    parameter."""
     return _run_gpmhe(*_parameter_gpmhe(data, "casadi"), data)
 
 
+def run_gpmhe_casadi_callbacks(data, settings):
+    """As `run_gpmhe_casadi` on Python callbacks (``native=False``)."""
+    return _run_gpmhe(*_parameter_gpmhe(data, "casadi", native=False), data)
+
+
 def run_gpmhe_casadi_jit(data, settings):
-    """As `run_gpmhe_casadi` with the CasADi model compiled (``jit=True``). Building the
-    estimator plus its slowest update (which may include compiling) are also kept in
-    settings["compile_seconds"]."""
+    """As `run_gpmhe_casadi_callbacks` with the CasADi model compiled by CasADi's JIT
+    (``jit=True``). Building the estimator plus its slowest update (which may include
+    compiling) are also kept in settings["compile_seconds"]."""
     t0 = time.perf_counter()
-    est, split = _parameter_gpmhe(data, "casadi", jit=True)
+    est, split = _parameter_gpmhe(data, "casadi", jit=True, native=False)
     built = time.perf_counter() - t0
     xs, thetas, times, n_warn = _run_gpmhe(est, split, data)
     settings.setdefault("compile_seconds", []).append(built + max(times))
@@ -403,8 +412,9 @@ ESTIMATORS = {
     "filterpy UKF": run_ukf,
     "  EKF, tight Θ1 prior": run_ekf_tight,
     "  UKF, tight Θ1 prior": run_ukf_tight,
-    "GPMHE exact, CasADi": run_gpmhe_casadi,
-    "GPMHE exact, CasADi, jit": run_gpmhe_casadi_jit,
+    "GPMHE exact, CasADi, native": run_gpmhe_casadi,
+    "  CasADi callbacks": run_gpmhe_casadi_callbacks,
+    "  CasADi callbacks, jit": run_gpmhe_casadi_jit,
     "GPMHE exact, numpy": run_gpmhe_numpy,
     "  CasADi, do-mpc's arrival": run_gpmhe_casadi_dompc_arrival,
     "GP-MHE learned (true Θ1)": run_gpmhe_learned,
@@ -452,10 +462,10 @@ def main(argv=None):
           f"horizon {rm.HORIZON}; RMSE over the 8 states, t = 1..{args.steps} and t > {half}")
     print(f"do-mpc {do_mpc.__version__}" if do_mpc is not None
           else f"do-mpc not available ({why}): its row is left out")
-    refs = ("do-mpc MHE (collocation)", "filterpy EKF")
+    refs = ("do-mpc MHE (collocation)", "filterpy EKF", "  CasADi callbacks")
     ref = {k: np.median(results[k]["times"]) for k in refs if k in results}
     print(f"{'estimator':27} {'RMSE':>7} {'2nd half':>8} {'|dΘ1|/Θ1':>9} {'(max)':>7} {'ms med':>7} "
-          f"{'p95':>7} {'warn':>5} {'/do-mpc':>8} {'/EKF':>7}")
+          f"{'p95':>7} {'warn':>5} {'/do-mpc':>8} {'/EKF':>7} {'/callb.':>7}")
     for name, r in results.items():
         t = np.array(r["times"]) * 1e3
         med = np.median(t) / 1e3
@@ -464,7 +474,8 @@ def main(argv=None):
               else f"{'-':>9} {'-':>7}")
         ratios = [f"{med / ref[k]:.2f}" if k in ref else "-" for k in refs]
         print(f"{name:27} {np.mean(r['all']):7.3f} {np.mean(r['late']):8.3f} {th} {np.median(t):7.2f} "
-              f"{np.percentile(t, 95):7.2f} {r['warnings']:5d} {ratios[0]:>8} {ratios[1]:>7}")
+              f"{np.percentile(t, 95):7.2f} {r['warnings']:5d} {ratios[0]:>8} {ratios[1]:>7} "
+              f"{ratios[2]:>7}")
     fit = settings.get("fit_seconds", [])
     if fit:
         print(f"learned model: {settings['n_train']} x {TRAIN_STEPS} training steps, "

@@ -41,12 +41,6 @@ def reactor(native=True):
     return KnownModel.from_casadi(f, h, native=native)
 
 
-def core_of(est):
-    """The `_core.StageModel` the estimator's core runs (of its timed or augmented model)."""
-    model = est._core_model
-    return model._stage_model()
-
-
 def run(est, ys, us=None, dts=None):
     """Every update's x, P, x_window, P_window, innovation and S, stacked."""
     out = []
@@ -63,7 +57,7 @@ def both(build, ys, us=None, dts=None, **settings):
     runs, estimators = [], []
     for native in (True, False):
         est = GPMHE(build(native), **settings)
-        assert core_of(est).native is native
+        assert est.native is native
         runs.append(run(est, ys, us, dts))
         estimators.append(est)
     return runs, estimators[0]
@@ -99,7 +93,7 @@ def test_a_model_with_parameters_gives_the_callbacks_estimates_and_parameters():
     for native in (True, False):
         est = GPMHE(rm.known_model(None, substeps=2, native=native), rm.initial_estimate(1),
                     form="filtering", **rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
-        assert core_of(est).native is native
+        assert est.native is native
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # early windows stop at max-iterations
             estimates.append([np.concatenate([est.update(U[t], ys[t]), est.p, est.P_p.ravel()])
@@ -132,7 +126,7 @@ def replace(path, data):
 def test_the_library_is_compiled_once_into_the_cache_and_reused(cache, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
     est = GPMHE(reactor(), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)
-    assert core_of(est).native
+    assert est.native
     libraries = sorted(cache.glob("*.so"))
     assert len(libraries) == 1 and (cache / (libraries[0].stem + ".sha256")).exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]  # nothing in the cwd
@@ -142,7 +136,7 @@ def test_the_library_is_compiled_once_into_the_cache_and_reused(cache, monkeypat
 
     monkeypatch.setattr(compiled.subprocess, "run", no_compiler)
     again = GPMHE(reactor(), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)  # a new model object
-    assert core_of(again).native
+    assert again.native
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "checksum", "delete-checksum"])
@@ -164,7 +158,7 @@ def test_a_damaged_library_is_compiled_again_not_loaded(cache, damage):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SettingsWarning)  # no fallback: compiled again
         est = GPMHE(reactor(), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)
-    assert core_of(est).native
+    assert est.native
     np.testing.assert_array_equal(run(est, y), reference)
     assert compiled._cached(so, sha)
 
@@ -184,7 +178,7 @@ def test_a_library_that_does_not_load_is_compiled_again_once(cache):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SettingsWarning)
         est = GPMHE(model, [1.0, 1.0], R0=1.0)
-    assert core_of(est).native and so.read_bytes() != b"not a library"
+    assert est.native and so.read_bytes() != b"not a library"
 
 
 # ---- without a compiler -------------------------------------------------------------------------
@@ -198,7 +192,7 @@ def test_without_a_compiler_the_model_runs_as_callbacks_with_one_warning(cache, 
     with warnings.catch_warnings():
         warnings.simplefilter("error", SettingsWarning)  # the same model does not warn again
         second = GPMHE(model, br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)
-    assert not core_of(est).native and not core_of(second).native
+    assert not est.native and not second.native
     reference = GPMHE(reactor(native=False), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)
     np.testing.assert_array_equal(run(est, y), run(reference, y))
 
@@ -207,7 +201,7 @@ def test_an_implicit_scheme_has_no_c_code_and_runs_as_callbacks():
     model = rm.known_model(method="implicit-midpoint", substeps=1)
     with pytest.warns(SettingsWarning, match="no C code|Code generation not supported"):
         est = GPMHE(model, rm.X0, **rm.MHE_SETTINGS)
-    assert not core_of(est).native
+    assert not est.native
 
 
 def test_native_false_never_compiles(cache, monkeypatch):
@@ -215,7 +209,7 @@ def test_native_false_never_compiles(cache, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SettingsWarning)
         est = GPMHE(reactor(native=False), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)
-    assert not core_of(est).native and not cache.exists()
+    assert not est.native and not cache.exists()
 
 
 # ---- bad values, pickles, threads, interrupts ---------------------------------------------------
@@ -236,7 +230,7 @@ def test_pickles_and_copies_continue_bit_for_bit_and_rebuild_from_the_cache(cach
     for t in range(10):
         est.update(u[t], y[t])
     clones = [pickle.loads(pickle.dumps(est)), copy.deepcopy(est)]
-    assert all(core_of(c).native for c in clones)
+    assert all(c.native for c in clones)
     for t in range(10, 20):
         a = est.update(u[t], y[t])
         for c in clones:

@@ -431,6 +431,10 @@ class MovingHorizon:
         P2 restarts the arrival weight. On error nothing changes."""
         ...
     @property
+    def native(self) -> bool:
+        """Whether the model runs without Python (the learned GPs or a compiled CasADi model)."""
+        ...
+    @property
     def weights_version(self) -> int:
         """How many times `set_weights` replaced weights (a copy keeps the count)."""
         ...

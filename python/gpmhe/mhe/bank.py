@@ -4,7 +4,7 @@ This module validates the bank's settings and every sample's input, holds the pu
 (one row per estimator) and builds a standalone `GPMHE` from any estimator (``bank[i]``). The
 estimators themselves live in one Rust object (`gpmhe._core.EstimatorBank`, rust/src/mhe/bank.rs
 through rust/src/python/bank.rs): one ``update(U, Y)`` is one Rust call that updates all of them,
-in parallel on every core for a `LearnedModel`.
+in parallel on every core for a `LearnedModel` or a CasADi model compiled in the core.
 """
 
 from __future__ import annotations
@@ -99,9 +99,10 @@ class EstimatorBank:
     initial estimate ``x0``, its state box ``x_bounds`` and its weights ``Q0``, ``R0``, which may
     be given once for all or once per estimator. ``update(U, Y)`` takes one row of inputs and
     outputs per estimator and updates all of them in one call into the Rust core: with a
-    `LearnedModel` the estimators are solved in parallel on all cores (rayon, without the GIL);
-    with a `KnownModel`, whose functions are Python, they run one after another in that call
-    (with the GIL). Each estimator gives, bit for bit, what a separate `GPMHE` with its settings
+    `LearnedModel` or a CasADi model compiled in the core (`KnownModel.from_casadi`,
+    `KnownModel.from_ode` with ``native=True``, the default) the estimators are solved in
+    parallel on all cores (rayon, without the GIL); with a `KnownModel` whose functions are
+    Python, they run one after another in that call (with the GIL). Each estimator gives, bit for bit, what a separate `GPMHE` with its settings
     gives on its rows of data: the bank is a faster way to run many of them, e.g. for a Monte
     Carlo study or one estimator per unit of a fleet.
 
@@ -381,7 +382,7 @@ class EstimatorBank:
 
     @property
     def threads(self):
-        """The number of threads an update runs on (1 for a `KnownModel`)."""
+        """The number of threads an update runs on (1 for a model of Python functions)."""
         return _core.EstimatorBank.threads() if self._core.parallel else 1
 
     # ----------------------------------------------------------------------------------------
@@ -417,7 +418,7 @@ class EstimatorBank:
 
         Row i of ``U`` and ``Y`` is estimator i's (u(t), y(t)) (`GPMHE.update`). All estimators
         are updated in one call into the Rust core: in parallel on all cores for a
-        `LearnedModel`, one after another for a `KnownModel`.
+        `LearnedModel` or a compiled CasADi model, one after another for Python functions.
 
         Parameters
         ----------

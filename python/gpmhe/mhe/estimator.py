@@ -235,6 +235,9 @@ class GPMHE(Runs):
         validated as in the constructor and changes nothing else (setting P2 or P0 restarts the
         "ekf" arrival weight; Q0, R0 and eta leave it as it is). Other names are rejected
         (``est.R = ...`` raises AttributeError).
+    native : bool
+        Whether the core evaluates the model without Python (and updates without the GIL): a
+        `LearnedModel`, or a CasADi model compiled in the core.
     model, horizon, form, solver, solver_options, arrival_mean, arrival_weight, x_bounds
     loss, loss_scale
         The settings as given, read-only (``x_bounds`` as a (lower, upper) pair of arrays, ±inf
@@ -498,6 +501,13 @@ class GPMHE(Runs):
     def solver(self):
         """The window solver."""
         return self._settings.solver
+
+    @property
+    def native(self):
+        """Whether the core evaluates the model without Python (and updates without the GIL):
+        True for a `LearnedModel` and a CasADi model compiled in the core, False for Python
+        functions (see `KnownModel.from_casadi`, ``native``)."""
+        return self._core.native
 
     @property
     def solver_options(self):

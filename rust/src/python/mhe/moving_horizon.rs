@@ -89,6 +89,12 @@ impl PyMovingHorizon {
 
 #[pymethods]
 impl PyMovingHorizon {
+    /// Whether the model runs without Python (the learned GPs or a compiled CasADi model).
+    #[getter]
+    fn native(&self) -> bool {
+        !matches!(self.model, Model::Callback { .. })
+    }
+
     /// An estimator on `model` (a `StageModel`). `q0`, `r0`: Q0 and R0, their diagonals or the
     /// flattened matrices; `p2_sqrt`: S with P2 = SᵀS; `filtering`: the form; `horizon`: M;
     /// `x0`: x̂(0) (zeros if None); `lower`, `upper`: the state box (±inf if None); `solver`: the

@@ -1,0 +1,128 @@
+"""Benchmark: a bank of estimators on a compiled CasADi model, on 1, 2, ... threads.
+
+    python benches/bench_bank_scaling.py [--n 64] [--samples 40] [--threads 1 2] [--seed 0]
+
+Plants: the cart-pole (`gpmhe.systems.cart_pole`, its MHE settings) and the rotating masses
+(`gpmhe.systems.rotating_masses`, Θ1 known, its MHE settings), each estimator with its own
+simulated run. For each plant and each thread count (a fresh process with RAYON_NUM_THREADS set,
+since rayon sizes its pool once per process): the median and p95 time of one `bank.update` of
+`--n` estimators on the model compiled in the core, over the samples after the first window is
+full; in the one-thread process also the same bank on Python callbacks (``native=False``, which
+updates its estimators one after another) and `--n` separate `GPMHE` estimators updated in a
+Python loop. The speed-up is against the compiled bank on one thread; every bank's estimates
+are checked against the separate estimators' bit for bit. Prints a table, asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+import warnings
+
+import numpy as np
+
+from gpmhe import GPMHE, EstimatorBank
+from gpmhe.systems import cart_pole as cp
+from gpmhe.systems import rotating_masses as rm
+
+
+def plant_data(name, n, samples, seed):
+    """(model factory of `native`, x0 rows (n, dim_x), U (samples, n, m), Y (samples, n, p),
+    settings)."""
+    runs = []
+    if name == "cart-pole":
+        for i in range(n):
+            _, u, y = cp.simulate(samples, rng=seed + i)
+            runs.append((cp.X0, u[:samples], y[:samples]))
+        return (lambda native: cp.known_model("casadi", native=native)), runs, cp.MHE_SETTINGS
+    for i in range(n):
+        rng = np.random.default_rng(seed + i)
+        _, u, y = rm.simulate(samples, rng=rng)
+        runs.append((rm.initial_estimate(rng), u[:samples], y[:samples]))
+    return (lambda native: rm.known_model(native=native)), runs, rm.MHE_SETTINGS
+
+
+def time_bank(bank, U, Y):
+    times = []
+    for t in range(len(Y)):
+        t0 = time.perf_counter()
+        bank.update(U[t], Y[t])
+        times.append(time.perf_counter() - t0)
+    return np.array(times)
+
+
+def measure(name, n, samples, seed, separate):
+    """One process's measurements: {"bank": times, "callbacks": times, "separate": times,
+    "identical": bool} (the last three only with `separate`)."""
+    build, runs, settings = plant_data(name, n, samples, seed)
+    X0 = np.array([r[0] for r in runs])
+    U = np.stack([r[1] for r in runs], axis=1)
+    Y = np.stack([r[2] for r in runs], axis=1)
+    warnings.simplefilter("ignore", RuntimeWarning)  # early windows may stop at max-iterations
+    bank = EstimatorBank(build(True), n, X0, **settings)
+    out = {"bank": time_bank(bank, U, Y).tolist(), "parallel": bool(bank._core.parallel)}
+    if separate:
+        slow = EstimatorBank(build(False), n, X0, **settings)
+        out["callbacks"] = time_bank(slow, U, Y).tolist()
+        ests = [GPMHE(build(True), X0[i], **settings) for i in range(n)]
+        times = []
+        for t in range(samples):
+            t0 = time.perf_counter()
+            for i, est in enumerate(ests):
+                est.update(U[t, i], Y[t, i])
+            times.append(time.perf_counter() - t0)
+        out["separate"] = times
+        xs = np.array([e.x for e in ests])
+        out["identical"] = bool(np.array_equal(bank.x, xs) and np.array_equal(slow.x, xs))
+    return out
+
+
+def in_process(threads, args, name):
+    env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
+    cmd = [sys.executable, __file__, "--child", name, "--n", str(args.n), "--samples",
+           str(args.samples), "--seed", str(args.seed)] + (["--separate"] if threads == 1 else [])
+    run = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def row(label, times, skip, base):
+    t = np.array(times[skip:]) * 1e3
+    med = np.median(t)
+    return f"| {label:44s} | {med:9.2f} | {np.percentile(t, 95):8.2f} | {base / med if base else 1:8.2f} |"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=64)
+    ap.add_argument("--samples", type=int, default=40)
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--child", default=None)
+    ap.add_argument("--separate", action="store_true")
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(measure(args.child, args.n, args.samples, args.seed, args.separate)))
+        return
+    print(f"# A bank of {args.n} estimators on a compiled CasADi model ({os.cpu_count()} cores)\n")
+    for name, skip in (("cart-pole", cp.MHE_SETTINGS["horizon"]), ("rotating masses", rm.HORIZON)):
+        results = {k: in_process(k, args, name) for k in args.threads}
+        one = results[args.threads[0]]
+        base = np.median(np.array(one["bank"][skip:]) * 1e3)
+        print(f"## {name}: time per update of all {args.n} estimators (samples t ≥ {skip})\n")
+        print("| estimators                                   | median ms |   p95 ms | speed-up |")
+        print("|----------------------------------------------|-----------|----------|----------|")
+        for k in args.threads:
+            print(row(f"bank, compiled, {k} thread{'s' if k > 1 else ''}", results[k]["bank"], skip, base))
+        if "callbacks" in one:
+            print(row("bank, Python callbacks (serial)", one["callbacks"], skip, base))
+            print(row(f"{args.n} separate GPMHE, compiled, Python loop", one["separate"], skip, base))
+            print(f"\n(estimates of both banks equal the separate estimators' bit for bit: "
+                  f"{one['identical']})\n")
+
+
+if __name__ == "__main__":
+    main()
