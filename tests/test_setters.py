@@ -138,3 +138,14 @@ def test_the_weight_matrices_refuse_the_same_values(name, bad):
             build()
     for a, b in zip(before, (est.Q0, est.R0, est.P2)):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["Q0", "R0", "P2", "P0"])
+def test_a_weight_read_is_read_only_so_an_in_place_change_is_refused_not_ignored(name):
+    est = GPMHE(KnownModel(br.f, br.h, 2, 1), [1.0, 1.0], Q0=0.1, R0=0.2)
+    before = getattr(est, name).copy()
+    with pytest.raises(ValueError, match="read-only"):
+        getattr(est, name)[0, 0] = 5.0
+    np.testing.assert_array_equal(getattr(est, name), before)
+    setattr(est, name, 2.0 * before)  # the way to change it
+    np.testing.assert_allclose(getattr(est, name), 2.0 * before)

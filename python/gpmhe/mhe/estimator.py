@@ -440,27 +440,29 @@ class GPMHE(Runs):
 
     @property
     def Q0(self):  # noqa: N802 (the paper's symbol)
-        """Process-noise covariance Q0 (dim_x, dim_x); setting it takes effect from the next
-        update (a scalar, the diagonal or the matrix, as in the constructor) and changes nothing
-        else."""
-        return self._settings.Q0.copy()
+        """Process-noise covariance Q0 (dim_x, dim_x), a read-only array; setting the attribute
+        takes effect from the next update (a scalar, the diagonal or the matrix, as in the
+        constructor) and changes nothing else."""
+        return self._settings.Q0
 
     @property
     def R0(self):  # noqa: N802
-        """Output-noise covariance R0 (dim_y, dim_y); settable as ``Q0``."""
-        return self._settings.R0.copy()
+        """Output-noise covariance R0 (dim_y, dim_y), read-only; settable as ``Q0``."""
+        return self._settings.R0
 
     @property
     def P2(self):  # noqa: N802
-        """Arrival weight P2 (dim_x, dim_x), the inverse of the arrival covariance ``P0``;
-        setting it (or ``P0``) takes effect from the next update and restarts an "ekf" arrival
-        weight from it."""
-        return self._settings.P2.copy()
+        """Arrival weight P2 (dim_x, dim_x), read-only, the inverse of the arrival covariance
+        ``P0``; setting it (or ``P0``) takes effect from the next update and restarts an "ekf"
+        arrival weight from it."""
+        return self._settings.P2
 
     @property
     def P0(self):  # noqa: N802
-        """Arrival covariance P0 = P2⁻¹ (dim_x, dim_x); settable (sets P2)."""
-        return np.linalg.inv(self._settings.P2)
+        """Arrival covariance P0 = P2⁻¹ (dim_x, dim_x), read-only; settable (sets P2)."""
+        P0 = np.linalg.inv(self._settings.P2)
+        P0.flags.writeable = False  # an in-place change would change nothing: refused
+        return P0
 
     @property
     def eta(self):
