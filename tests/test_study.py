@@ -207,7 +207,8 @@ def test_default_metrics_names():
 @pytest.mark.parametrize("module, kwargs", [("pandas", {}), ("distributed", {"client": object()})])
 def test_missing_extra_names_the_install_line(monkeypatch, module, kwargs):
     monkeypatch.setitem(sys.modules, module, None)  # `import module` raises ImportError
-    with pytest.raises(ImportError, match=r"pip install 'gpmhe\[distributed\]'"):
+    with pytest.raises(ImportError, match=r"pip install pandas 'dask\[distributed\]' .*"
+                                          r"--find-links wheelhouse 'gpmhe\[distributed\]'"):
         gpmhe.monte_carlo({"MHE": mhe}, simulate, [0], progress=False, **kwargs)
 
 

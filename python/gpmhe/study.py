@@ -34,7 +34,8 @@ from gpmhe._validation import boolean, float_array, integer, one_of
 
 __all__ = ["monte_carlo", "StudyResult", "FilterAdapter", "default_metrics"]
 
-_EXTRA = "pip install 'gpmhe[distributed]'"
+_EXTRA = ("pip install pandas 'dask[distributed]' (without a network, from a wheelhouse made with "
+          "--extras distributed: pip install --no-index --find-links wheelhouse 'gpmhe[distributed]')")
 
 
 def _pandas():
@@ -393,7 +394,7 @@ def monte_carlo(estimators: Mapping[str, Callable], simulate: Callable[[int], tu
         raise: they are reported in its row.
     ImportError
         pandas (or, with a client, dask.distributed) is not installed:
-        ``pip install 'gpmhe[distributed]'``.
+        ``pip install pandas 'dask[distributed]'`` (the ``distributed`` extra).
 
     See Also
     --------

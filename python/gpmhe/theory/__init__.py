@@ -3,7 +3,8 @@ design the MHE's prior weight P2 and discount η from it, and evaluate the minim
 model mismatch and the error bound of Wolff, Lopez & Müller (Theorem 1, Corollary 1).
 
 Everything here is pure Python on top of the public models. The semidefinite programs need the
-optional dependency cvxpy (with the Clarabel solver): ``pip install "gpmhe[theory]"``; cvxpy is
+optional dependency cvxpy (with the Clarabel solver), gpmhe's ``theory`` extra:
+``pip install ".[theory]"`` in a clone of gpmhe, or ``pip install cvxpy clarabel``; cvxpy is
 imported only when a function needs it.
 
 The functions follow the paper's symbols: ``weight_bounds`` gives Q_min⁻¹, Q_max⁻¹, R_min⁻¹,

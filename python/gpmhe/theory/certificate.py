@@ -265,7 +265,7 @@ def certify_ioss(model, x_bounds, Q0, R0, u_bounds=None, eta=None, P=None, *,
     ValueError
         On invalid arguments (the message names the argument).
     ImportError
-        If cvxpy is not installed (``pip install "gpmhe[theory]"``).
+        If cvxpy is not installed (``pip install cvxpy clarabel``, the ``theory`` extra).
 
     Notes
     -----

@@ -14,8 +14,9 @@ def _require_cvxpy():
         import cvxpy
     except ImportError:
         raise ImportError(
-            "gpmhe.theory needs cvxpy for its semidefinite programs: pip install \"gpmhe[theory]\" "
-            "(or pip install cvxpy clarabel)"
+            "gpmhe.theory needs cvxpy for its semidefinite programs: pip install cvxpy clarabel "
+            "(without a network, from a wheelhouse made with --extras theory: "
+            "pip install --no-index --find-links wheelhouse \"gpmhe[theory]\")"
         ) from None
     return cvxpy
 
