@@ -53,8 +53,10 @@ impl CompiledModel {
         matches!((err, &self.domain_error), (Error::Numerical(a), Some(b)) if a == b)
     }
 
-    fn run(&mut self, f: &Function, d: &[f64], res: &mut [&mut [f64]]) -> Result<()> {
-        if !f.call(d, res, &mut self.work) {
+    /// `f` at `d` into `res` with the work buffers `work` (a function, not a method, so that
+    /// the library is borrowed, not shared by reference count, by estimators on other threads).
+    fn run(f: &Function, d: &[f64], res: &mut [&mut [f64]], work: &mut Work) -> Result<()> {
+        if !f.call(d, res, work) {
             return Err(Error::numerical(format!(
                 "{}: the compiled CasADi model's evaluation failed at this point (an implicit \
                  integration step whose Newton iteration did not converge: try more substeps \
@@ -120,7 +122,6 @@ impl StageModel for CompiledModel {
         ] {
             v.fill(0.0);
         }
-        let lib = Arc::clone(&self.lib);
         for (i, di) in d.chunks_exact(nd).enumerate() {
             if let Some(j) = self.find_last(di, i + 1) {
                 out.copy_point(i, &self.last, j, n, p, nd);
@@ -132,7 +133,7 @@ impl StageModel for CompiledModel {
                 &mut out.mean_y[i * p..(i + 1) * p],
                 &mut out.dmean_y[i * p * nd..(i + 1) * p * nd],
             ];
-            self.run(&lib.stage, di, &mut res)?;
+            Self::run(&self.lib.stage, di, &mut res, &mut self.work)?;
         }
         for (part, values) in [("f", &out.mean_x), ("f_jacobian", &out.dmean_x)] {
             self.check(part, values)?;
@@ -157,8 +158,7 @@ impl StageModel for CompiledModel {
         let mut d = Vec::with_capacity(n + m);
         d.extend_from_slice(x);
         d.extend_from_slice(u);
-        let lib = Arc::clone(&self.lib);
-        self.run(&lib.predict, &d, &mut [out])?;
+        Self::run(&self.lib.predict, &d, &mut [out], &mut self.work)?;
         self.check("f", out)
     }
 }
