@@ -80,7 +80,7 @@ echo "built $wheel"
 [ -n "$wheelhouse" ] || exit 0
 
 fill_wheelhouse() {  # $1: a virtualenv of the interpreter the dependency wheels are for
-    echo "== wheelhouse $wheelhouse: gpmhe[$extras] for $("$1/bin/python" -c 'import sys; print("Python", sys.version.split()[0])')"
+    echo "== wheelhouse $wheelhouse: gpmhe${extras:+[$extras]} for $("$1/bin/python" -c 'import sys; print("Python", sys.version.split()[0])')"
     # pip download copies the wheel given as a file into the wheelhouse, next to its dependencies.
     "$1/bin/pip" download --quiet --only-binary=:all: ${platform:+--platform "$platform"} \
         --dest "$wheelhouse" "$wheel${extras:+[$extras]}"
