@@ -147,6 +147,17 @@ def reactor_known_model(vectorized=False, jacobians=True):
 PAPER_GP = dict(mean="zero", normalize=False, hyperprior=None)
 
 
+def reactor_casadi(jit=False, native=True):
+    """The batch reactor as CasADi functions (`KnownModel.from_casadi`; CasADi imported here)."""
+    import casadi as ca
+
+    x = ca.SX.sym("x", 2)
+    rate = br.K1 * x[0] ** 2 - br.K2 * x[1]
+    f = ca.Function("f", [x], [x + br.T * ca.vertcat(-2 * rate, rate)])
+    h = ca.Function("h", [x], [x[0] + x[1]])
+    return KnownModel.from_casadi(f, h, jit=jit, native=native)
+
+
 def fitted_reactor_model(rng, n_restarts, n_trajectories=5, **options):
     """A LearnedModel fitted to n_trajectories simulated batch-reactor trajectories (the
     generator seeded with rng), random_state 0, with the paper's GP model unless ``options`` say

@@ -16,20 +16,12 @@ from gpmhe import GPMHE, EstimatorBank, KnownModel, LearnedModel
 from gpmhe.systems import batch_reactor as br
 from gpmhe.systems import cart_pole as cp
 
-from conftest import f3_jac_v, f3_v, h3_jac_v, h3_v, reactor_known_model
+from conftest import f3_jac_v, f3_v, h3_jac_v, h3_v, reactor_casadi, reactor_known_model
 
 ca = pytest.importorskip("casadi")
 
 
 # ---- the models -----------------------------------------------------------------------------
-def reactor_casadi(jit=False):
-    x = ca.SX.sym("x", 2)
-    rate = br.K1 * x[0] ** 2 - br.K2 * x[1]
-    f = ca.Function("f", [x], [x + br.T * ca.vertcat(-2 * rate, rate)])
-    h = ca.Function("h", [x], [x[0] + x[1]])
-    return KnownModel.from_casadi(f, h, jit=jit)
-
-
 def synthetic_casadi_functions(kind="SX", row_vectors=False):
     """The f3/h3 system of conftest (n = 2, m = 1, p = 2)."""
     sym = getattr(ca, kind).sym

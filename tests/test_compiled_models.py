@@ -23,6 +23,8 @@ from gpmhe.systems import batch_reactor as br
 from gpmhe.systems import cart_pole as cp
 from gpmhe.systems import rotating_masses as rm
 
+from conftest import reactor_casadi
+
 ca = pytest.importorskip("casadi")
 
 
@@ -34,11 +36,7 @@ def cache(tmp_path, monkeypatch):
 
 
 def reactor(native=True):
-    x = ca.SX.sym("x", 2)
-    rate = br.K1 * x[0] ** 2 - br.K2 * x[1]
-    f = ca.Function("reactor_f", [x], [x + br.T * ca.vertcat(-2 * rate, rate)])
-    h = ca.Function("reactor_h", [x], [x[0] + x[1]])
-    return KnownModel.from_casadi(f, h, native=native)
+    return reactor_casadi(native=native)
 
 
 def run(est, ys, us=None, dts=None):

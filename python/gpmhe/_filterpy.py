@@ -5,6 +5,8 @@
   (`renamed`) and uses the new one.
 * filterpy's attribute names that an estimator does not have (``predict``, ``x_post``, ``y``,
   ...) raise an AttributeError that names the estimator's own (`missing_attribute`).
+* Setting an attribute an estimator does not take (filterpy's ``R``, a read-only setting)
+  raises an AttributeError that says what to set instead (`refused_setting`).
 * filterpy's one-argument ``update(z)`` raises a TypeError that shows gpmhe's ``update(u, y)``
   (`REQUIRED`, `required`, `one_argument_update`).
 * Attributes whose shape grows while the window fills are `window_attribute` descriptors, not
@@ -17,7 +19,7 @@ from __future__ import annotations
 import inspect
 import warnings
 
-__all__ = ["RENAMED", "FILTERPY_NAMES", "BANK_NAMES", "REQUIRED", "renamed",
+__all__ = ["RENAMED", "FILTERPY_NAMES", "BANK_NAMES", "REQUIRED", "renamed", "refused_setting",
            "missing_attribute", "required", "one_argument_update", "window_attribute"]
 
 #: Renamed attributes, old name -> new name: the old name works for one release, with a warning.
@@ -65,6 +67,20 @@ def missing_attribute(obj, name, names=tuple(FILTERPY_NAMES)):
     error = AttributeError(message)
     error.name, error.obj = name, obj  # Python's "Did you mean" for other names (3.10 and on)
     return error
+
+
+def refused_setting(obj, name, settable, hints, fixed):
+    """The AttributeError for setting `name` on `obj`, which takes only the `settable` names:
+    the name to use instead if `hints` has one, else that there is no such attribute, else that
+    it is read-only, with `fixed` saying how the setting does change."""
+    owner, names = type(obj).__name__, ", ".join(sorted(settable))
+    hint = hints.get(name)
+    if hint is not None:
+        return AttributeError(f"{owner} has no settable attribute {name!r}: did you mean {hint}?")
+    if not hasattr(obj, name):
+        return AttributeError(f"{owner} has no attribute {name!r}; the settable ones are {names}")
+    return AttributeError(f"{owner}.{name} is read-only; the settable attributes are {names} "
+                          f"({fixed})")
 
 
 class _Required:

@@ -16,7 +16,7 @@ import numpy as np
 
 from gpmhe import _core
 from gpmhe._filterpy import (BANK_NAMES, REQUIRED, missing_attribute, one_argument_update,
-                             renamed, required, window_attribute)
+                             refused_setting, renamed, required, window_attribute)
 from gpmhe._threads import exclusive
 from gpmhe._validation import (MAX_ABS, MagnitudeError, SettingsWarning, box, float_array, integer,
                                output_sample, positive_diagonal, real_array, within_limits)
@@ -344,17 +344,9 @@ class EstimatorBank:
         if name.startswith("_"):  # the class's own (and tests') private attributes
             object.__setattr__(self, name, value)
             return
-        settable = ", ".join(_SETTABLE)
-        hint = _DID_YOU_MEAN.get(name)
-        if hint is not None:
-            raise AttributeError(f"EstimatorBank has no settable attribute {name!r}: did you "
-                                 f"mean {hint}?")
-        if not hasattr(self, name):
-            raise AttributeError(f"EstimatorBank has no attribute {name!r}; the settable ones "
-                                 f"are {settable}")
-        raise AttributeError(f"EstimatorBank.{name} is read-only; the settable attributes are "
-                             f"{settable} (the other settings are fixed at construction: build "
-                             "a new EstimatorBank; the estimates change only through update)")
+        raise refused_setting(self, name, _SETTABLE, _DID_YOU_MEAN,
+                              "the other settings are fixed at construction: build a new "
+                              "EstimatorBank; the estimates change only through update")
 
     @exclusive  # not while an update runs (gpmhe/_threads.py)
     def _set_weight(self, name, value):

@@ -16,8 +16,8 @@ import warnings
 import numpy as np
 
 from gpmhe import _core
-from gpmhe._filterpy import (REQUIRED, missing_attribute, one_argument_update, renamed, required,
-                             window_attribute)
+from gpmhe._filterpy import (REQUIRED, missing_attribute, one_argument_update, refused_setting,
+                             renamed, required, window_attribute)
 from gpmhe._threads import exclusive
 from gpmhe._validation import SettingsWarning, finite_vector, integer, output_sample, positive_scalar
 from gpmhe.mhe import checkpoint, solvers
@@ -405,15 +405,9 @@ class GPMHE(Runs):
         if name.startswith("_"):  # the class's own (and tests') private attributes
             object.__setattr__(self, name, value)
             return
-        hint = self._DID_YOU_MEAN.get(name)
-        if hint is not None:
-            raise AttributeError(f"GPMHE has no settable attribute {name!r}: did you mean {hint}?")
-        if not hasattr(self, name):
-            raise AttributeError(f"GPMHE has no attribute {name!r}; the settable ones are "
-                                 f"{', '.join(sorted(self._SETTABLE))}")
-        raise AttributeError(f"GPMHE.{name} is read-only; the settable attributes are "
-                             f"{', '.join(sorted(self._SETTABLE))} (the other settings are fixed "
-                             "at construction, the estimate changes only through update and reset)")
+        raise refused_setting(self, name, self._SETTABLE, self._DID_YOU_MEAN,
+                              "the other settings are fixed at construction, the estimate "
+                              "changes only through update and reset")
 
     def __getattr__(self, name):  # only for names the class and the instance do not have
         new = renamed(type(self), name)

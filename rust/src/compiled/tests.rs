@@ -97,36 +97,16 @@ fn wrong_dimensions_names_and_files_are_refused() {
         Err(Error::InvalidInput { arg, msg }) => assert_eq!(arg, "model", "{msg}"),
         other => panic!("expected a refusal, got {other:?}"),
     };
-    refused(CompiledLibrary::load(
-        path,
-        "gpmhe_stage",
-        "gpmhe_f",
-        (3, 0, 1),
-    ));
-    refused(CompiledLibrary::load(
-        path,
-        "gpmhe_stage",
-        "gpmhe_f",
-        (2, 1, 2),
-    ));
-    refused(CompiledLibrary::load(
-        path,
-        "no_such_function",
-        "gpmhe_f",
-        (2, 1, 1),
-    ));
-    refused(CompiledLibrary::load(
-        path,
-        "gpmhe_f",
-        "gpmhe_stage",
-        (2, 1, 1),
-    ));
-    refused(CompiledLibrary::load(
-        "/nonexistent/model.so",
-        "gpmhe_stage",
-        "gpmhe_f",
-        (2, 1, 1),
-    ));
+    let cases = [
+        (path, "gpmhe_stage", "gpmhe_f", (3, 0, 1)), // other dimensions
+        (path, "gpmhe_stage", "gpmhe_f", (2, 1, 2)),
+        (path, "no_such_function", "gpmhe_f", (2, 1, 1)),
+        (path, "gpmhe_f", "gpmhe_stage", (2, 1, 1)), // the outputs of the other function
+        ("/nonexistent/model.so", "gpmhe_stage", "gpmhe_f", (2, 1, 1)),
+    ];
+    for (file, stage, predict, dims) in cases {
+        refused(CompiledLibrary::load(file, stage, predict, dims));
+    }
     let mut m = model();
     assert!(m.evaluate(&[1.0, 2.0], &mut StageEval::default()).is_err()); // not rows of 3
 }
