@@ -542,6 +542,8 @@ def test_innovation_and_its_covariance_have_their_shapes_before_the_first_update
     ekf = _linear_filter()
     assert ekf.y.shape == (2,) and np.all(np.isnan(ekf.y))
     assert ekf.S.shape == (2, 2) and np.all(np.isnan(ekf.S))
+    # no measurement yet: no likelihood either (0 would read as a perfect fit)
+    assert np.isnan(ekf.log_likelihood) and np.isnan(ekf.likelihood)
     saver = Saver(ekf, save_current=True)
     for k in range(3):
         ekf.predict(None, 0.1 * k)
@@ -551,3 +553,4 @@ def test_innovation_and_its_covariance_have_their_shapes_before_the_first_update
     assert saver.y.shape == (4, 2) and saver.S.shape == (4, 2, 2)
     assert np.all(np.isnan(saver.y[0])) and np.all(np.isfinite(saver.y[1:]))
     np.testing.assert_array_equal(saver.S[-1], ekf.S)
+    assert np.isnan(saver.log_likelihood[0]) and np.all(np.isfinite(saver.log_likelihood[1:]))

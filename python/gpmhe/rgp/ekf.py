@@ -165,7 +165,7 @@ class RGPEKF:
     S : ndarray of shape (p, p)
         Its covariance H̃ C⁻ H̃ᵀ + R_x; NaN before the first update, as ``y``.
     log_likelihood : float
-        log N(y; h(x⁻), S) of the last update.
+        log N(y; h(x⁻), S) of the last update; NaN before the first.
     likelihood : float
         exp(log_likelihood).
     f, h : callable
@@ -435,17 +435,18 @@ class RGPEKF:
     def log_likelihood(self) -> float:
         """Log-likelihood log N(y; h(x⁻), S) of the last measurement.
 
-        Computed by ``update``, as filterpy's ``log_likelihood``.
+        Computed by ``update``, as filterpy's ``log_likelihood``; NaN before the first update
+        (there is no measurement yet, and 0 would read as a perfect fit).
         """
-        return self._core.log_likelihood
+        return float("nan") if self._core.S.size == 0 else self._core.log_likelihood
 
     @property
     def likelihood(self) -> float:
         """Likelihood N(y; h(x⁻), S) of the last measurement.
 
-        exp(``log_likelihood``), as filterpy's ``likelihood``.
+        exp(``log_likelihood``), as filterpy's ``likelihood``; NaN before the first update.
         """
-        return float(np.exp(self._core.log_likelihood))
+        return float(np.exp(self.log_likelihood))
 
     def gp_weights(self, index: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Current mean and covariance of the basis-vector weights of one GP.
