@@ -195,6 +195,16 @@ def test_without_a_compiler_the_model_runs_as_callbacks_with_one_warning(cache, 
     np.testing.assert_array_equal(run(est, y), run(reference, y))
 
 
+def test_an_unwritable_cache_runs_the_model_as_callbacks_with_one_warning(tmp_path, monkeypatch):
+    blocker = tmp_path / "not-a-directory"
+    blocker.write_text("a file where the cache directory would go")
+    monkeypatch.setenv("GPMHE_CACHE_DIR", str(blocker))
+    with pytest.warns(SettingsWarning, match="cannot write the compiled model"):
+        est = GPMHE(reactor(), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)
+    assert not est.native
+    assert blocker.read_text() == "a file where the cache directory would go"
+
+
 def test_an_implicit_scheme_has_no_c_code_and_runs_as_callbacks():
     model = rm.known_model(method="implicit-midpoint", substeps=1)
     with pytest.warns(SettingsWarning, match="no C code|Code generation not supported"):
