@@ -557,8 +557,8 @@ class MovingHorizon:
 
 class EstimatorBank:
     """n independent `MovingHorizon` estimators with one template's settings (rust/src/mhe/bank.rs),
-    updated together: in parallel without the GIL on the learned model (its GPs shared), one
-    after another with the GIL on a callback model. See `gpmhe.EstimatorBank`."""
+    updated together: in parallel without the GIL on the learned model or a compiled CasADi model
+    (shared), one after another with the GIL on a callback model. See `gpmhe.EstimatorBank`."""
 
     def __init__(
         self, template: MovingHorizon, x0: _F, lower: _F, upper: _F, q0: _F, r0: _F
@@ -570,7 +570,7 @@ class EstimatorBank:
     def __len__(self) -> int: ...
     @property
     def parallel(self) -> bool:
-        """Whether updates run in parallel (the learned model)."""
+        """Whether updates run in parallel (the learned model or a compiled CasADi model)."""
         ...
     @staticmethod
     def threads() -> int:

@@ -102,9 +102,10 @@ class EstimatorBank:
     `LearnedModel` or a CasADi model compiled in the core (`KnownModel.from_casadi`,
     `KnownModel.from_ode` with ``native=True``, the default) the estimators are solved in
     parallel on all cores (rayon, without the GIL); with a `KnownModel` whose functions are
-    Python, they run one after another in that call (with the GIL). Each estimator gives, bit for bit, what a separate `GPMHE` with its settings
-    gives on its rows of data: the bank is a faster way to run many of them, e.g. for a Monte
-    Carlo study or one estimator per unit of a fleet.
+    Python, they run one after another in that call (with the GIL). Each estimator gives, bit
+    for bit, what a separate `GPMHE` with its settings gives on its rows of data: the bank is a
+    faster way to run many of them, e.g. for a Monte Carlo study or one estimator per unit of a
+    fleet.
 
     Parameters
     ----------
@@ -153,7 +154,7 @@ class EstimatorBank:
     t : int
         Number of updates since construction.
     threads : int
-        The number of threads an update runs on (1 for a `KnownModel`).
+        The number of threads an update runs on (1 for a model of Python functions).
     Q0, R0 : ndarray of shape (n, dim_x), (n, dim_y)
         The diagonals of each estimator's Q0 and R0; settable between updates (see Notes).
     eta : float

@@ -4,8 +4,9 @@
 //! estimator), built from one template with per-estimator x̂(0), state box and Q0, R0.
 //!
 //! [`EstimatorBank::par_update`] runs the n updates of one sample in parallel on rayon's thread
-//! pool (models that are `Send`, e.g. the learned GPs); [`EstimatorBank::update_each`] runs them
-//! one after another with a model the caller provides (a Python callback that needs the GIL).
+//! pool (models that are `Send`: the learned GPs, a compiled CasADi model);
+//! [`EstimatorBank::update_each`] runs them one after another with a model the caller provides
+//! (a Python callback that needs the GIL).
 //! Each estimator does exactly what a lone `MovingHorizon` would with the same data, so the
 //! results do not depend on the number of threads. A solver failure of one estimator is reported
 //! in its `UpdateReport` and does not stop the others; an error (bad model output, an interrupt)

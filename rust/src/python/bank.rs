@@ -1,9 +1,10 @@
 //! The estimator bank (`crate::mhe::EstimatorBank`) as `_core.EstimatorBank`: converts one
-//! sample's arrays, calls the core and maps errors. The learned model's bank updates its
-//! estimators in parallel without the GIL (the calling thread meanwhile runs Python's signal
-//! handlers: Ctrl-C stops the update with every estimator unchanged); a Python callback model
-//! (`gpmhe.KnownModel`) runs them one after another with the GIL. `gpmhe.EstimatorBank` (python/gpmhe/mhe/bank.py) validates
-//! the input and holds the public attributes.
+//! sample's arrays, calls the core and maps errors. A bank on the learned model or a compiled
+//! CasADi model updates its estimators in parallel without the GIL (the calling thread meanwhile
+//! runs Python's signal handlers: Ctrl-C stops the update with every estimator unchanged); a
+//! Python callback model (`gpmhe.KnownModel`) runs them one after another with the GIL.
+//! `gpmhe.EstimatorBank` (python/gpmhe/mhe/bank.py) validates the input and holds the public
+//! attributes.
 
 use numpy::{
     PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods,
@@ -20,8 +21,8 @@ use crate::mhe::{
     bank_threads, BankSample, EstimatorBank, GpStageModel, MemberSettings, MovingHorizon,
 };
 
-/// The estimators: on the learned GPs (each with its own model clone, the GPs shared), or on a
-/// Python callback model (one for all, kept in `model`).
+/// The estimators: on the learned GPs or a compiled CasADi model (each with its own model clone,
+/// the GPs or the library shared), or on a Python callback model (one for all, kept in `model`).
 enum Inner {
     Gp(EstimatorBank<GpStageModel>),
     Compiled(EstimatorBank<CompiledModel>),
