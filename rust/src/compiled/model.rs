@@ -7,6 +7,7 @@ use std::sync::Arc;
 use super::function::{Function, Work};
 use super::CompiledLibrary;
 use crate::error::{Error, Result};
+use crate::mhe::stage::find_point;
 use crate::mhe::{StageEval, StageModel};
 
 /// The largest magnitude a model value may have (gpmhe._validation.MAX_ABS): beyond it squares
@@ -27,6 +28,8 @@ pub struct CompiledModel {
     domain_error: Option<String>,
     last_d: Vec<f64>,
     last: StageEval,
+    /// The point [x; u] of `predict_state`.
+    point: Vec<f64>,
 }
 
 impl CompiledModel {
@@ -40,6 +43,7 @@ impl CompiledModel {
             domain_error: None,
             last_d: Vec::new(),
             last: StageEval::default(),
+            point: Vec::new(),
         }
     }
 
@@ -67,21 +71,11 @@ impl CompiledModel {
         Ok(())
     }
 
-    /// Index of a point of the last evaluation with the bits of `di` (trying `hint` first: a
-    /// slid window finds its point i at i + 1 of the last one).
+    /// Index of a point of the last evaluation with the bits of `di` (see
+    /// [`find_point`]: bits, so that −0 and 0, which a model may tell apart, are two points).
     fn find_last(&self, di: &[f64], hint: usize) -> Option<usize> {
-        let nd = di.len();
-        let same = |j: usize| {
-            self.last_d[j * nd..(j + 1) * nd]
-                .iter()
-                .zip(di)
-                .all(|(a, b)| a.to_bits() == b.to_bits())
-        };
-        let k_last = self.last_d.len() / nd;
-        if hint < k_last && same(hint) {
-            return Some(hint);
-        }
-        (0..k_last).find(|&j| same(j))
+        let bits = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+        find_point(&self.last_d, di, hint, bits)
     }
 
     fn check(&mut self, part: &str, values: &[f64]) -> Result<()> {
@@ -155,10 +149,10 @@ impl StageModel for CompiledModel {
                 format!("expected {n} states and {m} inputs"),
             ));
         }
-        let mut d = Vec::with_capacity(n + m);
-        d.extend_from_slice(x);
-        d.extend_from_slice(u);
-        Self::run(&self.lib.predict, &d, &mut [out], &mut self.work)?;
+        self.point.clear();
+        self.point.extend_from_slice(x);
+        self.point.extend_from_slice(u);
+        Self::run(&self.lib.predict, &self.point, &mut [out], &mut self.work)?;
         self.check("f", out)
     }
 }

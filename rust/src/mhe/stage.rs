@@ -105,6 +105,24 @@ impl StageEval {
     }
 }
 
+/// Index of the point of `points` (rows of `dj.len()` values) that is `same` as `dj`, trying
+/// `hint` first: a window that slid by one finds its point j at j + 1 of the last evaluation.
+/// The models' caches of their last evaluation look points up with it.
+pub(crate) fn find_point(
+    points: &[f64],
+    dj: &[f64],
+    hint: usize,
+    same: impl Fn(&[f64], &[f64]) -> bool,
+) -> Option<usize> {
+    let nd = dj.len();
+    let k = points.len() / nd;
+    let at = |i: usize| same(&points[i * nd..(i + 1) * nd], dj);
+    if hint < k && at(hint) {
+        return Some(hint);
+    }
+    (0..k).find(|&i| at(i))
+}
+
 /// A model x(t+1) = f(x, u) + w, y = h(x, u) + v with input-dependent variances (zero for a
 /// known model), evaluated for a batch of points at once.
 pub trait StageModel {
@@ -228,16 +246,9 @@ impl GpStageModel {
         Ok(())
     }
 
-    /// Index of a point of the last evaluation equal to `dj` (trying `hint` first: a shifted
-    /// window finds point j of the new window at j + 1 of the old).
+    /// Index of a point of the last evaluation equal to `dj` (see [`find_point`]).
     fn find_last(&self, dj: &[f64], hint: usize) -> Option<usize> {
-        let nd = dj.len();
-        let k_last = self.last_d.len() / nd;
-        let same = |i: usize| self.last_d[i * nd..(i + 1) * nd] == *dj;
-        if hint < k_last && same(hint) {
-            return Some(hint);
-        }
-        (0..k_last).find(|&i| same(i))
+        find_point(&self.last_d, dj, hint, |a, b| a == b)
     }
 
     /// GP values at the k points `d` into `out` (already sized for k points).
