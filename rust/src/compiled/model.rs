@@ -157,8 +157,8 @@ impl StageModel for CompiledModel {
     }
 }
 
+/// Stateless for an update's undo: its cache holds values that equal recomputation.
 impl crate::mhe::bank::ModelState for CompiledModel {
-    type State = ();
-    fn save_state(&self) {}
-    fn restore_state(&mut self, _: ()) {}
+    fn mark(&mut self) {}
+    fn rollback(&mut self) {}
 }

@@ -18,8 +18,7 @@ use std::time::Duration;
 
 use rayon::prelude::*;
 
-use super::estimator::{MovingHorizon, Step, UpdateReport};
-use super::history::HistoryState;
+use super::estimator::{MovingHorizon, Pending, Step, UpdateReport};
 use super::problem::WindowProblem;
 use super::stage::{GpStageModel, StageModel};
 use crate::error::{check_len, Error, Result};
@@ -28,52 +27,27 @@ use crate::error::{check_len, Error, Result};
 /// runs the installed check at most every `interrupt::INTERVAL`).
 const POLL: Duration = Duration::from_millis(10);
 
-/// The part of a model's state an update changes and an error must undo (what a checkpoint
-/// saves): nothing for a stateless model, the evaluation cache for [`GpStageModel`]. Cheaper
-/// than a clone of the whole model (whose work buffers need no undo).
+/// The part of a model's state an update changes and an error must undo: nothing for a
+/// stateless model, the evaluation cache for [`GpStageModel`] (which moves its marked cache
+/// aside rather than copying it).
 pub trait ModelState {
-    type State: Send;
-    fn save_state(&self) -> Self::State;
-    fn restore_state(&mut self, state: Self::State);
+    /// Remembers the state before an update.
+    fn mark(&mut self);
+    /// Returns to the state [`ModelState::mark`] remembered.
+    fn rollback(&mut self);
 }
 
 impl ModelState for () {
-    type State = ();
-    fn save_state(&self) {}
-    fn restore_state(&mut self, _: ()) {}
+    fn mark(&mut self) {}
+    fn rollback(&mut self) {}
 }
 
 impl ModelState for GpStageModel {
-    type State = [Vec<f64>; 9];
-    fn save_state(&self) -> Self::State {
-        self.cache()
+    fn mark(&mut self) {
+        GpStageModel::mark(self);
     }
-    fn restore_state(&mut self, state: Self::State) {
-        // The model's own cache always fits it; were it refused, the cache would keep the
-        // failed update's points, which only changes which values are reused.
-        let _ = self.set_cache(state);
-    }
-}
-
-/// What an update of one estimator changes: its history and its model's state.
-struct Saved<S> {
-    history: HistoryState,
-    model: S,
-}
-
-impl<M: ModelState> Member<M> {
-    fn save(&self) -> Saved<M::State> {
-        Saved {
-            history: self.estimator.history_state(),
-            model: self.model.save_state(),
-        }
-    }
-
-    fn restore(&mut self, saved: Saved<M::State>) {
-        // The history's own state is always valid; the estimator keeps no other state between
-        // updates (see `MovingHorizon::set_history_state`).
-        let _ = self.estimator.set_history_state(saved.history);
-        self.model.restore_state(saved.model);
+    fn rollback(&mut self) {
+        GpStageModel::rollback(self);
     }
 }
 
@@ -120,20 +94,24 @@ pub struct BankRow<'a> {
     pub u_last: Option<&'a [f64]>,
 }
 
+/// One estimator's solved update, recorded once every estimator has succeeded.
+pub type Solution = (Pending, UpdateReport);
+
 impl BankRow<'_> {
-    /// The update of `estimator` with this row.
-    pub fn update(
+    /// The update of `estimator` with this row, solved and not yet recorded
+    /// ([`MovingHorizon::solve_step`]).
+    pub fn solve(
         self,
         estimator: &mut MovingHorizon,
         model: &mut dyn StageModel,
-    ) -> Result<UpdateReport> {
+    ) -> Result<Solution> {
         let step = Step {
             u: Some(self.u),
             y: self.y,
             r: self.y.and(self.r),
             u_last: self.u_last,
         };
-        estimator.update_step(model, step)
+        estimator.solve_step(model, step)
     }
 }
 
@@ -243,28 +221,41 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         }
     }
 
-    /// Keeps the reports, or (after an error or an `interrupt`) restores every estimator from
-    /// `saved` and returns the interrupt or the first error.
+    /// Marks every model's state (to undo an error, [`ModelState`]).
+    fn mark_all(&mut self) {
+        self.members.iter_mut().for_each(|m| m.model.mark());
+    }
+
+    /// Records every estimator's solution when all succeeded and no `interrupt` came;
+    /// otherwise rolls every model back (the histories were not touched) and returns the
+    /// interrupt or the first error.
     fn finish(
         &mut self,
-        results: Vec<Result<UpdateReport>>,
-        saved: Vec<Saved<M::State>>,
+        results: Vec<Result<Solution>>,
         interrupt: Option<Error>,
     ) -> Result<Vec<UpdateReport>> {
         let results = results.into_iter().collect::<Result<Vec<_>>>();
         match (results, interrupt) {
-            (Ok(reports), None) => Ok(reports),
-            (Err(e), None) | (_, Some(e)) => {
-                for (member, s) in self.members.iter_mut().zip(saved) {
-                    member.restore(s);
-                }
-                Err(e)
+            (Ok(solutions), None) if solutions.len() == self.members.len() => {
+                let reports = self
+                    .members
+                    .iter_mut()
+                    .zip(solutions)
+                    .map(|(member, (pending, report))| {
+                        member.estimator.apply(pending);
+                        report
+                    })
+                    .collect();
+                Ok(reports)
+            }
+            (results, interrupt) => {
+                self.members.iter_mut().for_each(|m| m.model.rollback());
+                Err(match (results, interrupt) {
+                    (_, Some(e)) | (Err(e), None) => e,
+                    (Ok(_), None) => Error::numerical("the bank lost an estimator's update"),
+                })
             }
         }
-    }
-
-    fn save_all(&self) -> Vec<Saved<M::State>> {
-        self.members.iter().map(Member::save).collect()
     }
 
     /// One update of every estimator, one after another, with the model `with_model` gives
@@ -273,11 +264,11 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
     pub fn update_each(
         &mut self,
         sample: BankSample<'_>,
-        mut step: impl FnMut(&mut MovingHorizon, &mut M, BankRow<'_>) -> Result<UpdateReport>,
+        mut step: impl FnMut(&mut MovingHorizon, &mut M, BankRow<'_>) -> Result<Solution>,
     ) -> Result<Vec<UpdateReport>> {
         self.check_sample(&sample)?;
         let (_, m, p) = self.dims();
-        let saved = self.save_all();
+        self.mark_all();
         let mut results = Vec::with_capacity(self.len());
         for (i, member) in self.members.iter_mut().enumerate() {
             let r = step(
@@ -291,7 +282,7 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
                 break;
             }
         }
-        self.finish(results, saved, None)
+        self.finish(results, None)
     }
 }
 
@@ -304,11 +295,11 @@ impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
     pub fn par_update_with(
         &mut self,
         sample: BankSample<'_>,
-        step: impl Fn(&mut MovingHorizon, &mut M, BankRow<'_>) -> Result<UpdateReport> + Sync,
+        step: impl Fn(&mut MovingHorizon, &mut M, BankRow<'_>) -> Result<Solution> + Sync,
     ) -> Result<Vec<UpdateReport>> {
         self.check_sample(&sample)?;
         let (_, m, p) = self.dims();
-        let saved: Vec<_> = self.members.par_iter().map(Member::save).collect();
+        self.mark_all();
         let run = |(i, member): (usize, &mut Member<M>)| {
             step(
                 &mut member.estimator,
@@ -319,12 +310,12 @@ impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
         if self.len() == 1 || bank_threads() == 1 {
             // On this thread: the core's own interrupt checks run as for a lone estimator.
             let results = self.members.iter_mut().enumerate().map(run).collect();
-            return self.finish(results, saved, None);
+            return self.finish(results, None);
         }
         if rayon::current_thread_index().is_some() {
             // Called from inside the pool: no waiting thread to poll interrupts on.
             let results = self.members.par_iter_mut().enumerate().map(run).collect();
-            return self.finish(results, saved, None);
+            return self.finish(results, None);
         }
         // The pool does the work while this thread polls its interrupt check (the binding's runs
         // Python's signal handlers): on an interrupt no further estimator starts, those running
@@ -335,7 +326,7 @@ impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
             let (tx, rx) = mpsc::channel();
             let (stop, run) = (&stop, &run);
             scope.spawn(move |_| {
-                let results: Vec<Result<UpdateReport>> = members
+                let results: Vec<Result<Solution>> = members
                     .par_iter_mut()
                     .enumerate()
                     .map(|item| match stop.load(Ordering::Relaxed) {
@@ -362,7 +353,7 @@ impl<M: Clone + ModelState + Send + Sync> EstimatorBank<M> {
                 }
             }
         });
-        self.finish(results, saved, interrupt)
+        self.finish(results, interrupt)
     }
 }
 
@@ -370,7 +361,7 @@ impl<M: super::stage::StageModel + Clone + ModelState + Send + Sync> EstimatorBa
     /// One update of every estimator in parallel with its own model (see
     /// [`Self::par_update_with`]).
     pub fn par_update(&mut self, sample: BankSample<'_>) -> Result<Vec<UpdateReport>> {
-        self.par_update_with(sample, |est, model, row| row.update(est, model))
+        self.par_update_with(sample, |est, model, row| row.solve(est, model))
     }
 }
 
@@ -396,9 +387,8 @@ mod tests {
     }
 
     impl ModelState for Scalar {
-        type State = ();
-        fn save_state(&self) {}
-        fn restore_state(&mut self, _: ()) {}
+        fn mark(&mut self) {}
+        fn rollback(&mut self) {}
     }
 
     impl StageModel for Scalar {
@@ -479,7 +469,7 @@ mod tests {
             let reports = if t % 2 == 0 {
                 bank.par_update(sample).unwrap()
             } else {
-                bank.update_each(sample, |e, m, row| row.update(e, m))
+                bank.update_each(sample, |e, m, row| row.solve(e, m))
                     .unwrap()
             };
             for (i, l) in lone.iter_mut().enumerate() {
@@ -526,7 +516,7 @@ mod tests {
             u_last: None,
         };
         assert!(bank.par_update(bad).is_err());
-        assert!(bank.update_each(bad, |e, m, row| row.update(e, m)).is_err());
+        assert!(bank.update_each(bad, |e, m, row| row.solve(e, m)).is_err());
         let after: Vec<_> = bank
             .members()
             .iter()

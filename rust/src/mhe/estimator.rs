@@ -7,13 +7,15 @@
 //! The same steps are available one by one for other solvers (SciPy's, from Python):
 //! [`MovingHorizon::prepare`] stages the next window and returns its warm start,
 //! [`MovingHorizon::evaluate`] evaluates the staged window at any z, and
-//! [`MovingHorizon::commit`] records a solution.
+//! [`MovingHorizon::commit`] records a solution. [`MovingHorizon::solve_step`] solves an update
+//! without recording it, [`MovingHorizon::apply`] records it (a bank records only once all its
+//! estimators have succeeded).
 
 use super::arrival::{ekf_mean_step, ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
 use super::innovation::{innovation, Innovation};
 use super::lsq::WindowLsq;
-use super::outcome::{last_block, Solved};
+use super::outcome::{last_block, Outcome, Solved};
 use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
 use super::weights::Covariance;
@@ -37,6 +39,19 @@ pub struct UpdateReport {
     pub solve: std::result::Result<SolveReport, Error>,
     /// The cost J at `x_window`.
     pub cost: f64,
+}
+
+/// A solved update not yet recorded ([`MovingHorizon::solve_step`]); recording it
+/// ([`MovingHorizon::apply`]) cannot fail.
+#[derive(Debug, Clone)]
+pub struct Pending {
+    data: WindowData,
+    x_window: Vec<f64>,
+    next_prior: Vec<f64>,
+    outcome: Outcome,
+    /// The next window's arrival mean (smoothed or filtered) and weight, when it slides.
+    next_arrival_mean: Option<Vec<f64>>,
+    next_arrival_sqrt: Option<Vec<f64>>,
 }
 
 /// The data of one update.
@@ -335,18 +350,32 @@ impl MovingHorizon {
         model: &mut dyn StageModel,
         step: Step<'_>,
     ) -> Result<UpdateReport> {
-        let report = self.update_staged(model, step);
-        if report.is_err() {
-            self.staged = None;
-        }
-        report
+        let (pending, report) = self.solve_step(model, step)?;
+        self.apply(pending);
+        Ok(report)
     }
 
-    fn update_staged(
+    /// Solves the window of `step` as [`MovingHorizon::update_step`] does, without recording
+    /// it: the history is unchanged until [`MovingHorizon::apply`] records the result (so a
+    /// bank can record its estimators' updates only once every one has succeeded). On error
+    /// nothing stays staged.
+    pub fn solve_step(
         &mut self,
         model: &mut dyn StageModel,
         step: Step<'_>,
-    ) -> Result<UpdateReport> {
+    ) -> Result<(Pending, UpdateReport)> {
+        let solved = self.solve_staged(model, step);
+        if solved.is_err() {
+            self.staged = None;
+        }
+        solved
+    }
+
+    fn solve_staged(
+        &mut self,
+        model: &mut dyn StageModel,
+        step: Step<'_>,
+    ) -> Result<(Pending, UpdateReport)> {
         let z0 = self.prepare_step(model, step)?;
         let mut z = z0.clone();
         self.evaluated_at.clear();
@@ -376,14 +405,15 @@ impl MovingHorizon {
         let n = self.problem.dim_x();
         let covariance = blocks.as_deref().map(|b| last_block(b, n * n));
         let solved = Solved::Rust(solve.clone());
-        let (x_window, x_prior) = self.commit(model, z, blocks, cost, &solved)?;
-        Ok(UpdateReport {
-            x_window,
-            x_prior,
+        let pending = self.finish(model, z, blocks, cost, &solved)?;
+        let report = UpdateReport {
+            x_window: pending.x_window.clone(),
+            x_prior: pending.data.x_prior.clone(),
             covariance,
             solve,
             cost,
-        })
+        };
+        Ok((pending, report))
     }
 
     /// Stages the window of the next update with (u(t), y(t)) and returns its warm start z0:
@@ -595,6 +625,23 @@ impl MovingHorizon {
         cost: f64,
         solved: &Solved,
     ) -> Result<(Vec<f64>, Vec<f64>)> {
+        let pending = self.finish(model, z, window_covariance, cost, solved)?;
+        let out = (pending.x_window.clone(), pending.data.x_prior.clone());
+        self.apply(pending);
+        Ok(out)
+    }
+
+    /// Everything [`MovingHorizon::commit`] computes (its fallible part, the model's
+    /// evaluations), as a [`Pending`] record; the history is unchanged and the staged window
+    /// is taken.
+    fn finish(
+        &mut self,
+        model: &mut dyn StageModel,
+        z: Vec<f64>,
+        window_covariance: Option<Vec<f64>>,
+        cost: f64,
+        solved: &Solved,
+    ) -> Result<Pending> {
         let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         let data = self
             .staged
@@ -649,29 +696,49 @@ impl MovingHorizon {
             .staged
             .take()
             .ok_or_else(|| Error::numerical("lost the window"))?;
-        let (x_prior, s0, nodes) = (data.x_prior.clone(), data.s0, data.nodes);
         let (before, _) = self.history.x_window();
         let x_before = before[before.len() - n..].to_vec();
         let outcome = self.history.outcome().record(
-            x_prior.clone(),
+            data.x_prior.clone(),
             window_covariance,
-            nodes,
+            data.nodes,
             x_before,
             cost,
             solved,
             data.input_pending,
         );
-        self.history.push(data, z.clone(), next_prior, outcome);
-        if slides && self.arrival.mean == ArrivalMean::Smoothed && z.len() >= 2 * n {
-            self.history.set_prior(s0 + 1, &z[n..2 * n]);
-        }
-        if let Some(prior) = mean {
+        let smoothed = (slides && self.arrival.mean == ArrivalMean::Smoothed && z.len() >= 2 * n)
+            .then(|| z[n..2 * n].to_vec());
+        Ok(Pending {
+            data,
+            x_window: z,
+            next_prior,
+            outcome,
+            next_arrival_mean: mean.or(smoothed),
+            next_arrival_sqrt: weight,
+        })
+    }
+
+    /// Records a solved update ([`MovingHorizon::solve_step`]): the window's data and
+    /// solution, the next arrival prior, the outcome, and the next window's arrival mean and
+    /// weight when the window slides. Cannot fail.
+    pub fn apply(&mut self, pending: Pending) {
+        let Pending {
+            data,
+            x_window,
+            next_prior,
+            outcome,
+            next_arrival_mean,
+            next_arrival_sqrt,
+        } = pending;
+        let s0 = data.s0;
+        self.history.push(data, x_window, next_prior, outcome);
+        if let Some(prior) = next_arrival_mean {
             self.history.set_prior(s0 + 1, &prior);
         }
-        if let Some(next) = weight {
+        if let Some(next) = next_arrival_sqrt {
             self.history.set_arrival_sqrt(next);
         }
-        Ok((z, x_prior))
     }
 
     /// The innovation of the newest sample (`innovation.rs`).

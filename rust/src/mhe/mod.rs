@@ -25,9 +25,9 @@ pub mod weights;
 
 pub use arrival::{Arrival, ArrivalMean, ArrivalWeight};
 pub use bank::{
-    bank_threads, BankRow, BankSample, EstimatorBank, Member, MemberSettings, ModelState,
+    bank_threads, BankRow, BankSample, EstimatorBank, Member, MemberSettings, ModelState, Solution,
 };
-pub use estimator::{MovingHorizon, Step, UpdateReport};
+pub use estimator::{MovingHorizon, Pending, Step, UpdateReport};
 pub use history::{History, HistoryState, Sample, WindowData};
 pub use innovation::Innovation;
 pub use loss::Loss;

@@ -167,6 +167,8 @@ pub struct GpStageModel {
     /// Points (k × nd) and values of the last evaluation.
     last_d: Vec<f64>,
     last: StageEval,
+    /// The cache as it was at [`GpStageModel::mark`], kept for [`GpStageModel::rollback`].
+    undo: Undo,
     /// Scratch: the points not found in `last`, their values, and where each point comes from
     /// (`Ok(i)`: point i of `last`; `Err(i)`: point i of `fresh`).
     miss_d: Vec<f64>,
@@ -216,6 +218,7 @@ impl GpStageModel {
             ws: ModelWorkspace::default(),
             last_d: Vec::new(),
             last: StageEval::default(),
+            undo: Undo::Off,
             miss_d: Vec::new(),
             fresh: StageEval::default(),
             source: Vec::new(),
@@ -226,6 +229,22 @@ impl GpStageModel {
     pub fn clear_cache(&mut self) {
         self.last_d.clear();
         self.last = StageEval::default();
+        self.undo = Undo::Off;
+    }
+
+    /// Remembers the cache as it is now, for [`GpStageModel::rollback`]: the first evaluation
+    /// after the mark moves it aside instead of overwriting it (no copy is made).
+    pub fn mark(&mut self) {
+        self.undo = Undo::Marked;
+    }
+
+    /// Puts back the cache [`GpStageModel::mark`] remembered (an update that failed must not
+    /// change which values later updates reuse: see [`GpStageModel::cache`]).
+    pub fn rollback(&mut self) {
+        if let Undo::Saved(d, eval) = std::mem::replace(&mut self.undo, Undo::Off) {
+            self.last_d = d;
+            self.last = *eval;
+        }
     }
 
     /// The one-step prediction m_x(x, u) (the f-GPs' means, plus x with `f_residual`) into
@@ -294,6 +313,15 @@ impl GpStageModel {
     }
 }
 
+/// What [`GpStageModel::rollback`] puts back: nothing (`Off`), the cache as it is (`Marked`,
+/// no evaluation since the mark) or the cache at the mark, moved aside by an evaluation.
+#[derive(Debug, Clone)]
+enum Undo {
+    Off,
+    Marked,
+    Saved(Vec<f64>, Box<StageEval>),
+}
+
 /// Names of the cache's parts, in the order of [`GpStageModel::cache`].
 pub const GP_CACHE_PARTS: [&str; 9] = [
     "d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y", "dvar_y",
@@ -331,6 +359,7 @@ impl GpStageModel {
             crate::error::check_finite(name, part)?;
         }
         let [d, mean_x, var_x, dmean_x, dvar_x, mean_y, var_y, dmean_y, dvar_y] = parts;
+        self.undo = Undo::Off;
         self.last_d = d;
         self.last = StageEval {
             mean_x,
@@ -413,9 +442,55 @@ impl StageModel for GpStageModel {
                 }
             }
         }
+        if matches!(self.undo, Undo::Marked) {
+            // The marked cache is moved aside, not copied (it is replaced just below).
+            let (d, eval) = (
+                std::mem::take(&mut self.last_d),
+                std::mem::take(&mut self.last),
+            );
+            self.undo = Undo::Saved(d, Box::new(eval));
+        }
         self.last_d.clear();
         self.last_d.extend_from_slice(d);
         self.last.clone_from(out);
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gp::tests::{data, theta};
+    use crate::gp::{Gp, MultiGp};
+
+    /// A model with one state, no input, no output: f is one GP on 20 points.
+    fn model() -> GpStageModel {
+        let (x, y) = data(20, 1, 7);
+        let gp = MultiGp::from_gps(vec![Gp::new(&x, &y, &theta(1)).unwrap()]).unwrap();
+        GpStageModel::new(gp, None, 0, false).unwrap()
+    }
+
+    #[test]
+    fn rollback_restores_the_cache_of_the_mark_without_copying_it_first() {
+        let mut m = model();
+        let mut out = StageEval::default();
+        m.evaluate(&[0.1, 0.2, 0.3], &mut out).unwrap();
+        let before = m.cache();
+        // No evaluation since the mark: nothing to put back.
+        m.mark();
+        m.rollback();
+        assert_eq!(m.cache(), before);
+        // Two evaluations after the mark: the first moved the marked cache aside.
+        m.mark();
+        m.evaluate(&[0.2, 0.3, 0.4], &mut out).unwrap();
+        m.evaluate(&[-1.0, 1.0], &mut out).unwrap();
+        assert_ne!(m.cache(), before);
+        m.rollback();
+        assert_eq!(m.cache(), before);
+        // A rollback without a mark changes nothing.
+        m.evaluate(&[0.5], &mut out).unwrap();
+        let after = m.cache();
+        m.rollback();
+        assert_eq!(m.cache(), after);
     }
 }

@@ -250,7 +250,7 @@ impl PyEstimatorBank {
                             dims: *dims,
                             err: None,
                         };
-                        let r = row.update(est, &mut cb);
+                        let r = row.solve(est, &mut cb);
                         if r.is_err() {
                             raised_by_model = cb.err.take();
                         }

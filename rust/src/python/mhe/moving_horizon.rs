@@ -43,11 +43,10 @@ impl PyMovingHorizon {
             Model::Gp(model) => {
                 // An error (an interrupt among them) leaves the evaluation cache as it was: the
                 // cache decides which values later updates reuse, bit for bit.
-                let saved = model.cache();
+                model.mark();
                 let r = detach_interruptible(py, || f(core, &mut **model));
                 if r.is_err() {
-                    // The model's own cache always fits it.
-                    let _ = model.set_cache(saved);
+                    model.rollback();
                 }
                 r
             }
