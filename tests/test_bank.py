@@ -188,15 +188,16 @@ def test_a_weight_set_between_updates_acts_as_on_separate_estimators(model, form
         bank.update(U_DATA[t], Y_DATA[t])
         _step_separate(mhes, U_DATA[t], Y_DATA[t])
     _assert_same(bank, mhes)
-    if name in ("Q0", "R0"):  # the bank's are the diagonals
-        assert_array_equal(getattr(bank, name), [np.diag(getattr(m, name)) for m in mhes])
+    if name in ("Q0", "R0"):  # one matrix per estimator
+        assert_array_equal(getattr(bank, name), [getattr(m, name) for m in mhes])
     else:
         assert_array_equal(getattr(bank, name), value)
     assert_array_equal(getattr(bank[2], name), getattr(mhes[2], name))
 
 
 @pytest.mark.parametrize("name, value", [("Q0", -1.0), ("Q0", np.ones((3, 2))),
-                                         ("Q0", [[1.0, 0.5], [0.5, 1.0]]), ("R0", np.nan),
+                                         ("Q0", [[1.0, 2.0], [2.0, 1.0]]), ("R0", np.nan),
+                                         ("P0", [[1.0, 0.0], [1.0, 1.0]]),
                                          ("eta", 1.5), ("P2", -np.eye(2)), ("P2", "1")])
 def test_a_refused_weight_raises_naming_it_and_changes_nothing(name, value):
     bank, twin = _bank(KNOWN, "prediction"), _bank(KNOWN, "prediction")
@@ -206,7 +207,7 @@ def test_a_refused_weight_raises_naming_it_and_changes_nothing(name, value):
     with pytest.raises(ValueError, match=f"^{name}"):
         setattr(bank, name, value)
     assert bank._core is core
-    for w in ("Q0", "R0", "eta", "P2"):
+    for w in ("Q0", "R0", "eta", "P2", "P0"):
         assert_array_equal(getattr(bank, w), getattr(twin, w))
     for b in (bank, twin):
         b.update(U_DATA[1], Y_DATA[1])
@@ -214,15 +215,17 @@ def test_a_refused_weight_raises_naming_it_and_changes_nothing(name, value):
 
 
 @pytest.mark.parametrize("name, message", [
-    ("horizon", "EstimatorBank.horizon is read-only; the settable attributes are P2, Q0, R0, "
-                "eta (the other settings are fixed at construction: build a new EstimatorBank"),
+    ("horizon", "EstimatorBank.horizon is read-only; the settable attributes are P0, P2, Q0, "
+                "R0, eta (the other settings are fixed at construction: build a new "
+                "EstimatorBank"),
     ("x0", "EstimatorBank.x0 is read-only"),
     ("x_bounds", "EstimatorBank.x_bounds is read-only"),
     ("form", "EstimatorBank.form is read-only"),
     ("x", "EstimatorBank.x is read-only; .* the estimates change only through update"),
     ("R", "no settable attribute 'R': did you mean R0"),
-    ("P0", "no settable attribute 'P0': did you mean P2, the arrival weight P0⁻¹"),
-    ("horizn", "EstimatorBank has no attribute 'horizn'; the settable ones are P2, Q0, R0, eta"),
+    ("P", "no settable attribute 'P': did you mean P0 (the arrival covariance)"),
+    ("horizn", "EstimatorBank has no attribute 'horizn'; the settable ones are P0, P2, Q0, R0, "
+               "eta"),
 ])
 def test_other_attributes_cannot_be_set(name, message):
     bank = _bank(KNOWN, "prediction")
@@ -235,10 +238,9 @@ def test_other_attributes_cannot_be_set(name, message):
 
 
 @pytest.mark.parametrize("key, message", [
-    ("P0", "P0: a setting of GPMHE that EstimatorBank does not take; .*give P2 = P0⁻¹"),
-    ("p0", "p0: a setting of GPMHE that EstimatorBank does not take; the bank runs models "
-           "without parameters only"),
     ("x_bound", "x_bound: not a setting of EstimatorBank"),
+    ("R", "R: not a setting of EstimatorBank .*R0"),
+    ("p0", "p0: the model has no parameters"),
 ])
 def test_a_keyword_the_bank_does_not_take_is_named_with_what_to_give(key, message):
     with pytest.raises(ValueError, match=message):
@@ -307,8 +309,8 @@ def test_copies_and_pickles_continue_identically(model):
 
 
 def test_pickles_keep_per_estimator_weights_when_n_equals_dim_x():
-    q0 = np.array([[1e-2, 2e-2], [3e-2, 4e-2]])  # (n, dim_x) with n = dim_x = 2: one each
-    bank = EstimatorBank(KNOWN, 2, X0[:2], horizon=3, Q0=q0[:, :, None] * np.eye(2))
+    q0 = np.array([[1e-2, 2e-2], [3e-2, 4e-2]])[:, :, None] * np.eye(2)  # n = dim_x = 2: one each
+    bank = EstimatorBank(KNOWN, 2, X0[:2], horizon=3, Q0=q0)
     assert_array_equal(bank.Q0, q0)
     bank.update(U_DATA[0][:2], Y_DATA[0][:2])
     restored = pickle.loads(pickle.dumps(bank))
@@ -349,3 +351,93 @@ def test_a_signal_stops_a_parallel_update_promptly_with_every_estimator_unchange
         after = bank._core.member_state(i)
         for key in state:
             assert_array_equal(after[key], state[key], err_msg=f"{i}: {key}")
+
+
+# ---- every GPMHE setting: full weights, P0, per-sample full R, parameters --------------------
+Q0_FULL = np.array([[[1e-2, 4e-3], [4e-3, 2e-2]], [[2e-2, 0.0], [0.0, 1e-2]],
+                    [[1e-2, -2e-3], [-2e-3, 5e-3]], [[5e-3, 1e-3], [1e-3, 5e-3]]])
+R0_FULL = np.array([[[1e-1, 3e-2], [3e-2, 1e-1]], [[5e-2, 0.0], [0.0, 1e-1]],
+                    [[1e-1, -2e-2], [-2e-2, 2e-1]], [[1e-1, 1e-2], [1e-2, 1e-1]]])
+R_SAMPLE = np.array([[[2e-1, 5e-2], [5e-2, 1e-1]], [[1e-1, 0.0], [0.0, 1e-1]],
+                     [[3e-1, 0.0], [0.0, 1e-2]], [[1e-1, -3e-2], [-3e-2, 1e-1]]])
+P0 = np.array([[0.5, 0.1], [0.1, 0.3]])
+
+
+@pytest.mark.parametrize("model", [LEARNED, KNOWN], ids=["learned", "known"])
+def test_full_weights_p0_and_per_sample_covariances_match_separate_estimators(model):
+    settings = dict(horizon=4, P0=P0, form="filtering")
+    bank = EstimatorBank(model, K, X0, Q0=Q0_FULL, R0=R0_FULL, x_bounds=(LB, UB), **settings)
+    mhes = [GPMHE(model, x0=X0[i], Q0=Q0_FULL[i], R0=R0_FULL[i], x_bounds=(LB[i], UB[i]),
+                  **settings) for i in range(K)]
+    assert_array_equal(bank.Q0, Q0_FULL)
+    assert_array_equal(bank.P0, mhes[0].P0)
+    for t in range(T):
+        R = R_SAMPLE if t % 3 == 1 else None  # a full covariance per estimator for this sample
+        if t == 10:  # a new arrival covariance and one full Q0 for all, set between updates
+            for est in [bank] + mhes:
+                est.P0 = 2 * P0
+                est.Q0 = Q0_FULL[0]
+        bank.update(U_DATA[t], Y_DATA[t], R=R)
+        for i, m in enumerate(mhes):
+            y = None if np.isnan(Y_DATA[t, i]).any() else Y_DATA[t, i]
+            m.update(U_DATA[t, i], y, R=None if R is None or y is None else R[i])
+        _assert_same(bank, mhes)
+    assert_array_equal(bank.P2, mhes[0].P2)
+    assert_array_equal(bank.Q0, np.array([m.Q0 for m in mhes]))
+    twin, item = pickle.loads(pickle.dumps(bank)), bank[2]  # the settings travel with them
+    for b in (bank, twin):
+        b.update(U_DATA[0], Y_DATA[0], R=R_SAMPLE)
+    item.update(U_DATA[0, 2], Y_DATA[0, 2], R=R_SAMPLE[2])
+    assert_array_equal(twin.x, bank.x)
+    assert_array_equal(item.x, bank.x[2])
+
+
+def test_a_full_weight_that_is_not_positive_definite_is_refused_naming_the_estimator():
+    bad = Q0_FULL.copy()
+    bad[2] = [[1.0, 2.0], [2.0, 1.0]]
+    with pytest.raises(ValueError, match=r"^Q0\[2\]: must be .*positive definite"):
+        EstimatorBank(KNOWN, K, X0, Q0=bad)
+    bank = _bank(KNOWN, "prediction")
+    with pytest.raises(ValueError, match=r"^R\[2\]"):
+        bank.update(U_DATA[0], Y_DATA[0], R=bad)
+    assert bank.t == 0
+
+
+def _with_parameter(x, u, p):
+    """f3 with its damping 0.95 as the parameter p."""
+    return np.array([0.9 * x[0] + 0.1 * x[1] + 0.1 * u[0],
+                     -0.1 * np.sin(x[0]) + p[0] * x[1] + 0.05 * u[0]])
+
+
+def _h_with_parameter(x, u, p):
+    return h3(x, u)
+
+
+PARAMETRISED = KnownModel(_with_parameter, _h_with_parameter, dim_x=2, dim_y=2, dim_u=1, dim_p=1)
+P_SETTINGS = dict(p0=[0.8], P_p0=0.05, p_bounds=([0.5], [1.0]), p_drift=1e-3)
+
+
+def test_a_bank_estimates_each_estimators_own_parameters_as_separate_estimators_do():
+    bank = _bank(PARAMETRISED, "filtering", **P_SETTINGS)
+    mhes = _separate(PARAMETRISED, "filtering", **P_SETTINGS)
+    assert bank.dim_p == 1 and bank.p.shape == (K, 1) and bank.P_p.shape == (K, 1, 1)
+    assert_array_equal(bank.p0, [0.8])
+    for t in range(T):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+        _assert_same(bank, mhes)
+        assert_array_equal(bank.p, np.array([m.p for m in mhes]))
+        assert_array_equal(bank.P_p, np.array([m.P_p for m in mhes]))
+    assert len(np.unique(bank.p)) == K  # each its own estimate
+    item = bank[1]
+    assert_array_equal(item.p, mhes[1].p)
+    restored = pickle.loads(pickle.dumps(bank))
+    for b in (bank, restored, item):
+        one = b is item
+        b.update(U_DATA[0, 1] if one else U_DATA[0], Y_DATA[0, 1] if one else Y_DATA[0])
+    assert_array_equal(restored.p, bank.p)
+    assert_array_equal(item.p, bank.p[1])
+    with pytest.raises(ValueError, match="^p0"):  # one prior for all: p̃'s scale comes from it
+        _bank(PARAMETRISED, "filtering", **dict(P_SETTINGS, p0=np.full((K, 1), 0.8)))
+    with pytest.raises(ValueError, match="^p0: required"):
+        _bank(PARAMETRISED, "filtering")

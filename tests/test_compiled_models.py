@@ -114,6 +114,34 @@ def test_a_compiled_bank_runs_in_parallel_and_equals_separate_estimators():
         np.testing.assert_array_equal(bank.P, np.array([e.P for e in singles]))
 
 
+def test_a_fleet_of_rotating_masses_each_estimating_its_own_inertia_runs_as_one_bank():
+    rng = np.random.default_rng(2)
+    k, steps = 4, 12
+    U = rm.random_inputs(steps, rng)
+    Y = np.empty((steps, k, 3))
+    for i, theta1 in enumerate([1.5e-4, 2.25e-4, 3e-4, 4e-4]):  # four plants, four inertias
+        truth = rm.known_model(backend="numpy", theta1=theta1)
+        x = rm.X0.copy()
+        for t in range(steps):
+            Y[t, i] = x[:3] + 0.01 * rng.normal(size=3)
+            x = truth.predict(x, U[t])
+    model = rm.known_model(None, substeps=2)
+    settings = dict(form="filtering", **rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
+    bank = EstimatorBank(model, k, rm.initial_estimate(1), **settings)
+    assert bank._core.parallel and bank.dim_p == 1
+    singles = [GPMHE(rm.known_model(None, substeps=2, native=False), rm.initial_estimate(1),
+                     **settings) for _ in range(k)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # early windows stop at max-iterations
+        for t in range(steps):
+            bank.update(np.tile(U[t], (k, 1)), Y[t])
+            for i, est in enumerate(singles):
+                est.update(U[t], Y[t, i])
+            np.testing.assert_array_equal(bank.x, np.array([e.x for e in singles]))
+            np.testing.assert_array_equal(bank.p, np.array([e.p for e in singles]))
+            np.testing.assert_array_equal(bank.P_p, np.array([e.P_p for e in singles]))
+
+
 # ---- the cache --------------------------------------------------------------------------------
 def replace(path, data):
     """`path` replaced by a new file holding `data`."""

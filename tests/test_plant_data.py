@@ -221,7 +221,7 @@ def test_batch_filter_and_banks_take_each_samples_covariance():
     np.testing.assert_array_equal(batch, xs)
     with pytest.raises(ValueError, match=r"Rs\[3\]"):
         GPMHE(LINEAR, [0.0, 0.0], **kw).batch_filter(ys[:5], us[:5], Rs=[None, None, None, -1.0, None])
-    # A bank: estimator 0 with R0, estimator 1 with the samples' R (diagonal, per estimator).
+    # A bank: estimator 0 with R0, estimator 1 with the samples' R (one each).
     bank = EstimatorBank(LINEAR, 2, [0.0, 0.0], **kw)
     plain = GPMHE(LINEAR, [0.0, 0.0], **kw)
     for u, y, R in zip(us, ys, Rs):
@@ -230,8 +230,9 @@ def test_batch_filter_and_banks_take_each_samples_covariance():
         plain.update(u, y)
     np.testing.assert_array_equal(bank.x[0], plain.x)
     np.testing.assert_array_equal(bank.x[1], xs[-1])
-    with pytest.raises(ValueError, match="R"):
-        bank.update(np.tile(us[0], (2, 1)), np.tile(ys[0], (2, 1)), R=[[1.0, 0.5], [0.5, 1.0]])
+    with pytest.raises(ValueError, match="^R: must be .*positive definite"):
+        bank.update(np.tile(us[0], (2, 1)), np.tile(ys[0], (2, 1)), R=[[1.0, 2.0], [2.0, 1.0]])
+    assert bank.t == len(ys)
 
 
 def test_a_checkpoint_keeps_samples_with_a_channel_not_measured(tmp_path):

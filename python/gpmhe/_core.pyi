@@ -563,9 +563,9 @@ class EstimatorBank:
     def __init__(
         self, template: MovingHorizon, x0: _F, lower: _F, upper: _F, q0: _F, r0: _F
     ) -> None:
-        """Row i of `x0`, `lower`, `upper` (k, n), `q0` (k, n), `r0` (k, p): estimator i's
-        x̂(0), box and diagonals of Q0, R0; the rest (model, η, P2, form, horizon, solver
-        settings) from `template`."""
+        """Row i of `x0`, `lower`, `upper` (k, n), `q0` (k, n or n²), `r0` (k, p or p²):
+        estimator i's x̂(0), box and Q0, R0 (diagonals or row-major matrices); the rest (model,
+        η, P2, form, horizon, solver settings) from `template`."""
         ...
     def __len__(self) -> int: ...
     @property
@@ -585,9 +585,10 @@ class EstimatorBank:
         u_last: _F | None = None,
     ) -> None:
         """One update of every estimator (rows of `u` (k, m), `y` (k, p); `present[i]` False:
-        estimator i's y is missing; row i of `r`: the diagonal of its y's covariance, None for
-        R0; row i of `u_last`: its last input row as this sample completes it), recorded with
-        what each reports (the properties below) in one step; on error no estimator changes."""
+        estimator i's y is missing; row i of `r` (k, p or p²): its y's covariance, the diagonal
+        or the row-major matrix, None for R0; row i of `u_last`: its last input row as this
+        sample completes it), recorded with what each reports (the properties below) once every
+        estimator has succeeded; on error no estimator changes."""
         ...
     @property
     def last_inputs(self) -> _F:

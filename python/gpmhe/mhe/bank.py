@@ -19,32 +19,42 @@ from gpmhe._filterpy import (BANK_NAMES, REQUIRED, missing_attribute, one_argume
                              refused_setting, renamed, required, window_attribute)
 from gpmhe._threads import exclusive
 from gpmhe._validation import (MAX_ABS, MagnitudeError, SettingsWarning, box, float_array, integer,
-                               output_sample, positive_diagonal, real_array, within_limits)
+                               output_sample, real_array, within_limits)
 from gpmhe.mhe.estimator import GPMHE, NO_NOISE_INFORMATION, check_interval
-from gpmhe.mhe.settings import sample_covariance
+from gpmhe.mhe.settings import covariance, sample_covariance
 
 __all__ = ["EstimatorBank"]
 
-#: The keyword settings of GPMHE the bank takes (x0 is its own argument).
-_SETTINGS = ("horizon", "eta", "P2", "Q0", "R0", "x_bounds", "form", "solver", "solver_options",
-             "arrival_mean", "arrival_weight", "loss", "loss_scale")
+#: The keyword settings of GPMHE the bank takes (x0 is its own argument): all of them.
+_SETTINGS = ("horizon", "eta", "P2", "P0", "Q0", "R0", "x_bounds", "form", "solver",
+             "solver_options", "arrival_mean", "arrival_weight", "loss", "loss_scale", "p0",
+             "P_p0", "p_bounds", "p_drift")
+
+#: The parameter settings (a model with parameters), the same for every estimator.
+_PARAMETERS = ("p0", "P_p0", "p_bounds", "p_drift")
 
 #: The most estimators in one bank (a guard against a mistyped n, not a limit of the method).
 _MAX_ESTIMATORS = 10_000_000
 
 
 def _per_estimator(name, value, k, d):
-    """The diagonals (k, d) of Q0 or R0 given once for all estimators (as GPMHE takes it: a
-    scalar, the diagonal (d,) or a diagonal matrix (d, d)) or once per estimator ((k,) scalars
-    when k != d, (k, d) diagonals when k != d, or (k, d, d) diagonal matrices)."""
+    """Q0, R0 or a sample's R as (k, d, d) matrices: given once for all estimators (as GPMHE takes
+    it: a scalar, the diagonal (d,) or the matrix (d, d)) or once per estimator ((k,) scalars when
+    k != d, (k, d) diagonals when k != d, or (k, d, d) matrices); each symmetric positive
+    definite."""
     a = float_array(name, 1.0 if value is None else value)
     if a.ndim == 0 or a.shape == (d,) or a.shape == (d, d):
-        return np.tile(positive_diagonal(name, a, d, allow_full=False), (k, 1))
+        return np.tile(covariance(name, a, d), (k, 1, 1))
     if a.shape in ((k,), (k, d), (k, d, d)):
-        return np.array([positive_diagonal(f"{name}[{i}]", a[i], d, allow_full=False)
-                         for i in range(k)]).reshape(k, d)
+        return np.array([covariance(f"{name}[{i}]", a[i], d) for i in range(k)]).reshape(k, d, d)
     raise ValueError(f"{name}: expected one value (a scalar, shape ({d},) or ({d}, {d})) or one "
                      f"per estimator (shape ({k},), ({k}, {d}) or ({k}, {d}, {d})), got {a.shape}")
+
+
+def _read_only(a):
+    a = np.array(a, dtype=np.float64)
+    a.flags.writeable = False
+    return a
 
 
 def _rows(name, value, k, d):
@@ -57,39 +67,37 @@ def _rows(name, value, k, d):
     return np.ascontiguousarray(a)
 
 
-#: GPMHE's keyword settings the bank does not take, and why (what to use instead).
-_NOT_TAKEN = {
-    "P0": "the bank takes the arrival weight as its inverse only: give P2 = P0⁻¹ "
-          "(numpy.linalg.inv(P0), or 1/P0 for a scalar)",
-    **{name: "the bank runs models without parameters only (dim_p = 0): estimate parameters "
-             "with GPMHE" for name in ("p0", "P_p0", "p_bounds", "p_drift")},
-}
-
-#: The settings a user may set between updates: GPMHE's weights (P0 only as P2, as above).
-_SETTABLE = ("P2", "Q0", "R0", "eta")
+#: The settings a user may set between updates: GPMHE's weights.
+_SETTABLE = ("P0", "P2", "Q0", "R0", "eta")
 
 #: Names users of GPMHE or of other filters try to set, and what to use instead.
 _DID_YOU_MEAN = {"R": "R0 (or update's R, for one sample)", "Q": "Q0",
-                 "P0": "P2, the arrival weight P0⁻¹ (the bank takes no P0)",
+                 "P": "P0 (the arrival covariance)",
                  "M": "horizon (fixed: build a new EstimatorBank)",
                  "N": "horizon (fixed: build a new EstimatorBank)"}
 
 
 def _not_taken(key):
     """The ValueError message for a keyword of the bank's constructor it does not take."""
-    why = _NOT_TAKEN.get(key)
-    if why is not None:
-        return f"{key}: a setting of GPMHE that EstimatorBank does not take; {why}"
-    return (f"{key}: not a setting of EstimatorBank (it takes x0 and {', '.join(_SETTINGS)})")
+    return f"{key}: not a setting of EstimatorBank (it takes x0 and {', '.join(_SETTINGS)})"
 
 
 def _build(model, x0, lb, ub, q0, r0, common):
     """A `GPMHE` with estimator 0's settings (which validates the common settings) and the core
-    bank made from it as its template: row i of the arrays for estimator i."""
-    p = model.dim_y
+    bank made from it as its template: row i of the arrays for estimator i, on the core's state
+    [x; p̃] when the model has parameters (`MHESettings`)."""
+    k, p = len(x0), model.dim_y
     template = GPMHE(model, x0=x0[0], Q0=q0[0], R0=r0[0] if p else None,
                      x_bounds=(lb[0], ub[0]), **common)
-    return template, _core.EstimatorBank(template._core, x0, lb, ub, q0, np.ascontiguousarray(r0))
+    settings = template._settings
+    scaling = settings.scaling
+    bounds = [settings.scaling.bounds(lb[i], ub[i], settings.p_bounds) for i in range(k)]
+    rows = dict(
+        x0=np.array([settings.core_state(x) for x in x0]),
+        lower=np.array([b[0] for b in bounds]), upper=np.array([b[1] for b in bounds]),
+        q0=np.array([scaling.process_noise(q, settings.p_drift).reshape(-1) for q in q0]),
+        r0=np.ascontiguousarray(r0.reshape(k, p * p)))
+    return template, _core.EstimatorBank(template._core, *rows.values())
 
 
 class EstimatorBank:
@@ -97,7 +105,9 @@ class EstimatorBank:
 
     Every estimator has the same model, dimensions and settings (those of `GPMHE`) except its
     initial estimate ``x0``, its state box ``x_bounds`` and its weights ``Q0``, ``R0``, which may
-    be given once for all or once per estimator. ``update(U, Y)`` takes one row of inputs and
+    be given once for all or once per estimator. With a model's unknown parameters p, each
+    estimator estimates its own p from the same prior (``p0``, ``P_p0``, ``p_bounds``,
+    ``p_drift``), e.g. one inertia per machine of a fleet. ``update(U, Y)`` takes one row of inputs and
     outputs per estimator and updates all of them in one call into the Rust core: with a
     `LearnedModel` or a CasADi model compiled in the core (`KnownModel.from_casadi`,
     `KnownModel.from_ode` with ``native=True``, the default) the estimators are solved in
@@ -118,16 +128,15 @@ class EstimatorBank:
         The initial estimates x̂(0): one for all estimators or one row per estimator; each must
         lie in its ``x_bounds``.
     **gpmhe_options
-        The settings of `GPMHE`: ``horizon``, ``eta``, ``P2``, ``form``, ``solver_options``,
-        ``arrival_mean``, ``arrival_weight``, ``loss``, ``loss_scale`` as there (the same for all
-        estimators; the arrival weight is taken as ``P2`` only: for an arrival covariance P0
-        give ``P2`` = P0⁻¹; the parameter settings are not taken, a model with parameters runs
-        in `GPMHE`), and
+        The settings of `GPMHE`: ``horizon``, ``eta``, ``P2`` or ``P0``, ``form``,
+        ``solver_options``, ``arrival_mean``, ``arrival_weight``, ``loss``, ``loss_scale`` and
+        the parameter settings ``p0``, ``P_p0``, ``p_bounds``, ``p_drift`` as there (the same for
+        all estimators), and
 
-        * ``Q0``, ``R0``: one value as `GPMHE` takes it (a scalar, the diagonal or a diagonal
-          matrix) or one per estimator: shape (n,) scalars, (n, dim) diagonals or
-          (n, dim, dim) diagonal matrices (where n equals the dimension, a 1-D or square 2-D
-          value is read as one value for all);
+        * ``Q0``, ``R0``: one value as `GPMHE` takes it (a scalar, the diagonal or a symmetric
+          positive definite matrix) or one per estimator: shape (n,) scalars, (n, dim)
+          diagonals or (n, dim, dim) matrices (where n equals the dimension, a 1-D or square
+          2-D value is read as one value for all);
         * ``x_bounds``: a pair (lower, upper), each of shape (dim_x,) (one box for all) or
           (n, dim_x) (one per estimator);
         * ``solver``: only "gauss-newton" (the Rust solver) is supported.
@@ -153,30 +162,37 @@ class EstimatorBank:
         Each solver's final projected gradient.
     t : int
         Number of updates since construction.
+    p : ndarray of shape (n, dim_p)
+        Each estimator's estimate of the parameters (`GPMHE.p`; no columns without).
+    P_p : ndarray of shape (n, dim_p, dim_p)
+        Their covariances (`GPMHE.P_p`).
     threads : int
         The number of threads an update runs on (1 for a model of Python functions).
-    Q0, R0 : ndarray of shape (n, dim_x), (n, dim_y)
-        The diagonals of each estimator's Q0 and R0; settable between updates (see Notes).
+    Q0, R0 : ndarray of shape (n, dim_x, dim_x), (n, dim_y, dim_y)
+        Each estimator's Q0 and R0; settable between updates (see Notes).
     eta : float
         The discount factor η of every estimator; settable.
-    P2 : ndarray of shape (dim_x, dim_x)
-        The arrival weight of every estimator; settable.
+    P2, P0 : ndarray of shape (dim_x, dim_x)
+        The arrival weight of every estimator and its inverse, the arrival covariance;
+        settable (either).
     model, horizon, form, solver, solver_options, arrival_mean, arrival_weight, loss, loss_scale
         The common settings, read-only.
+    p0, P_p0, p_bounds, p_drift
+        The parameter settings (a model with parameters only), read-only.
     x0 : ndarray of shape (n, dim_x)
         Each estimator's x̂(0), read-only.
     x_bounds : tuple of two ndarrays of shape (n, dim_x)
         Each estimator's box (lower, upper), read-only.
-    dim_x, dim_y, dim_u : int
+    dim_x, dim_y, dim_u, dim_p : int
         The model's dimensions.
 
     Raises
     ------
     ValueError
         If a setting is invalid (as for `GPMHE`, naming the argument and, for a per-estimator
-        value, the estimator; ``Q0`` and ``R0`` must be diagonal), a keyword is not among the
-        settings above (``P0`` and the parameter settings included, the message says what to
-        give instead), ``solver`` is not "gauss-newton", or the model has parameters.
+        value, the estimator), a keyword is not among the settings above, ``solver`` is not
+        "gauss-newton", or ``p0`` is missing for a model with parameters (one ``p0`` for all:
+        the scale of p̃ in the window comes from it).
 
     See Also
     --------
@@ -184,18 +200,19 @@ class EstimatorBank:
 
     Notes
     -----
-    ``Q0``, ``R0``, ``P2`` and ``eta`` can be set between updates, as `GPMHE`'s weights: the new
-    value is validated as in the constructor (``Q0`` and ``R0`` once for all or once per
-    estimator), and every estimator uses it from the next update on exactly as a `GPMHE` whose
-    weight was set; nothing else changes (only ``P2`` restarts the "ekf" arrival weight). A
-    refused value raises ValueError and leaves the bank as it was. Setting any other name raises
-    AttributeError: the other settings are fixed at construction (build a new bank), and an
-    arrival covariance P0 is set as ``P2`` = P0⁻¹. Setting a weight builds a new core with it
-    and moves every estimator's state over, in a time that grows with n.
+    ``Q0``, ``R0``, ``P2`` (or ``P0``) and ``eta`` can be set between updates, as `GPMHE`'s
+    weights: the new value is validated as in the constructor (``Q0`` and ``R0`` once for all or
+    once per estimator), and every estimator uses it from the next update on exactly as a
+    `GPMHE` whose weight was set; nothing else changes (only ``P2``/``P0`` restarts the "ekf"
+    arrival weight). A refused value raises ValueError and leaves the bank as it was. Setting
+    any other name raises AttributeError: the other settings are fixed at construction (build a
+    new bank). Setting a weight builds a new core with it and moves every estimator's state
+    over, in a time that grows with n.
 
     A solver failure of one estimator (its ``success`` False) does not stop the others; one
-    `RuntimeWarning` per update names the estimators that failed. An error (bad input, or an
-    exception raised by a `KnownModel` function) leaves every estimator as it was.
+    `RuntimeWarning` per update names the estimators that failed. An error (bad input, an
+    interrupt, or an exception raised by a `KnownModel` function) leaves every estimator as it
+    was: the estimators' updates are recorded only once every one has succeeded.
 
     Examples
     --------
@@ -225,7 +242,7 @@ class EstimatorBank:
     >>> bank.horizon = 10
     Traceback (most recent call last):
         ...
-    AttributeError: EstimatorBank.horizon is read-only; the settable attributes are P2, Q0, R0, eta ...
+    AttributeError: EstimatorBank.horizon is read-only; the settable attributes are P0, P2, Q0, R0, eta ...
     """
 
     def __init__(self, model, n, x0, **gpmhe_options):
@@ -237,9 +254,6 @@ class EstimatorBank:
         if not isinstance(model, (KnownModel, LearnedModel)):
             raise ValueError("model: must be a gpmhe.LearnedModel or gpmhe.KnownModel, got "
                              f"{type(model).__name__}")
-        if getattr(model, "dim_p", 0):
-            raise ValueError("model: a model with parameters (dim_p > 0) runs in GPMHE, not in "
-                             "a bank")
         k = integer("n", n, low=1, high=_MAX_ESTIMATORS)
         solver = gpmhe_options.get("solver", "gauss-newton")
         if not (isinstance(solver, str) and solver == "gauss-newton"):
@@ -247,24 +261,30 @@ class EstimatorBank:
         d, p = model.dim_x, model.dim_y
         opts = dict(gpmhe_options)
         q0 = _per_estimator("Q0", opts.pop("Q0", None), k, d)
-        r0 = _per_estimator("R0", opts.pop("R0", None), k, p) if p else np.zeros((k, 0))
+        r0 = _per_estimator("R0", opts.pop("R0", None), k, p)
         lb, ub = box("x_bounds", opts.pop("x_bounds", None), d, rows=k)
         x0 = _rows("x0", float_array("x0", x0), k, d)
         bad = np.flatnonzero(np.any((x0 < lb) | (x0 > ub), axis=1))
         if bad.size:
             raise ValueError(f"x0: must lie inside x_bounds (estimator {bad[0]})")
-        if all(gpmhe_options.get(w) is None for w in ("Q0", "R0", "P2")):
+        if all(gpmhe_options.get(w) is None for w in ("Q0", "R0", "P2", "P0")):
             warnings.warn(NO_NOISE_INFORMATION, SettingsWarning, stacklevel=2)
         template, core = _build(model, x0, lb, ub, q0, r0, opts)
+        self._adopt(template, core, model, x0, q0, r0, (lb, ub))
+
+    def _adopt(self, template, core, model, x0, q0, r0, x_bounds):
+        """Takes the core bank and the common settings of its `template` (a `GPMHE`)."""
+        s = template._settings
         # (Set through __dict__: the bank's own __setattr__ is for its users.)
         self.__dict__.update(
-            _core=core, model=model, _dt=template._dt, dim_x=d, dim_y=p, dim_u=model.dim_u,
-            horizon=template.horizon, eta=template.eta, form=template.form, P2=template.P2,
-            solver_options=template.solver_options, solver="gauss-newton",
-            arrival_mean=template.arrival_mean, arrival_weight=template.arrival_weight,
-            loss=template.loss,
-            loss_scale=template.loss_scale if template.loss != "squared" else None,
-            x0=x0, Q0=q0, R0=r0, x_bounds=(lb, ub))
+            _core=core, _settings=s, model=model, _dt=template._dt, dim_x=model.dim_x,
+            dim_y=model.dim_y, dim_u=model.dim_u, dim_p=s.dims[3], horizon=s.horizon,
+            eta=s.eta, form=s.form, P2=s.P2, solver_options=template.solver_options,
+            solver="gauss-newton", arrival_mean=s.arrival_mean, arrival_weight=s.arrival_weight,
+            loss=s.loss, loss_scale=s.loss_scale if s.loss != "squared" else None,
+            x0=x0, Q0=_read_only(q0), R0=_read_only(r0), x_bounds=x_bounds)
+        if self.dim_p:
+            self.__dict__.update(p0=s.p0, P_p0=s.P_p0, p_bounds=s.p_bounds, p_drift=s.p_drift)
 
     def _common(self, **changes):
         """The settings every estimator shares, as `GPMHE` takes them, with ``changes``."""
@@ -272,8 +292,15 @@ class EstimatorBank:
                       solver="gauss-newton", solver_options=self.solver_options,
                       arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight,
                       loss=self.loss, loss_scale=self.loss_scale)
+        if self.dim_p:
+            common.update({name: getattr(self, name) for name in _PARAMETERS})
         common.update(changes)
         return common
+
+    @property
+    def P0(self):  # noqa: N802
+        """The arrival covariance P0 = P2⁻¹ of every estimator (dim_x, dim_x); settable."""
+        return np.linalg.inv(self.P2)
 
     # ---- the estimates and what the last update reported: read from the core ---------------
     # (The core records an update of every estimator in one step, or none.)
@@ -282,25 +309,37 @@ class EstimatorBank:
         """Number of updates since construction."""
         return self._core.t
 
+    # With parameters the core's state is [x; p̃] (`MHESettings`): x is its first dim_x values.
     @property
     def x(self):
         """The estimates (n, dim_x)."""
-        return self._core.x
+        return np.ascontiguousarray(self._core.x[:, :self.dim_x])
 
     @property
     def x_arrival(self):
         """The last arrival priors (n, dim_x) (``x_prior`` is their deprecated alias)."""
-        return self._core.x_prior
+        return np.ascontiguousarray(self._core.x_prior[:, :self.dim_x])
 
     @window_attribute  # (not a property: see gpmhe/_filterpy.py)
     def x_window(self):
         """The last windows' optimal trajectories (n, M_t + 1, dim_x)."""
-        return self._core.x_window
+        return np.ascontiguousarray(self._core.x_window[:, :, :self.dim_x])
 
     @property
     def P(self):  # noqa: N802
         """The covariance estimates (n, dim_x, dim_x)."""
-        return self._core.covariance
+        return np.ascontiguousarray(self._core.covariance[:, :self.dim_x, :self.dim_x])
+
+    @property
+    def p(self):
+        """The estimates of the parameters (n, dim_p) (`GPMHE.p`; no columns without)."""
+        return np.array([self._settings.scaling.parameters(z) for z in self._core.x])
+
+    @property
+    def P_p(self):  # noqa: N802
+        """The covariances of ``p`` (n, dim_p, dim_p) (`GPMHE.P_p`)."""
+        scaling = self._settings.scaling
+        return np.array([scaling.parameter_covariance(c) for c in self._core.covariance])
 
     @property
     def cost(self):
@@ -352,26 +391,31 @@ class EstimatorBank:
     @exclusive  # not while an update runs (gpmhe/_threads.py)
     def _set_weight(self, name, value):
         """Set weight ``name`` of every estimator, validated as in the constructor, from the next
-        update on, as `GPMHE`'s setter does (only P2 restarts the arrival weight). The core bank
-        has no setter: a new one is built with the new weight and every estimator's state (its
-        history and arrival weight) moved into it; the bank changes only once that is done."""
+        update on, as `GPMHE`'s setter does (only P2 or P0 restarts the arrival weight). The
+        core bank has no setter: a new one is built with the new weight and every estimator's
+        state (its history and arrival weight) moved into it; the bank changes only once that is
+        done."""
         k, d, p = len(self), self.dim_x, self.dim_y
         q0, r0, common = self.Q0, self.R0, self._common()
         if name == "Q0":
             q0 = _per_estimator("Q0", value, k, d)
         elif name == "R0":
-            r0 = _per_estimator("R0", value, k, p) if p else r0
+            r0 = _per_estimator("R0", value, k, p)
+        elif name == "P0":
+            del common["P2"]
+            common["P0"] = value
         else:
             common[name] = value
         lb, ub = self.x_bounds
         template, core = _build(self.model, self.x0, lb, ub, q0, r0, common)
-        arrival = template._settings.core_weights(("P2",))["p2_sqrt"] if name == "P2" else None
+        restart = name in ("P0", "P2")  # a new P2 is the next window's arrival weight
+        arrival = template._settings.core_weights(("P2",))["p2_sqrt"] if restart else None
         for i in range(k):
             state = self._core.member_state(i)
-            if arrival is not None:  # a new P2 is the next window's arrival weight
+            if arrival is not None:
                 state["arrival_sqrt"] = arrival
             core.set_member_state(i, state)
-        self.__dict__.update(_core=core, Q0=q0, R0=r0, eta=template.eta, P2=template.P2)
+        self._adopt(template, core, self.model, self.x0, q0, r0, self.x_bounds)
 
     @property
     def threads(self):
@@ -422,10 +466,10 @@ class EstimatorBank:
             no measurement at this step (as ``GPMHE.update(u, None)``; the row's other values are
             not used). None: no estimator has a measurement.
         R : float or array_like, or None, default None
-            This sample's output-noise covariance (`GPMHE.update`'s ``R``), diagonal: one for all
-            estimators (a scalar, the diagonal (dim_y,) or a diagonal matrix) or one per
-            estimator ((n,) scalars, (n, dim_y) diagonals or (n, dim_y, dim_y) diagonal
-            matrices), as ``R0``. None: each estimator's ``R0``.
+            This sample's output-noise covariance (`GPMHE.update`'s ``R``): one for all
+            estimators (a scalar, the diagonal (dim_y,) or the matrix) or one per estimator
+            ((n,) scalars, (n, dim_y) diagonals or (n, dim_y, dim_y) matrices), as ``R0``.
+            None: each estimator's ``R0``.
         dt : float, array_like of shape (n,), or None, default None
             The time since the previous sample (`GPMHE.update`'s ``dt``), one for all estimators
             or one each; only for a model with a time step. None: the model's ``dt``.
@@ -468,7 +512,8 @@ class EstimatorBank:
         if Y is REQUIRED:
             raise one_argument_update(type(self), "U", "Y")
         U, Y, present = self._check_sample(U, Y)
-        R = None if R is None else np.ascontiguousarray(_per_estimator("R", R, len(self), self.dim_y))
+        k, p = len(self), self.dim_y
+        R = None if R is None else _per_estimator("R", R, k, p).reshape(k, p * p)
         self._step(U, Y, present, R, self._intervals(dt))
         return self.x
 
@@ -579,14 +624,9 @@ class EstimatorBank:
     def __getstate__(self):
         """The settings, the attributes and every estimator's core state (pickling needs a
         picklable model, as for `GPMHE`)."""
-        lb, ub = self.x_bounds
-        # Q0, R0 as (n, dim, dim) diagonal matrices: unambiguous also where n equals the dimension.
-        settings = dict(horizon=self.horizon, eta=self.eta, P2=self.P2,
-                        Q0=self.Q0[:, :, None] * np.eye(self.dim_x),
-                        R0=self.R0[:, :, None] * np.eye(self.dim_y) if self.dim_y else None,
-                        x_bounds=(lb, ub), form=self.form, solver_options=self.solver_options,
-                        arrival_mean=self.arrival_mean, arrival_weight=self.arrival_weight,
-                        loss=self.loss, loss_scale=self.loss_scale)
+        # Q0, R0 as (n, dim, dim) matrices: unambiguous also where n equals the dimension.
+        settings = dict(self._common(), Q0=self.Q0, R0=self.R0 if self.dim_y else None,
+                        x_bounds=self.x_bounds)
         return dict(model=self.model, n=len(self), x0=self.x0, settings=settings,
                     cores=[self._core.member_state(i) for i in range(len(self))])
 

@@ -66,7 +66,7 @@ def _eta(value):
     return eta
 
 
-def _covariance(name, value, n):
+def covariance(name, value, n):
     """A symmetric positive definite (n, n) matrix (Q0, R0, P2, P0: each takes the same forms)
     from None (the identity), a scalar, the diagonal or the matrix."""
     if n == 0:
@@ -78,7 +78,7 @@ def _covariance(name, value, n):
 def sample_covariance(R, p):
     """The covariance ``R`` given with one output sample (as ``R0``: a scalar, the diagonal or
     the matrix), validated, in the core's form (see `_flat`)."""
-    return _flat(_covariance("R", R, p))
+    return _flat(covariance("R", R, p))
 
 
 def _frozen(a):
@@ -132,13 +132,13 @@ class MHESettings:
         solver = one_of("solver", solver, tuple(SOLVERS))
         if P2 is not None and P0 is not None:
             raise ValueError("P2, P0: give the arrival weight P2 or its covariance P0, not both")
-        P2 = (np.linalg.inv(_covariance("P0", P0, n)) if P0 is not None
-              else _covariance("P2", P2, n))
+        P2 = (np.linalg.inv(covariance("P0", P0, n)) if P0 is not None
+              else covariance("P2", P2, n))
         lb, ub = box("x_bounds", x_bounds, n)
         return cls(
             dims=tuple(dims), horizon=integer("horizon", horizon, low=1, high=MAX_HORIZON),
-            eta=_eta(eta), P2=_frozen(P2), Q0=_frozen(_covariance("Q0", Q0, n)),
-            R0=_frozen(_covariance("R0", R0, p)), x_bounds=(_frozen(lb), _frozen(ub)),
+            eta=_eta(eta), P2=_frozen(P2), Q0=_frozen(covariance("Q0", Q0, n)),
+            R0=_frozen(covariance("R0", R0, p)), x_bounds=(_frozen(lb), _frozen(ub)),
             form=one_of("form", form, ("prediction", "filtering")), solver=solver,
             solver_options=dict(options("solver_options", solver_options, SOLVERS[solver])),
             arrival_mean=one_of("arrival_mean", arrival_mean, ("estimate", "smoothed", "filtered")),
@@ -175,7 +175,7 @@ class MHESettings:
             raise ValueError("p0: must lie inside p_bounds")
         scale, span = np.abs(p0), ub - lb
         scale = np.where(scale > 0, scale, np.where(np.isfinite(span), span, 1.0))
-        P_p0 = _covariance("P_p0", np.diag(scale ** 2) if P_p0 is None else P_p0, k)
+        P_p0 = covariance("P_p0", np.diag(scale ** 2) if P_p0 is None else P_p0, k)
         drift = 1e-4 * scale if p_drift is None else p_drift
         drift = positive("p_drift", drift)
         if drift.shape not in ((), (k,)):
@@ -190,13 +190,13 @@ class MHESettings:
         new = {}
         for name, value in changes.items():
             if name == "Q0":
-                new["Q0"] = _frozen(_covariance("Q0", value, n))
+                new["Q0"] = _frozen(covariance("Q0", value, n))
             elif name == "R0":
-                new["R0"] = _frozen(_covariance("R0", value, p))
+                new["R0"] = _frozen(covariance("R0", value, p))
             elif name == "P2":
-                new["P2"] = _frozen(_covariance("P2", value, n))
+                new["P2"] = _frozen(covariance("P2", value, n))
             elif name == "P0":
-                new["P2"] = _frozen(np.linalg.inv(_covariance("P0", value, n)))
+                new["P2"] = _frozen(np.linalg.inv(covariance("P0", value, n)))
             elif name == "eta":
                 new["eta"] = _eta(value)
             else:

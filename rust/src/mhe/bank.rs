@@ -58,8 +58,8 @@ pub struct Member<M> {
     pub model: M,
 }
 
-/// What differs between the estimators of a bank: x̂(0), the state box and the diagonals of
-/// Q0 (n) and R0 (p).
+/// What differs between the estimators of a bank: x̂(0), the state box, Q0 and R0 (each its
+/// diagonal or its row-major matrix, as [`WindowProblem::new`] takes them).
 #[derive(Debug, Clone)]
 pub struct MemberSettings {
     pub x0: Vec<f64>,
@@ -77,7 +77,8 @@ pub struct BankSample<'a> {
     pub u: &'a [f64],
     pub y: &'a [f64],
     pub present: &'a [bool],
-    /// Each estimator's output covariance for this sample (k × p diagonals), or None: R0.
+    /// Each estimator's output covariance for this sample (k × p diagonals or k × p² matrices,
+    /// row-major), or None: R0.
     pub r: Option<&'a [f64]>,
     /// Each estimator's last input row as completed by this sample (k × m), or None: as
     /// recorded (see [`Step::u_last`]).
@@ -198,7 +199,9 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         check_len("U", s.u, k * m)?;
         check_len("Y", s.y, k * p)?;
         if let Some(r) = s.r {
-            check_len("R", r, k * p)?;
+            if r.len() != k * p * p {
+                check_len("R", r, k * p)?;
+            }
         }
         if let Some(u_last) = s.u_last {
             check_len("u_last", u_last, k * m)?;
@@ -213,10 +216,12 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
     }
 
     fn row<'a>(s: &BankSample<'a>, i: usize, m: usize, p: usize) -> BankRow<'a> {
+        // p values (a diagonal) or p² (a matrix) per estimator, as `check_sample` allowed.
+        let w = s.r.map_or(p, |r| r.len() / s.present.len().max(1));
         BankRow {
             u: &s.u[i * m..(i + 1) * m],
             y: s.present[i].then(|| &s.y[i * p..(i + 1) * p]),
-            r: s.r.map(|r| &r[i * p..(i + 1) * p]),
+            r: s.r.map(|r| &r[i * w..(i + 1) * w]),
             u_last: s.u_last.map(|u| &u[i * m..(i + 1) * m]),
         }
     }

@@ -124,8 +124,9 @@ impl PyEstimatorBank {
 #[pymethods]
 impl PyEstimatorBank {
     /// k estimators with `template`'s model (shared, see the module docs), horizon, weights η,
-    /// P2, form and solver settings; row i of `x0`, `lower`, `upper` (k, n), `q0` (k, n) and
-    /// `r0` (k, p) are estimator i's x̂(0), state box and diagonals of Q0, R0.
+    /// P2, form and solver settings; row i of `x0`, `lower`, `upper` (k, n), `q0` (k, n or n²)
+    /// and `r0` (k, p or p²) are estimator i's x̂(0), state box and Q0, R0 (diagonals or
+    /// row-major matrices).
     #[new]
     fn new(
         py: Python<'_>,
@@ -187,9 +188,10 @@ impl PyEstimatorBank {
 
     /// One update of every estimator: row i of `u` (k, m) and `y` (k, p) for estimator i,
     /// `present[i]` False when its y is missing (its row of `y` is ignored), row i of `r`
-    /// (k, p) the diagonal of its y's covariance (None: each one's R0). What each estimator
-    /// reports is read from the getters below. Row i of `u_last` (k, m), if given, is
-    /// estimator i's last input row as this sample completes it. On error no estimator changes.
+    /// (k, p or p²) its y's covariance, the diagonal or the row-major matrix (None: each one's
+    /// R0). What each estimator reports is read from the getters below. Row i of `u_last`
+    /// (k, m), if given, is estimator i's last input row as this sample completes it. On error
+    /// no estimator changes.
     #[pyo3(signature = (u, y, present, r=None, u_last=None))]
     fn update<'py>(
         &mut self,
