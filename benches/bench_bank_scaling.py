@@ -2,15 +2,17 @@
 
     python benches/bench_bank_scaling.py [--n 64] [--samples 40] [--threads 1 2] [--seed 0]
 
-Plants: the cart-pole (`gpmhe.systems.cart_pole`, its MHE settings) and the rotating masses
+Plants: the cart-pole (`gpmhe.systems.cart_pole`, its MHE settings), the rotating masses
 (`gpmhe.systems.rotating_masses`, Θ1 known, its MHE settings), each estimator with its own
-simulated run. For each plant and each thread count (a fresh process with RAYON_NUM_THREADS set,
+simulated run, and a fleet of rotating masses whose plants each have their own inertia Θ1
+(spread ±40 % around the nominal one), each estimator estimating its plant's Θ1 from the same
+prior (`rotating_masses.PARAMETER_SETTINGS`); the final relative error of Θ̂1 is printed. For each plant and each thread count (a fresh process with RAYON_NUM_THREADS set,
 since rayon sizes its pool once per process; `--rounds` rounds that take the thread counts in
 turn, so that a change in the machine's load hits all alike): the median and p95 time of one
 `bank.update` of `--n` estimators on the model compiled in the core, over the samples after the
-first window is full and over the rounds; in the one-thread process also the same bank on Python callbacks (``native=False``, which
-updates its estimators one after another) and `--n` separate `GPMHE` estimators updated in a
-Python loop. The speed-up is against the compiled bank on one thread; every bank's estimates
+first window is full and over the rounds; in the one-thread process also the same bank on Python
+callbacks (``native=False``, which updates its estimators one after another) and `--n` separate
+`GPMHE` estimators updated in a Python loop, interleaved with the bank sample by sample. The speed-up is against the compiled bank on one thread; every bank's estimates
 are checked against the separate estimators' bit for bit. Prints a table, asserts nothing.
 """
 
@@ -40,20 +42,21 @@ def plant_data(name, n, samples, seed):
             _, u, y = cp.simulate(samples, rng=seed + i)
             runs.append((cp.X0, u[:samples], y[:samples]))
         return (lambda native: cp.known_model("casadi", native=native)), runs, cp.MHE_SETTINGS
+    fleet = name == "rotating masses, each Θ1 estimated"
     for i in range(n):
         rng = np.random.default_rng(seed + i)
-        _, u, y = rm.simulate(samples, rng=rng)
+        theta1 = fleet_inertia(i, n) if fleet else rm.THETA1
+        _, u, y = rm.simulate(samples, rng=rng, theta1=theta1)
         runs.append((rm.initial_estimate(rng), u[:samples], y[:samples]))
+    if fleet:
+        settings = dict(rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
+        return (lambda native: rm.known_model(None, native=native)), runs, settings
     return (lambda native: rm.known_model(native=native)), runs, rm.MHE_SETTINGS
 
 
-def time_bank(bank, U, Y):
-    times = []
-    for t in range(len(Y)):
-        t0 = time.perf_counter()
-        bank.update(U[t], Y[t])
-        times.append(time.perf_counter() - t0)
-    return np.array(times)
+def fleet_inertia(i, n):
+    """Plant i's inertia Θ1 in the fleet: evenly spread over ±40 % of the nominal one."""
+    return rm.THETA1 * (0.6 + 0.8 * i / max(n - 1, 1))
 
 
 def measure(name, n, samples, seed, separate):
@@ -65,20 +68,30 @@ def measure(name, n, samples, seed, separate):
     Y = np.stack([r[2] for r in runs], axis=1)
     warnings.simplefilter("ignore", RuntimeWarning)  # early windows may stop at max-iterations
     bank = EstimatorBank(build(True), n, X0, **settings)
-    out = {"bank": time_bank(bank, U, Y).tolist(), "parallel": bool(bank._core.parallel)}
-    if separate:
+    out = {"parallel": bool(bank._core.parallel)}
+    steps = {"bank": lambda t: bank.update(U[t], Y[t])}
+    if separate:  # the others interleaved with the bank sample by sample, so drift hits all alike
         slow = EstimatorBank(build(False), n, X0, **settings)
-        out["callbacks"] = time_bank(slow, U, Y).tolist()
         ests = [GPMHE(build(True), X0[i], **settings) for i in range(n)]
-        times = []
-        for t in range(samples):
-            t0 = time.perf_counter()
+
+        def loop(t):
             for i, est in enumerate(ests):
                 est.update(U[t, i], Y[t, i])
-            times.append(time.perf_counter() - t0)
-        out["separate"] = times
+
+        steps.update(callbacks=lambda t: slow.update(U[t], Y[t]), separate=loop)
+    times = {key: [] for key in steps}
+    for t in range(samples):
+        for key, step in steps.items():
+            t0 = time.perf_counter()
+            step(t)
+            times[key].append(time.perf_counter() - t0)
+    out.update(times)
+    if separate:
         xs = np.array([e.x for e in ests])
         out["identical"] = bool(np.array_equal(bank.x, xs) and np.array_equal(slow.x, xs))
+    if bank.dim_p:
+        truth = np.array([fleet_inertia(i, n) for i in range(n)])
+        out["theta_error"] = float(np.max(np.abs(bank.p[:, 0] / truth - 1)))
     return out
 
 
@@ -110,7 +123,9 @@ def main():
         print(json.dumps(measure(args.child, args.n, args.samples, args.seed, args.separate)))
         return
     print(f"# A bank of {args.n} estimators on a compiled CasADi model ({os.cpu_count()} cores)\n")
-    for name, skip in (("cart-pole", cp.MHE_SETTINGS["horizon"]), ("rotating masses", rm.HORIZON)):
+    plants = (("cart-pole", cp.MHE_SETTINGS["horizon"]), ("rotating masses", rm.HORIZON),
+              ("rotating masses, each Θ1 estimated", rm.HORIZON))
+    for name, skip in plants:
         results = {k: {"bank": []} for k in args.threads}
         for _ in range(args.rounds):
             for k in args.threads:
@@ -130,7 +145,11 @@ def main():
             print(row("bank, Python callbacks (serial)", one["callbacks"], skip, base))
             print(row(f"{args.n} separate GPMHE, compiled, Python loop", one["separate"], skip, base))
             print(f"\n(estimates of both banks equal the separate estimators' bit for bit: "
-                  f"{one['identical']})\n")
+                  f"{one['identical']})")
+        if "theta_error" in one:
+            print(f"(largest relative error of the {args.n} estimates of Θ1 after "
+                  f"{args.samples} samples: {one['theta_error']:.3f})")
+        print()
 
 
 if __name__ == "__main__":
