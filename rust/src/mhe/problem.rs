@@ -795,22 +795,26 @@ impl WindowEval {
         off.iter_mut().for_each(|v| *v = 0.0);
         // The diagonal blocks' upper triangles, mirrored at the end: 2·a·b and 2·b·a are the
         // same number (doubling is exact), so the blocks are what the full sums give.
-        for k in 0..self.r.len() {
-            let i = self.node[k];
-            let ja = &self.ja[k * n..(k + 1) * n];
-            for a in 0..n {
-                for b in a..n {
-                    diag[i * nn + a * n + b] += 2.0 * ja[a] * ja[b];
+        // Each entry is the same sum over the rows in the same order as term by term; the blocks
+        // are sliced once per row so the inner loops run without index arithmetic.
+        fn upper_outer(block: &mut [f64], v: &[f64], n: usize) {
+            for (a, row) in block.chunks_exact_mut(n).enumerate() {
+                let va = 2.0 * v[a];
+                for (d, vb) in row[a..].iter_mut().zip(&v[a..]) {
+                    *d += va * vb;
                 }
             }
+        }
+        for (k, &i) in self.node.iter().enumerate().take(self.r.len()) {
+            let ja = &self.ja[k * n..(k + 1) * n];
+            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, n);
             if self.process[k] {
                 let jb = &self.jb[k * n..(k + 1) * n];
-                for a in 0..n {
-                    for b in a..n {
-                        diag[(i + 1) * nn + a * n + b] += 2.0 * jb[a] * jb[b];
-                    }
-                    for b in 0..n {
-                        off[i * nn + a * n + b] += 2.0 * ja[a] * jb[b];
+                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, n);
+                for (row, &a) in off[i * nn..(i + 1) * nn].chunks_exact_mut(n).zip(ja) {
+                    let va = 2.0 * a;
+                    for (o, b) in row.iter_mut().zip(jb) {
+                        *o += va * b;
                     }
                 }
             }
