@@ -2,7 +2,8 @@
 estimates to the same model called back through Python (discrete, sampled with per-sample
 intervals, with parameters; both forms; the bank), the cache (reused, outside the working
 directory, a damaged library compiled again), the fallback without a C compiler (one warning),
-values out of range failing as a Python model's do, pickles, threads and interrupts."""
+values out of range failing as a Python model's do, pickles, threads and interrupts; the cache
+bounded to its most recently used libraries and cleared on request."""
 
 import copy
 import os
@@ -163,6 +164,59 @@ def test_the_library_is_compiled_once_into_the_cache_and_reused(cache, monkeypat
     monkeypatch.setattr(compiled.subprocess, "run", no_compiler)
     again = GPMHE(reactor(), br.X_PRIOR0, **br.RECOMMENDED_SETTINGS)  # a new model object
     assert again.native
+
+
+def scaled_reactor(c):
+    """A small CasADi model of its own for each constant `c` (so, one library each)."""
+    xs = ca.SX.sym("x", 2)
+    f = ca.Function("scaled_f", [xs], [xs * c])
+    h = ca.Function("scaled_h", [xs], [xs[0] + xs[1]])
+    return KnownModel.from_casadi(f, h)
+
+
+def build(model):
+    return GPMHE(model, x0=[1.0, 1.0], Q0=1e-2, R0=1e-2, horizon=3)
+
+
+def test_the_cache_keeps_the_most_recently_used_libraries(cache, monkeypatch):
+    monkeypatch.setenv("GPMHE_CACHE_MAX", "2")
+    build(scaled_reactor(0.9))
+    time.sleep(0.05)  # (modification times order the libraries)
+    build(scaled_reactor(0.8))
+    first = {p.name for p in cache.glob("*.so")}
+    assert len(first) == 2
+    time.sleep(0.05)
+    build(scaled_reactor(0.9))  # used again: now the most recent
+    time.sleep(0.05)
+    est = build(scaled_reactor(0.7))  # compiled; the 0.8 library, least recently used, goes
+    assert est.native
+    kept = {p.name for p in cache.glob("*.so")}
+    assert len(kept) == 2 and len(kept & first) == 1
+    assert len(list(cache.glob("*.sha256"))) == 2
+    np.testing.assert_array_equal(est.update(None, [1.9]), build(scaled_reactor(0.7)).update(None, [1.9]))
+
+
+def test_clear_cache_removes_every_library_and_the_next_model_compiles_again(cache):
+    old = build(scaled_reactor(0.9))
+    stale = cache / "build-killed"
+    stale.mkdir()
+    (stale / "gpmhe_model.c").write_text("/* a compilation that was killed */")
+    os.utime(stale, (0, 0))
+    assert compiled.clear_cache() == 1
+    assert not list(cache.glob("*.so")) and not stale.exists()
+    assert compiled.clear_cache() == 0
+    new = build(scaled_reactor(0.9))
+    assert new.native and len(list(cache.glob("*.so"))) == 1
+    np.testing.assert_array_equal(old.update(None, [1.9]), new.update(None, [1.9]))
+
+
+@pytest.mark.parametrize("value", ["0", "many", "-3"])
+def test_a_bad_cache_limit_runs_the_model_as_callbacks_with_a_warning_that_names_it(cache, monkeypatch,
+                                                                                 value):
+    monkeypatch.setenv("GPMHE_CACHE_MAX", value)
+    with pytest.warns(SettingsWarning, match=r"\$GPMHE_CACHE_MAX: must be a whole number"):
+        est = build(scaled_reactor(0.6))
+    assert not est.native and not list(cache.glob("*.so"))
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "checksum", "delete-checksum"])

@@ -7,7 +7,10 @@ generates their C code (CasADi's ``CodeGenerator``), and compiles it with ``$CC`
 directory of gpmhe's (``$GPMHE_CACHE_DIR``, else ``$XDG_CACHE_HOME/gpmhe`` or
 ``~/.cache/gpmhe``), never the working directory; each library sits next to the SHA-256 of its
 bytes, checked before it is loaded, so a damaged or truncated file is compiled again instead of
-loaded. Failures raise `CompileError` (the caller falls back to Python callbacks and says so).
+loaded. The cache is bounded: a library's modification time records its last use, and after each
+compilation the least recently used beyond ``$GPMHE_CACHE_MAX`` (default `MAX_LIBRARIES`) are
+removed (`prune`); `clear_cache` empties it. Failures raise `CompileError` (the caller falls back
+to Python callbacks and says so).
 """
 
 from __future__ import annotations
@@ -19,12 +22,17 @@ import platform
 import shlex
 import subprocess
 import tempfile
+import time
 
 #: The C compiler's flags: optimised, position-independent, no fast-math or target-specific
 #: instructions (the library computes what CasADi's own evaluation computes, bit for bit).
 FLAGS = ("-O2", "-fPIC", "-shared")
 #: The name of the generated C file's prefix (its size queries are ``<PREFIX>_casadi_int_size``).
 PREFIX = "gpmhe_model"
+#: The most libraries the cache keeps unless ``$GPMHE_CACHE_MAX`` says otherwise.
+MAX_LIBRARIES = 200
+#: Build directories older than this (seconds) belong to a compilation that was killed.
+STALE_BUILD = 3600.0
 
 
 class CompileError(RuntimeError):
@@ -128,5 +136,93 @@ def library(ca, functions, rebuild: bool = False) -> str:
     directory = cache_directory()
     so, sha = directory / f"{key}.so", directory / f"{key}.sha256"
     if rebuild or not _cached(so, sha):
+        limit = max_libraries()  # (a bad $GPMHE_CACHE_MAX fails before anything is compiled)
         _compile(source, so, sha)
+        prune(limit)
+    else:
+        try:
+            os.utime(so)  # its last use, for `prune`
+        except OSError:
+            pass  # a read-only cache still serves its libraries
     return str(so)
+
+
+def max_libraries() -> int:
+    """The most libraries the cache keeps: ``$GPMHE_CACHE_MAX``, else `MAX_LIBRARIES`."""
+    value = os.environ.get("GPMHE_CACHE_MAX")
+    if value is None or value == "":
+        return MAX_LIBRARIES
+    try:
+        limit = int(value)
+    except ValueError:
+        limit = 0
+    if limit < 1:
+        raise CompileError(f"$GPMHE_CACHE_MAX: must be a whole number >= 1, got {value!r}")
+    return limit
+
+
+def _libraries(directory: pathlib.Path) -> list:
+    """The cache's libraries, most recently used first."""
+    found = []
+    for so in directory.glob("*.so"):
+        try:
+            found.append((so.stat().st_mtime, so))
+        except OSError:
+            pass  # removed meanwhile by another process
+    return [so for _, so in sorted(found, key=lambda item: item[0], reverse=True)]
+
+
+def _remove(so: pathlib.Path) -> bool:
+    """Removes a library and its checksum (a process that has it loaded keeps its copy)."""
+    removed = False
+    for path in (so, so.with_suffix(".sha256")):
+        try:
+            path.unlink()
+            removed = True
+        except OSError:
+            pass
+    return removed
+
+
+def prune(keep: int = None) -> int:
+    """Remove the least recently used compiled models beyond the most recent `keep`.
+
+    Also removes the build directories a killed compilation left behind. A process that has a
+    removed library loaded keeps using it; one that asks for it again compiles it again.
+
+    Parameters
+    ----------
+    keep : int or None, default None
+        How many libraries to keep; None: ``$GPMHE_CACHE_MAX``, else `MAX_LIBRARIES` (200).
+
+    Returns
+    -------
+    int
+        The number of libraries removed.
+    """
+    keep = max_libraries() if keep is None else keep
+    directory = cache_directory()
+    removed = sum(_remove(so) for so in _libraries(directory)[keep:])
+    for build in directory.glob("build-*"):
+        try:
+            if time.time() - build.stat().st_mtime > STALE_BUILD:
+                for f in build.iterdir():
+                    f.unlink()
+                build.rmdir()
+        except OSError:
+            pass
+    return removed
+
+
+def clear_cache() -> int:
+    """Remove every compiled model from gpmhe's cache (`cache_directory`).
+
+    The next estimator on a CasADi model compiles its library again; estimators running
+    meanwhile keep the library they have loaded.
+
+    Returns
+    -------
+    int
+        The number of libraries removed.
+    """
+    return prune(0)
