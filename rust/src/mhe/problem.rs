@@ -796,23 +796,35 @@ impl WindowEval {
         // The diagonal blocks' upper triangles, mirrored at the end: 2·a·b and 2·b·a are the
         // same number (doubling is exact), so the blocks are what the full sums give.
         // Each entry is the same sum over the rows in the same order as term by term; the blocks
-        // are sliced once per row so the inner loops run without index arithmetic.
-        fn upper_outer(block: &mut [f64], v: &[f64], n: usize) {
+        // are sliced once per row so the inner loops run without index arithmetic. A zero factor
+        // adds ±0 to every entry of its block row, which changes no entry (none is −0: a sum
+        // from +0 that cancels is +0), so such block rows are skipped when the row's other
+        // factors are finite (0·inf would be NaN): rows of parameters and sparse Jacobians cost
+        // O(n) instead of O(n²).
+        fn upper_outer(block: &mut [f64], v: &[f64], n: usize, finite: bool) {
             for (a, row) in block.chunks_exact_mut(n).enumerate() {
                 let va = 2.0 * v[a];
+                if va == 0.0 && finite {
+                    continue;
+                }
                 for (d, vb) in row[a..].iter_mut().zip(&v[a..]) {
                     *d += va * vb;
                 }
             }
         }
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         for (k, &i) in self.node.iter().enumerate().take(self.r.len()) {
             let ja = &self.ja[k * n..(k + 1) * n];
-            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, n);
+            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, n, finite(ja));
             if self.process[k] {
                 let jb = &self.jb[k * n..(k + 1) * n];
-                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, n);
+                let jb_finite = finite(jb);
+                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, n, jb_finite);
                 for (row, &a) in off[i * nn..(i + 1) * nn].chunks_exact_mut(n).zip(ja) {
                     let va = 2.0 * a;
+                    if va == 0.0 && jb_finite {
+                        continue;
+                    }
                     for (o, b) in row.iter_mut().zip(jb) {
                         *o += va * b;
                     }
