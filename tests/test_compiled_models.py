@@ -193,7 +193,8 @@ def test_the_cache_keeps_the_most_recently_used_libraries(cache, monkeypatch):
     kept = {p.name for p in cache.glob("*.so")}
     assert len(kept) == 2 and len(kept & first) == 1
     assert len(list(cache.glob("*.sha256"))) == 2
-    np.testing.assert_array_equal(est.update(None, [1.9]), build(scaled_reactor(0.7)).update(None, [1.9]))
+    again = build(scaled_reactor(0.7))
+    np.testing.assert_array_equal(est.update(None, [1.9]), again.update(None, [1.9]))
 
 
 def test_clear_cache_removes_every_library_and_the_next_model_compiles_again(cache):
@@ -211,8 +212,8 @@ def test_clear_cache_removes_every_library_and_the_next_model_compiles_again(cac
 
 
 @pytest.mark.parametrize("value", ["0", "many", "-3"])
-def test_a_bad_cache_limit_runs_the_model_as_callbacks_with_a_warning_that_names_it(cache, monkeypatch,
-                                                                                 value):
+def test_a_bad_cache_limit_runs_the_model_as_callbacks_with_a_warning_naming_it(cache, monkeypatch,
+                                                                              value):
     monkeypatch.setenv("GPMHE_CACHE_MAX", value)
     with pytest.warns(SettingsWarning, match=r"\$GPMHE_CACHE_MAX: must be a whole number"):
         est = build(scaled_reactor(0.6))

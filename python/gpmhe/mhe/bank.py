@@ -107,8 +107,8 @@ class EstimatorBank:
     initial estimate ``x0``, its state box ``x_bounds`` and its weights ``Q0``, ``R0``, which may
     be given once for all or once per estimator. With a model's unknown parameters p, each
     estimator estimates its own p from the same prior (``p0``, ``P_p0``, ``p_bounds``,
-    ``p_drift``), e.g. one inertia per machine of a fleet. ``update(U, Y)`` takes one row of inputs and
-    outputs per estimator and updates all of them in one call into the Rust core: with a
+    ``p_drift``), e.g. one inertia per machine of a fleet. ``update(U, Y)`` takes one row of
+    inputs and outputs per estimator and updates all of them in one call into the Rust core: with a
     `LearnedModel` or a CasADi model compiled in the core (`KnownModel.from_casadi`,
     `KnownModel.from_ode` with ``native=True``, the default) the estimators are solved in
     parallel on all cores (rayon, without the GIL); with a `KnownModel` whose functions are

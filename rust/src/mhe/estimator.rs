@@ -616,7 +616,9 @@ impl MovingHorizon {
     /// None if not computable, and the solver's report), all in one step: the next arrival prior
     /// is the new estimate (prediction form) or its one-step prediction m_x(x̄_t, u(t))
     /// (filtering form); when the next window starts one node later, the arrival cost moves with
-    /// it (the smoothed or filtered mean and the EKF weight, `arrival.rs`). Returns (x_window, x_prior of the window). On error nothing changes.
+    /// it (the smoothed or filtered mean and the EKF weight, `arrival.rs`). Returns (x_window,
+    /// x_prior of the window). On error nothing changes: [`MovingHorizon::finish`] computes
+    /// what may fail, [`MovingHorizon::apply`] records.
     pub fn commit(
         &mut self,
         model: &mut dyn StageModel,
