@@ -441,3 +441,41 @@ def test_a_bank_estimates_each_estimators_own_parameters_as_separate_estimators_
         _bank(PARAMETRISED, "filtering", **dict(P_SETTINGS, p0=np.full((K, 1), 0.8)))
     with pytest.raises(ValueError, match="^p0: required"):
         _bank(PARAMETRISED, "filtering")
+
+
+def test_weights_set_mid_run_on_a_bank_with_parameters_act_as_on_separate_estimators():
+    bank = _bank(PARAMETRISED, "prediction", **P_SETTINGS)
+    mhes = _separate(PARAMETRISED, "prediction", **P_SETTINGS)
+    for t in range(T):
+        if t == 6:
+            for est in [bank] + mhes:
+                est.P0 = 0.5 * np.eye(2)  # restarts the arrival weight of [x; p]
+        if t == 12:
+            bank.Q0 = Q0_FULL
+            for i, m in enumerate(mhes):
+                m.Q0 = Q0_FULL[i]
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+        _assert_same(bank, mhes)
+        assert_array_equal(bank.p, np.array([m.p for m in mhes]))
+        assert_array_equal(bank.P_p, np.array([m.P_p for m in mhes]))
+
+
+def test_an_exception_in_a_bank_with_parameters_leaves_every_estimator_and_p_unchanged():
+    def refuses(x, u, p):
+        if u[0] > 5.0:
+            raise ValueError("input out of range")
+        return _with_parameter(x, u, p)
+
+    model = KnownModel(refuses, _h_with_parameter, dim_x=2, dim_y=2, dim_u=1, dim_p=1)
+    bank = _bank(model, "filtering", **P_SETTINGS)
+    for t in range(3):
+        bank.update(U_DATA[t], Y_DATA[t])
+    before = {name: copy.deepcopy(getattr(bank, name)) for name in ("x", "P", "p", "P_p")}
+    U_bad = U_DATA[3].copy()
+    U_bad[3] = 9.0  # the last estimator fails after the others were solved
+    with pytest.raises(ValueError, match="input out of range"):
+        bank.update(U_bad, Y_DATA[3])
+    assert bank.t == 3
+    for name, value in before.items():
+        assert_array_equal(getattr(bank, name), value, err_msg=name)

@@ -143,6 +143,27 @@ def test_a_fleet_of_rotating_masses_each_estimating_its_own_inertia_runs_as_one_
             np.testing.assert_array_equal(bank.P_p, np.array([e.P_p for e in singles]))
 
 
+def test_a_fleet_with_parameters_takes_each_samples_interval_as_separate_estimators_do():
+    rng = np.random.default_rng(3)
+    k, steps = 2, 8
+    U = rm.random_inputs(steps, rng)
+    _, _, y = rm.simulate(steps, rng=rng)
+    Y = np.stack([y[:steps], y[:steps] + 0.01], axis=1)
+    dts = rm.T * rng.uniform(0.7, 1.3, (steps, k))
+    settings = dict(form="filtering", **rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
+    bank = EstimatorBank(rm.known_model(None, substeps=2), k, rm.initial_estimate(1), **settings)
+    singles = [GPMHE(rm.known_model(None, substeps=2), rm.initial_estimate(1), **settings)
+               for _ in range(k)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for t in range(steps):
+            bank.update(np.tile(U[t], (k, 1)), Y[t], dt=dts[t])
+            for i, est in enumerate(singles):
+                est.update(U[t], Y[t, i], dt=dts[t, i])
+    np.testing.assert_array_equal(bank.x, np.array([e.x for e in singles]))
+    np.testing.assert_array_equal(bank.p, np.array([e.p for e in singles]))
+
+
 # ---- the cache --------------------------------------------------------------------------------
 def replace(path, data):
     """`path` replaced by a new file holding `data`."""
