@@ -479,3 +479,45 @@ def test_an_exception_in_a_bank_with_parameters_leaves_every_estimator_and_p_unc
     assert bank.t == 3
     for name, value in before.items():
         assert_array_equal(getattr(bank, name), value, err_msg=name)
+
+
+@pytest.mark.parametrize("model, extra", [(LEARNED, {}), (PARAMETRISED, P_SETTINGS)],
+                         ids=["learned", "parameters"])
+def test_reset_restarts_every_estimator_as_separate_resets_do(model, extra):
+    bank, mhes = _bank(model, "filtering", **extra), _separate(model, "filtering", **extra)
+    for t in range(8):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    x0 = X0[::-1].copy()
+    x0[3] = [0.5, 0.2]  # inside estimator 3's box
+    p0 = np.array([[0.6], [0.7], [0.8], [0.9]]) if extra else None
+    bank.reset(x0, p0)
+    for i, m in enumerate(mhes):
+        m.reset(x0[i], None if p0 is None else p0[i])
+    assert bank.t == 0
+    _assert_same(bank, mhes)
+    for t in range(8, T):
+        bank.update(U_DATA[t], Y_DATA[t])
+        _step_separate(mhes, U_DATA[t], Y_DATA[t])
+    _assert_same(bank, mhes)
+    if extra:
+        assert_array_equal(bank.p, np.array([m.p for m in mhes]))
+
+
+def test_a_refused_reset_names_the_estimator_and_changes_nothing():
+    bank = _bank(PARAMETRISED, "prediction", **P_SETTINGS)
+    bank.update(U_DATA[0], Y_DATA[0])
+    x, p = bank.x.copy(), bank.p.copy()
+    outside = X0.copy()
+    outside[2] = [5.0, 0.0]  # estimator 2's box ends at 3
+    with pytest.raises(ValueError, match=r"^x0: must lie inside x_bounds \(estimator 2\)"):
+        bank.reset(outside)
+    with pytest.raises(ValueError, match=r"^p0: must lie inside p_bounds \(estimator 0\)"):
+        bank.reset(X0, p0=[2.0])
+    with pytest.raises(ValueError, match=r"^x0: expected shape"):
+        bank.reset(np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="^p0: the model has no parameters"):
+        _bank(KNOWN, "prediction").reset(X0, p0=[1.0])
+    assert bank.t == 1
+    assert_array_equal(bank.x, x)
+    assert_array_equal(bank.p, p)

@@ -623,6 +623,10 @@ class EstimatorBank:
     def member_state(self, i: int) -> dict[str, Any]:
         """Estimator i's `MovingHorizon.__getstate__`."""
         ...
+    def reset(self, indices: list[int], x0: _F) -> None:
+        """Restarts estimator `indices[j]` from row j of `x0` (the core's state x̂(0)); on error
+        no estimator changes."""
+        ...
     def add_delayed(self, i: int, y: _F, age: int, r: _F | None = None) -> None:
         """Record a late output for estimator i (`MovingHorizon.add_delayed`)."""
         ...

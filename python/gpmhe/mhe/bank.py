@@ -9,6 +9,7 @@ in parallel on every core for a `LearnedModel` or a CasADi model compiled in the
 
 from __future__ import annotations
 
+import dataclasses
 import operator
 import warnings
 
@@ -516,6 +517,63 @@ class EstimatorBank:
         R = None if R is None else _per_estimator("R", R, k, p).reshape(k, p * p)
         self._step(U, Y, present, R, self._intervals(dt))
         return self.x
+
+    def reset(self, x0, p0=None):
+        """Restart every estimator from a new initial estimate, as `GPMHE.reset` does for each.
+
+        Every estimator forgets its history (``t`` = 0): x̂(0) = its row of ``x0``, ``P`` =
+        ``P0``, p = its row of ``p0`` (the parameters' scale stays that of the constructor's
+        ``p0``) and ``P_p`` = ``P_p0``. The settings and the weights set since construction are
+        kept. Each estimator then continues as a `GPMHE` reset the same way.
+
+        Parameters
+        ----------
+        x0 : array_like of shape (dim_x,) or (n, dim_x)
+            The new initial estimates, one for all or one row per estimator; each must lie in
+            its estimator's ``x_bounds``.
+        p0 : array_like of shape (dim_p,) or (n, dim_p), or None, default None
+            New parameter guesses, one for all or one row per estimator, inside ``p_bounds``
+            (a model with parameters only); None: the constructor's ``p0``.
+
+        Raises
+        ------
+        ValueError
+            If ``x0`` or ``p0`` has the wrong shape, is not finite or lies outside its bounds
+            (naming the estimator); no estimator changes.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from gpmhe import EstimatorBank, KnownModel
+        >>> model = KnownModel(lambda x, u: 0.9 * x, lambda x, u: x, dim_x=1, dim_y=1)
+        >>> bank = EstimatorBank(model, 3, [0.0], horizon=3, Q0=0.1, R0=0.1)
+        >>> _ = bank.update(None, [[1.0], [1.0], [1.0]])
+        >>> bank.reset([[1.0], [2.0], [3.0]])
+        >>> bank.t, bank.x.ravel()
+        (0, array([1., 2., 3.]))
+        """
+        k = len(self)
+        x0 = _rows("x0", float_array("x0", x0), k, self.dim_x)
+        if p0 is None:
+            p0 = [None] * k
+        elif not self.dim_p:
+            raise ValueError("p0: the model has no parameters (dim_p = 0)")
+        else:
+            p0 = _rows("p0", float_array("p0", p0), k, self.dim_p)
+        lb, ub = self.x_bounds
+        core = []
+        for i in range(k):
+            settings = dataclasses.replace(self._settings, x_bounds=(lb[i], ub[i]))
+            try:
+                x, p = settings.check_state(x0[i], p0[i])
+            except ValueError as e:
+                raise ValueError(f"{e} (estimator {i})") from None
+            core.append(settings.core_state(x, p))
+        self._reset(list(range(k)), np.array(core))
+
+    @exclusive
+    def _reset(self, indices, x0):
+        self._core.reset(indices, x0)
 
     def _intervals(self, dt):
         """``dt`` checked as one interval per estimator (n,), or None."""

@@ -186,6 +186,25 @@ impl<M: Clone + ModelState> EstimatorBank<M> {
         self.members.get_mut(i)
     }
 
+    /// Restarts estimator i from x̂(0) = x0 ([`MovingHorizon::reset`]) for every (i, x0) of
+    /// `rows`; every row is checked first, so on error no estimator changes.
+    pub fn reset(&mut self, rows: &[(usize, &[f64])]) -> Result<()> {
+        let n = self.dims().0;
+        for &(i, x0) in rows {
+            if i >= self.len() {
+                return Err(Error::invalid("i", format!("no estimator {i}")));
+            }
+            check_len("x0", x0, n)?;
+            crate::error::check_finite("x0", x0)?;
+        }
+        for &(i, x0) in rows {
+            // Cannot fail after the checks (x̂(0)'s covariance P2⁻¹ exists for every estimator:
+            // P2 was accepted when the bank was built).
+            self.members[i].estimator.reset(x0)?;
+        }
+        Ok(())
+    }
+
     /// (dim_x, dim_u, dim_y) of the estimators.
     pub fn dims(&self) -> (usize, usize, usize) {
         let p = self.members[0].estimator.problem();

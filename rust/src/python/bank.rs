@@ -357,6 +357,25 @@ impl PyEstimatorBank {
         self.window(py, i)
     }
 
+    /// Restarts estimator `indices[j]` from row j of `x0` (its state x̂(0) as the core holds
+    /// it, see `MovingHorizon.reset`); on error no estimator changes.
+    fn reset(&mut self, indices: Vec<usize>, x0: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
+        let (data, k, n) = slice2("x0", &x0)?;
+        if k != indices.len() {
+            return Err(PyValueError::new_err(format!(
+                "x0: needs one row per index ({}), got {k}",
+                indices.len()
+            )));
+        }
+        let rows: Vec<(usize, &[f64])> = indices
+            .iter()
+            .enumerate()
+            .map(|(j, &i)| (i, &data[j * n..(j + 1) * n]))
+            .collect();
+        with_bank!(&mut self.inner, b => b.reset(&rows))?;
+        Ok(())
+    }
+
     /// Records a late output for estimator i (see `MovingHorizon.add_delayed`); on error
     /// nothing changes.
     #[pyo3(signature = (i, y, age, r=None))]
