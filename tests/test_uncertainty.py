@@ -236,6 +236,10 @@ def test_smooth_is_the_rts_smoother_of_the_whole_run_and_changes_nothing():
         np.testing.assert_allclose(Ps, Psm, atol=1e-8)
         np.testing.assert_allclose(Ps, Ps_r, atol=1e-8)  # filterpy's covariances agree
         assert est.t == 0 and est.horizon == 4 and est.form == form
+        xs0, Ps0 = est.smooth([], [])  # an empty run: no node, as batch_filter gives none
+        assert xs0.shape == (0, 2) and Ps0.shape == (0, 2, 2) and est.t == 0
+        with pytest.raises(ValueError, match="^ys, us: ys has 0 rows but us has 2"):
+            est.smooth([], us[:2])
         est.update(us[0], ys[0])
         with pytest.raises(ValueError, match="^smooth: the estimator has been updated"):
             est.smooth(ys, us)

@@ -146,6 +146,8 @@ class Runs:
             raise ValueError(f"smooth: the estimator has been updated (t = {self.t}); smooth "
                              "from a new estimator (or after reset)")
         ys = sequence_rows("ys", ys)
+        if not len(ys):  # an empty run has no node: batch_filter's empty arrays (it checks the
+            return self.batch_filter(ys, us, Rs, dts)  # other sequences and changes nothing)
         options = dict(self._settings.solver_options)
         if self.solver == "gauss-newton":  # off-line: to the gradient tolerance unless told
             options.setdefault("dtol", 0.0)
