@@ -560,6 +560,45 @@ mod tests {
     }
 
     #[test]
+    fn reset_checks_every_row_first_and_restarts_the_estimators() {
+        let model = Scalar {
+            fail_above: 100.0,
+            delay: Duration::ZERO,
+            calls: Default::default(),
+        };
+        let set = [settings(0.0, 0.1), settings(1.0, 0.5)];
+        let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
+        let sample = BankSample {
+            u: &[0.1, 0.2],
+            y: &[1.0, 2.0],
+            present: &[true, true],
+            r: None,
+            u_last: None,
+        };
+        bank.par_update(sample).unwrap();
+        let before: Vec<_> = bank
+            .members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect();
+        // A bad second row: the first is not applied either.
+        assert!(bank.reset(&[(0, &[3.0]), (1, &[f64::NAN])]).is_err());
+        assert!(bank.reset(&[(0, &[3.0]), (2, &[1.0])]).is_err());
+        assert!(bank.reset(&[(0, &[3.0, 1.0])]).is_err());
+        let after: Vec<_> = bank
+            .members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect();
+        assert_eq!(before, after);
+        bank.reset(&[(0, &[3.0]), (1, &[-1.0])]).unwrap();
+        for (m, x0) in bank.members().iter().zip([3.0, -1.0]) {
+            assert_eq!(m.estimator.history().t(), 0);
+            assert_eq!(m.estimator.history().x_window().0, &[x0]);
+        }
+    }
+
+    #[test]
     fn an_interrupt_stops_the_update_and_leaves_every_estimator_unchanged() {
         let model = Scalar {
             fail_above: 100.0,
