@@ -334,13 +334,12 @@ class EstimatorBank:
     @property
     def p(self):
         """The estimates of the parameters (n, dim_p) (`GPMHE.p`; no columns without)."""
-        return np.array([self._settings.scaling.parameters(z) for z in self._core.x])
+        return self._settings.scaling.parameters(self._core.x)
 
     @property
     def P_p(self):  # noqa: N802
         """The covariances of ``p`` (n, dim_p, dim_p) (`GPMHE.P_p`)."""
-        scaling = self._settings.scaling
-        return np.array([scaling.parameter_covariance(c) for c in self._core.covariance])
+        return self._settings.scaling.parameter_covariance(self._core.covariance)
 
     @property
     def cost(self):

@@ -129,8 +129,8 @@ class Scaling:
         return scipy.linalg.block_diag(P2, s[:, None] * np.linalg.inv(P_p0) * s[None, :])
 
     def parameters(self, z):
-        """p from the augmented state z."""
-        return z[self.n:] * self.s
+        """p from the augmented state z (or the rows of a stack of them, (..., n + k))."""
+        return z[..., self.n:] * self.s
 
     def covariance(self, P, P_p):
         """The covariance of [x; p̃] from those of x and p (no cross-covariance)."""
@@ -139,6 +139,6 @@ class Scaling:
         return scipy.linalg.block_diag(P, P_p / np.outer(self.s, self.s))
 
     def parameter_covariance(self, C):
-        """The covariance of p from that of [x; p̃]."""
+        """The covariance of p from that of [x; p̃] (or of each of a stack, (..., n + k, n + k))."""
         n, s = self.n, self.s
-        return s[:, None] * C[n:, n:] * s[None, :]
+        return s[:, None] * C[..., n:, n:] * s[None, :]
