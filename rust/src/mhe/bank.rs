@@ -398,7 +398,7 @@ pub fn bank_threads() -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mhe::{Form, StageEval, StageModel};
+    use crate::mhe::{Form, HistoryState, StageEval, StageModel};
     use crate::solver::SolverOptions;
 
     /// x(t+1) = 0.9 x + u, y = x; fails (bad output) at u ≥ `fail_above`; each evaluation
@@ -459,6 +459,31 @@ mod tests {
         .unwrap()
     }
 
+    fn scalar(fail_above: f64, delay: Duration) -> Scalar {
+        Scalar {
+            fail_above,
+            delay,
+            calls: Default::default(),
+        }
+    }
+
+    fn sample<'a>(u: &'a [f64], y: &'a [f64], present: &'a [bool]) -> BankSample<'a> {
+        BankSample {
+            u,
+            y,
+            present,
+            r: None,
+            u_last: None,
+        }
+    }
+
+    fn histories<M: Clone + ModelState>(bank: &EstimatorBank<M>) -> Vec<HistoryState> {
+        bank.members()
+            .iter()
+            .map(|m| m.estimator.history_state())
+            .collect()
+    }
+
     fn settings(x0: f64, r0: f64) -> MemberSettings {
         MemberSettings {
             x0: vec![x0],
@@ -471,11 +496,7 @@ mod tests {
 
     #[test]
     fn the_bank_matches_lone_estimators_bit_for_bit() {
-        let model = Scalar {
-            fail_above: 100.0,
-            delay: Duration::ZERO,
-            calls: Default::default(),
-        };
+        let model = scalar(100.0, Duration::ZERO);
         let set = [settings(0.0, 0.1), settings(1.0, 0.5), settings(-2.0, 0.2)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
         let mut lone: Vec<_> = bank.members().to_vec();
@@ -483,13 +504,7 @@ mod tests {
             let u = [0.1 * t as f64, 0.0, -0.1];
             let y = [1.0, 2.0 + t as f64, 0.5];
             let present = [true, t % 2 == 0, true];
-            let sample = BankSample {
-                u: &u,
-                y: &y,
-                present: &present,
-                r: None,
-                u_last: None,
-            };
+            let sample = sample(&u, &y, &present);
             let reports = if t % 2 == 0 {
                 bank.par_update(sample).unwrap()
             } else {
@@ -511,85 +526,37 @@ mod tests {
 
     #[test]
     fn an_error_leaves_every_estimator_unchanged() {
-        let model = Scalar {
-            fail_above: 5.0,
-            delay: Duration::ZERO,
-            calls: Default::default(),
-        };
+        let model = scalar(5.0, Duration::ZERO);
         let set = [settings(0.0, 0.1), settings(0.0, 0.1)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
-        let ok = BankSample {
-            u: &[0.0, 0.0],
-            y: &[1.0, 1.0],
-            present: &[true, true],
-            r: None,
-            u_last: None,
-        };
+        let ok = sample(&[0.0, 0.0], &[1.0, 1.0], &[true, true]);
         bank.par_update(ok).unwrap();
-        let before: Vec<_> = bank
-            .members()
-            .iter()
-            .map(|m| m.estimator.history_state())
-            .collect();
+        let before = histories(&bank);
         // Estimator 1's input is outside the model's range: its update fails, 0's is undone.
-        let bad = BankSample {
-            u: &[0.0, 9.0],
-            y: &[1.0, 9.0],
-            present: &[true, true],
-            r: None,
-            u_last: None,
-        };
+        let bad = sample(&[0.0, 9.0], &[1.0, 9.0], &[true, true]);
         assert!(bank.par_update(bad).is_err());
         assert!(bank.update_each(bad, |e, m, row| row.solve(e, m)).is_err());
-        let after: Vec<_> = bank
-            .members()
-            .iter()
-            .map(|m| m.estimator.history_state())
-            .collect();
+        let after = histories(&bank);
         assert_eq!(before, after);
         // Wrong sizes are refused up front.
-        let short = BankSample {
-            u: &[0.0],
-            y: &[1.0, 1.0],
-            present: &[true, true],
-            r: None,
-            u_last: None,
-        };
+        let short = sample(&[0.0], &[1.0, 1.0], &[true, true]);
         assert!(bank.par_update(short).is_err());
         assert!(EstimatorBank::new(&template(), &model, &[]).is_err());
     }
 
     #[test]
     fn reset_checks_every_row_first_and_restarts_the_estimators() {
-        let model = Scalar {
-            fail_above: 100.0,
-            delay: Duration::ZERO,
-            calls: Default::default(),
-        };
+        let model = scalar(100.0, Duration::ZERO);
         let set = [settings(0.0, 0.1), settings(1.0, 0.5)];
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
-        let sample = BankSample {
-            u: &[0.1, 0.2],
-            y: &[1.0, 2.0],
-            present: &[true, true],
-            r: None,
-            u_last: None,
-        };
+        let sample = sample(&[0.1, 0.2], &[1.0, 2.0], &[true, true]);
         bank.par_update(sample).unwrap();
-        let before: Vec<_> = bank
-            .members()
-            .iter()
-            .map(|m| m.estimator.history_state())
-            .collect();
+        let before = histories(&bank);
         // A bad second row: the first is not applied either.
         assert!(bank.reset(&[(0, &[3.0]), (1, &[f64::NAN])]).is_err());
         assert!(bank.reset(&[(0, &[3.0]), (2, &[1.0])]).is_err());
         assert!(bank.reset(&[(0, &[3.0, 1.0])]).is_err());
-        let after: Vec<_> = bank
-            .members()
-            .iter()
-            .map(|m| m.estimator.history_state())
-            .collect();
+        let after = histories(&bank);
         assert_eq!(before, after);
         bank.reset(&[(0, &[3.0]), (1, &[-1.0])]).unwrap();
         for (m, x0) in bank.members().iter().zip([3.0, -1.0]) {
@@ -600,28 +567,14 @@ mod tests {
 
     #[test]
     fn an_interrupt_stops_the_update_and_leaves_every_estimator_unchanged() {
-        let model = Scalar {
-            fail_above: 100.0,
-            delay: Duration::from_millis(1),
-            calls: Default::default(),
-        };
+        let model = scalar(100.0, Duration::from_millis(1));
         // 200 estimators of several 1 ms evaluations each: a whole update takes several times
         // the interrupt check's interval on any pool.
         let set: Vec<_> = (0..200).map(|i| settings(i as f64 * 0.02, 0.1)).collect();
         let mut bank = EstimatorBank::new(&template(), &model, &set).unwrap();
         let (u, y, present) = (vec![0.0; 200], vec![1.0; 200], vec![true; 200]);
-        let sample = BankSample {
-            u: &u,
-            y: &y,
-            present: &present,
-            r: None,
-            u_last: None,
-        };
-        let before: Vec<_> = bank
-            .members()
-            .iter()
-            .map(|m| m.estimator.history_state())
-            .collect();
+        let sample = sample(&u, &y, &present);
+        let before = histories(&bank);
         let _guard = crate::interrupt::install(|| Err(Error::interrupted("test")));
         let err = bank.par_update(sample).unwrap_err();
         assert_eq!(err, Error::interrupted("test"));
@@ -642,11 +595,7 @@ mod tests {
             calls * 2 < full,
             "{calls} of {full} evaluations after an interrupt"
         );
-        let after: Vec<_> = bank
-            .members()
-            .iter()
-            .map(|m| m.estimator.history_state())
-            .collect();
+        let after = histories(&bank);
         assert_eq!(before, after);
     }
 }
