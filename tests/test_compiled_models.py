@@ -115,6 +115,30 @@ def test_a_compiled_bank_runs_in_parallel_and_equals_separate_estimators():
         np.testing.assert_array_equal(bank.P, np.array([e.P for e in singles]))
 
 
+def fleet(k, singles_native):
+    """A compiled bank of k rotating-mass estimators of Θ1 and k separate ones (their model
+    compiled or called back)."""
+    settings = dict(form="filtering", **rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
+    bank = EstimatorBank(rm.known_model(None, substeps=2), k, rm.initial_estimate(1), **settings)
+    singles = [GPMHE(rm.known_model(None, substeps=2, native=singles_native),
+                     rm.initial_estimate(1), **settings) for _ in range(k)]
+    return bank, singles
+
+
+def run_fleet(bank, singles, U, Y, dts=None):
+    """Each sample into the bank and the separate estimators; x, p and P_p equal after each."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # early windows stop at max-iterations
+        for t in range(len(Y)):
+            bank.update(np.tile(U[t], (len(singles), 1)), Y[t],
+                        **({} if dts is None else {"dt": dts[t]}))
+            for i, est in enumerate(singles):
+                est.update(U[t], Y[t, i], **({} if dts is None else {"dt": dts[t, i]}))
+            for name in ("x", "p", "P_p"):
+                np.testing.assert_array_equal(getattr(bank, name),
+                                              np.array([getattr(e, name) for e in singles]))
+
+
 def test_a_fleet_of_rotating_masses_each_estimating_its_own_inertia_runs_as_one_bank():
     rng = np.random.default_rng(2)
     k, steps = 4, 12
@@ -126,21 +150,9 @@ def test_a_fleet_of_rotating_masses_each_estimating_its_own_inertia_runs_as_one_
         for t in range(steps):
             Y[t, i] = x[:3] + 0.01 * rng.normal(size=3)
             x = truth.predict(x, U[t])
-    model = rm.known_model(None, substeps=2)
-    settings = dict(form="filtering", **rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
-    bank = EstimatorBank(model, k, rm.initial_estimate(1), **settings)
+    bank, singles = fleet(k, singles_native=False)
     assert bank._core.parallel and bank.dim_p == 1
-    singles = [GPMHE(rm.known_model(None, substeps=2, native=False), rm.initial_estimate(1),
-                     **settings) for _ in range(k)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # early windows stop at max-iterations
-        for t in range(steps):
-            bank.update(np.tile(U[t], (k, 1)), Y[t])
-            for i, est in enumerate(singles):
-                est.update(U[t], Y[t, i])
-            np.testing.assert_array_equal(bank.x, np.array([e.x for e in singles]))
-            np.testing.assert_array_equal(bank.p, np.array([e.p for e in singles]))
-            np.testing.assert_array_equal(bank.P_p, np.array([e.P_p for e in singles]))
+    run_fleet(bank, singles, U, Y)
 
 
 def test_a_fleet_with_parameters_takes_each_samples_interval_as_separate_estimators_do():
@@ -150,18 +162,7 @@ def test_a_fleet_with_parameters_takes_each_samples_interval_as_separate_estimat
     _, _, y = rm.simulate(steps, rng=rng)
     Y = np.stack([y[:steps], y[:steps] + 0.01], axis=1)
     dts = rm.T * rng.uniform(0.7, 1.3, (steps, k))
-    settings = dict(form="filtering", **rm.MHE_SETTINGS, **rm.PARAMETER_SETTINGS)
-    bank = EstimatorBank(rm.known_model(None, substeps=2), k, rm.initial_estimate(1), **settings)
-    singles = [GPMHE(rm.known_model(None, substeps=2), rm.initial_estimate(1), **settings)
-               for _ in range(k)]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for t in range(steps):
-            bank.update(np.tile(U[t], (k, 1)), Y[t], dt=dts[t])
-            for i, est in enumerate(singles):
-                est.update(U[t], Y[t, i], dt=dts[t, i])
-    np.testing.assert_array_equal(bank.x, np.array([e.x for e in singles]))
-    np.testing.assert_array_equal(bank.p, np.array([e.p for e in singles]))
+    run_fleet(*fleet(k, singles_native=True), U, Y, dts)
 
 
 # ---- the cache --------------------------------------------------------------------------------
