@@ -16,29 +16,21 @@
 // better than zipped iterator chains.
 #![allow(clippy::needless_range_loop)]
 
-use super::block_tridiag::block_tridiag_matvec;
 use super::box_lsq::{
     finite_lower, finite_upper, Limits, Progress, ARMIJO, DTOL_MAX_LAMBDA, EXTRAP_MAX, NOISE,
     NOISE_MAX, NOISE_PG,
 };
 use super::correction::STIFF;
 use super::damping::{LmState, LAMBDA_RESTART};
+use super::hessian::GnHessian;
 use super::{projected_gradient_norm, BlockLsqProblem, BoxLsqSolver, SolverOptions, Status};
 use crate::error::{Error, Result};
 use crate::interrupt;
 
-/// −(gᵀs + ½ sᵀHs): the decrease of J the Gauss-Newton model predicts for the step s, with H
-/// given by its block-tridiagonal blocks (`hp` is scratch for Hs).
-fn model_decrease(
-    nodes: usize,
-    n: usize,
-    diag: &[f64],
-    off: &[f64],
-    g: &[f64],
-    s: &[f64],
-    hp: &mut [f64],
-) -> f64 {
-    block_tridiag_matvec(nodes, n, diag, off, s, hp);
+/// −(gᵀs + ½ sᵀHs): the decrease of J the Gauss-Newton model predicts for the step s (`hp` is
+/// scratch for Hs).
+fn model_decrease(h: &GnHessian, g: &[f64], s: &[f64], hp: &mut [f64]) -> f64 {
+    h.matvec(s, hp);
     -(0..s.len())
         .map(|k| g[k] * s[k] + 0.5 * s[k] * hp[k])
         .sum::<f64>()
@@ -120,7 +112,6 @@ impl BoxLsqSolver {
         pr: &mut Progress,
         st: &mut LmState,
     ) -> Result<Option<Status>> {
-        let (nodes, n) = (prob.n_nodes(), prob.node_dim());
         let Limits { lower, upper, opts } = lim;
         let pg = projected_gradient_norm(z, &self.g, lower, upper);
         if pg <= opts.gtol {
@@ -130,8 +121,8 @@ impl BoxLsqSolver {
             return Ok(Some(Status::MaxIterations));
         }
         pr.nit += 1;
-        self.hold_active(n, z, lower, upper, st.lambda);
-        if !self.reduced_step(nodes, n, z, lower, upper) {
+        self.hold_active(z, lower, upper, st.lambda);
+        if !self.reduced_step(z, lower, upper) {
             return Ok(st.damp_harder(LAMBDA_RESTART).then_some(Status::NoProgress));
         }
         let (clipped, pnorm, znorm) = self.project_step(z, lower, upper);
@@ -139,17 +130,9 @@ impl BoxLsqSolver {
             return Ok(Some(Status::StepTolerance));
         }
         let known_noise = st.noise_est.max(self.noise_at_z);
-        let mut pred = model_decrease(
-            nodes,
-            n,
-            &self.diag,
-            &self.off,
-            &self.g,
-            &self.work.step,
-            &mut self.work.hp,
-        );
+        let mut pred = model_decrease(&self.h, &self.g, &self.work.step, &mut self.work.hp);
         if clipped {
-            pred = self.improve_clipped_step(nodes, n, z, lower, upper, pred);
+            pred = self.improve_clipped_step(z, lower, upper, pred);
         }
         let cand = Candidate {
             pg,
@@ -195,19 +178,12 @@ impl BoxLsqSolver {
     /// gradient pushing outward is held on that bound, with ε the size of the diagonally scaled
     /// projected-gradient step (capped), so that variables creeping towards a bound are caught
     /// instead of producing tiny projected steps.
-    pub(super) fn hold_active(
-        &mut self,
-        n: usize,
-        z: &[f64],
-        lower: &[f64],
-        upper: &[f64],
-        lambda: f64,
-    ) {
+    pub(super) fn hold_active(&mut self, z: &[f64], lower: &[f64], upper: &[f64], lambda: f64) {
         let len = z.len();
-        let floor = self.scale_floor(n);
+        let floor = self.scale_floor();
         let mut eps = 0.0f64;
         for k in 0..len {
-            let d = self.scale(n, k, floor);
+            let d = self.scale(k, floor);
             eps = eps.max((z[k] - (z[k] - self.g[k] / d).clamp(lower[k], upper[k])).abs());
         }
         for k in 0..len {
@@ -216,7 +192,7 @@ impl BoxLsqSolver {
             let at_l = finite_lower(lower[k]) && z[k] - lower[k] <= e_l && self.g[k] > 0.0;
             let at_u = finite_upper(upper[k]) && upper[k] - z[k] <= e_u && self.g[k] < 0.0;
             self.work.fixed[k] = self.fixed_bound[k] || at_l || at_u;
-            self.work.shift[k] = lambda * self.scale(n, k, floor);
+            self.work.shift[k] = lambda * self.scale(k, floor);
         }
     }
 
@@ -225,14 +201,7 @@ impl BoxLsqSolver {
     /// crosses a bound while the gradient pushes outward join the held set and the step is
     /// recomputed (a few passes; factorisations are cheap next to evaluations). False if the
     /// damped matrix is not positive definite or the step is not finite.
-    pub(super) fn reduced_step(
-        &mut self,
-        nodes: usize,
-        n: usize,
-        z: &[f64],
-        lower: &[f64],
-        upper: &[f64],
-    ) -> bool {
+    pub(super) fn reduced_step(&mut self, z: &[f64], lower: &[f64], upper: &[f64]) -> bool {
         let len = z.len();
         let w = &mut self.work;
         let mut ok = false;
@@ -245,7 +214,7 @@ impl BoxLsqSolver {
                     0.0
                 };
             }
-            block_tridiag_matvec(nodes, n, &self.diag, &self.off, &w.trial, &mut w.hp);
+            self.h.matvec(&w.trial, &mut w.hp);
             for k in 0..len {
                 w.step[k] = if w.fixed[k] {
                     0.0
@@ -253,9 +222,7 @@ impl BoxLsqSolver {
                     -self.g[k] - w.hp[k]
                 };
             }
-            ok = self
-                .chol
-                .factor(nodes, n, &self.diag, &self.off, &w.shift, &w.fixed);
+            ok = self.chol.factor(&self.h, &w.shift, &w.fixed);
             if !ok {
                 break;
             }
@@ -315,8 +282,6 @@ impl BoxLsqSolver {
     ///    while a shorter one along the arc still descends.
     fn improve_clipped_step(
         &mut self,
-        nodes: usize,
-        n: usize,
         z: &[f64],
         lower: &[f64],
         upper: &[f64],
@@ -338,8 +303,8 @@ impl BoxLsqSolver {
         for k in 0..len {
             c.truncated[k] *= a;
         }
-        let (diag, off, g) = (&self.diag, &self.off, &self.g);
-        let pred_t = model_decrease(nodes, n, diag, off, g, &c.truncated, &mut w.hp);
+        let (h, g) = (&self.h, &self.g);
+        let pred_t = model_decrease(h, g, &c.truncated, &mut w.hp);
         if pred_t > pred {
             pred = pred_t;
             for k in 0..len {
@@ -353,7 +318,7 @@ impl BoxLsqSolver {
             for k in 0..len {
                 c.arc[k] = (z[k] + alpha * c.unprojected[k]).clamp(lower[k], upper[k]) - z[k];
             }
-            let pred_a = model_decrease(nodes, n, diag, off, g, &c.arc, &mut w.hp);
+            let pred_a = model_decrease(h, g, &c.arc, &mut w.hp);
             if pred_a > pred {
                 pred = pred_a;
                 for k in 0..len {

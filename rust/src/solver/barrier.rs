@@ -119,7 +119,7 @@ impl BoxLsqSolver {
                 continue;
             }
             pr.nit += 1;
-            if !self.barrier_step(prob.n_nodes(), prob.node_dim(), z, lower, upper, mu, lambda) {
+            if !self.barrier_step(z, lower, upper, mu, lambda) {
                 lambda = (10.0 * lambda).max(1e-8);
                 if lambda > LAMBDA_MAX {
                     break;
@@ -248,15 +248,13 @@ impl BoxLsqSolver {
     #[allow(clippy::too_many_arguments)]
     fn barrier_step(
         &mut self,
-        nodes: usize,
-        n: usize,
         z: &[f64],
         lower: &[f64],
         upper: &[f64],
         mu: f64,
         lambda: f64,
     ) -> bool {
-        let floor = self.scale_floor(n);
+        let floor = self.scale_floor();
         for k in 0..z.len() {
             let (sl, su) = (z[k] - lower[k], upper[k] - z[k]);
             let mut sigma = 0.0;
@@ -269,13 +267,11 @@ impl BoxLsqSolver {
                 sigma += self.duals.yu[k] / su;
                 rhs -= mu / su;
             }
-            self.work.shift[k] = sigma + lambda * self.scale(n, k, floor);
+            self.work.shift[k] = sigma + lambda * self.scale(k, floor);
             self.work.step[k] = if self.work.fixed[k] { 0.0 } else { rhs };
         }
         let w = &mut self.work;
-        let ok = self
-            .chol
-            .factor(nodes, n, &self.diag, &self.off, &w.shift, &w.fixed);
+        let ok = self.chol.factor(&self.h, &w.shift, &w.fixed);
         if ok {
             self.chol.solve_in_place(&mut w.step);
         }

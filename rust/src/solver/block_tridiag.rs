@@ -95,6 +95,11 @@ impl BlockTridiagCholesky {
         true
     }
 
+    /// The block size n.
+    pub fn block_dim(&self) -> usize {
+        self.n
+    }
+
     /// Solves A x = b in place (after a successful [`factor`](Self::factor)).
     pub fn solve_in_place(&self, b: &mut [f64]) {
         let n = self.n;

@@ -6,7 +6,9 @@
 // better than zipped iterator chains.
 #![allow(clippy::needless_range_loop)]
 
-use super::block_tridiag::{BlockTridiagCholesky, InverseBlocks};
+use super::block_tridiag::InverseBlocks;
+use super::bordered::BorderedCholesky;
+use super::hessian::GnHessian;
 use super::{
     projected_gradient_norm, BlockLsqProblem, InteriorMode, SolveReport, SolverOptions, Status,
 };
@@ -14,18 +16,17 @@ use crate::error::{check_finite, check_len, Error, Result};
 
 /// Work buffers of the solver, reused across calls (nothing is allocated once sized).
 ///
-/// `g`, `diag`, `off` and the two noise estimates always describe one point (the current z
+/// `g`, `h` and the two noise estimates always describe one point (the current z
 /// whenever [`Progress::derivs_at_z`] holds); the scratch vectors are grouped by who uses them.
 #[derive(Debug, Default, Clone)]
 pub struct BoxLsqSolver {
-    pub(super) chol: BlockTridiagCholesky,
+    pub(super) chol: BorderedCholesky,
     /// The projected start, kept while the (non-monotone) barrier phase runs.
     pub(super) z0: Vec<f64>,
     /// Gradient 2Jᵀr of the last point taken.
     pub(super) g: Vec<f64>,
-    /// Gauss-Newton blocks 2JᵀJ of the last point taken (as in [`BlockLsqProblem`]).
-    pub(super) diag: Vec<f64>,
-    pub(super) off: Vec<f64>,
+    /// Gauss-Newton Hessian 2JᵀJ of the last point taken.
+    pub(super) h: GnHessian,
     /// Variables fixed by lower == upper.
     pub(super) fixed_bound: Vec<bool>,
     /// The damped Gauss-Newton step of either phase.
@@ -36,13 +37,9 @@ pub struct BoxLsqSolver {
     pub(super) clip: ClipWork,
     /// The state of z kept while the active-set phase corrects a step (`correction.rs`).
     pub(super) saved: super::correction::Saved,
-    /// The problem's cost and gradient noise at the point whose derivatives are in `g`, `diag`,
-    /// `off`.
+    /// The problem's cost and gradient noise at the point whose derivatives are in `g` and `h`.
     pub(super) noise_at_z: f64,
     pub(super) gnoise_at_z: f64,
-    /// Window size of the last `solve` (0 before any).
-    pub(super) nodes: usize,
-    pub(super) n: usize,
 }
 
 /// The linear system (H + diag(shift)) step = rhs with the `fixed` variables held, and the
@@ -123,7 +120,8 @@ pub(super) fn finite_upper(u: f64) -> bool {
     u < f64::INFINITY
 }
 
-/// The checks of [`BoxLsqSolver::solve`]'s arrays, naming the bad argument (`len` = nodes · n).
+/// The checks of [`BoxLsqSolver::solve`]'s arrays, naming the bad argument (`len` = nodes · n
+/// + global variables).
 fn check_inputs(len: usize, z: &[f64], lower: &[f64], upper: &[f64]) -> Result<()> {
     if len == 0 {
         return Err(Error::invalid("z", "the problem has no variables"));
@@ -149,10 +147,9 @@ impl BoxLsqSolver {
         Self::default()
     }
 
-    fn resize(&mut self, nodes: usize, n: usize) {
-        (self.nodes, self.n) = (nodes, n);
-        let len = nodes * n;
-        let nn = n * n;
+    fn resize(&mut self, nodes: usize, n: usize, m: usize) {
+        self.h.resize(nodes, n, m);
+        let len = nodes * n + m;
         for v in [
             &mut self.g,
             &mut self.work.shift,
@@ -171,33 +168,24 @@ impl BoxLsqSolver {
         }
         self.work.fixed.resize(len, false);
         self.fixed_bound.resize(len, false);
-        self.diag.resize(nodes * nn, 0.0);
-        self.off.resize(nodes.saturating_sub(1) * nn, 0.0);
     }
 
     pub(super) fn take_derivatives<P: BlockLsqProblem + ?Sized>(&mut self, prob: &P) {
         self.noise_at_z = prob.cost_noise();
         self.gnoise_at_z = prob.gradient_noise();
         prob.gradient_into(&mut self.g);
-        prob.gauss_newton_blocks_into(&mut self.diag, &mut self.off);
+        self.h.take(prob);
     }
 
     /// Marquardt scaling: the diagonal of the Gauss-Newton Hessian, floored at
     /// [`Self::scale_floor`] (computed once by the caller for a whole loop over k).
-    pub(super) fn scale(&self, n: usize, k: usize, floor: f64) -> f64 {
-        let (i, r) = (k / n, k % n);
-        self.diag[i * n * n + r * n + r].max(floor)
+    pub(super) fn scale(&self, k: usize, floor: f64) -> f64 {
+        self.h.diagonal(k).max(floor)
     }
 
-    /// The floor of the Marquardt scaling: 1e-10 × the largest magnitude among every
-    /// (n + 1)-th entry of the Gauss-Newton blocks (at least 1e-10).
-    pub(super) fn scale_floor(&self, n: usize) -> f64 {
-        1e-10
-            * self
-                .diag
-                .iter()
-                .step_by(n + 1)
-                .fold(1.0f64, |a, &b| a.max(b.abs()))
+    /// The floor of the Marquardt scaling ([`GnHessian::scale_floor`]).
+    pub(super) fn scale_floor(&self) -> f64 {
+        self.h.scale_floor()
     }
 
     /// 4·sym(last n×n block of H⁻¹), H the Gauss-Newton Hessian at the point the last successful
@@ -206,14 +194,14 @@ impl BoxLsqSolver {
     /// solve, or if H is singular or the block is not finite.
     pub fn last_node_covariance(&mut self) -> Option<Vec<f64>> {
         let b = self.undamped_inverse_blocks(InverseBlocks::Last)?;
-        Some(symmetrised(&b, self.n))
+        Some(symmetrised(&b, self.h.n))
     }
 
     /// 4·sym of every diagonal n×n block of H⁻¹ (nodes × n × n; see `last_node_covariance`,
     /// whose block is the last one, bit for bit): the Laplace covariance of every node of the
     /// window. None as for `last_node_covariance`.
     pub fn window_covariance(&mut self) -> Option<Vec<f64>> {
-        let n = self.n;
+        let n = self.h.n;
         let b = self.undamped_inverse_blocks(InverseBlocks::All)?;
         Some(
             b.chunks(n * n)
@@ -226,15 +214,14 @@ impl BoxLsqSolver {
     /// solver's own factor with its own scratch (`shift`, `fixed`), so no per-update allocation
     /// of blocks.
     fn undamped_inverse_blocks(&mut self, which: InverseBlocks) -> Option<Vec<f64>> {
-        if self.nodes == 0 {
+        if self.h.nodes == 0 {
             return None;
         }
         self.work.shift.fill(0.0);
         self.work.fixed.fill(false);
-        let (diag, off, work) = (&self.diag, &self.off, &self.work);
         if !self
             .chol
-            .factor(self.nodes, self.n, diag, off, &work.shift, &work.fixed)
+            .factor(&self.h, &self.work.shift, &self.work.fixed)
         {
             return None;
         }
@@ -257,10 +244,10 @@ impl BoxLsqSolver {
         opts: &SolverOptions,
     ) -> Result<SolveReport> {
         opts.validate()?;
-        let (nodes, n) = (prob.n_nodes(), prob.node_dim());
-        let len = nodes * n;
+        let (nodes, n, m) = (prob.n_nodes(), prob.node_dim(), prob.global_dim());
+        let len = nodes * n + m;
         check_inputs(len, z, lower, upper)?;
-        self.resize(nodes, n);
+        self.resize(nodes, n, m);
         for k in 0..len {
             z[k] = z[k].clamp(lower[k], upper[k]);
             self.fixed_bound[k] = lower[k] == upper[k];
@@ -395,50 +382,7 @@ fn symmetrised(b: &[f64], n: usize) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solver::test_problem::{random_z, strict, Synthetic};
-
-    /// Reference: projected gradient descent with Armijo backtracking on the dense problem,
-    /// many iterations (slow but independent of the Gauss-Newton machinery).
-    fn reference_projected_gradient(
-        p: &mut Synthetic,
-        z0: &[f64],
-        lo: &[f64],
-        hi: &[f64],
-    ) -> (Vec<f64>, f64) {
-        let mut z: Vec<f64> = z0
-            .iter()
-            .zip(lo.iter().zip(hi))
-            .map(|(&v, (&l, &u))| v.clamp(l, u))
-            .collect();
-        let mut c = p.evaluate(&z, true).unwrap();
-        let mut g = vec![0.0; z.len()];
-        let mut step = 1.0;
-        for _ in 0..1500 {
-            p.gradient_into(&mut g);
-            if projected_gradient_norm(&z, &g, lo, hi) < 1e-9 {
-                break;
-            }
-            step *= 4.0;
-            loop {
-                let zt: Vec<f64> = (0..z.len())
-                    .map(|k| (z[k] - step * g[k]).clamp(lo[k], hi[k]))
-                    .collect();
-                let dec: f64 = (0..z.len()).map(|k| g[k] * (z[k] - zt[k])).sum();
-                let ct = p.evaluate(&zt, true).unwrap();
-                if ct <= c - 1e-4 * dec {
-                    z = zt;
-                    c = ct;
-                    break;
-                }
-                step *= 0.5;
-                p.evaluate(&z, true).unwrap();
-                if step < 1e-20 {
-                    return (z, c);
-                }
-            }
-        }
-        (z, c)
-    }
+    use crate::solver::test_problem::{random_z, reference_projected_gradient, strict, Synthetic};
 
     #[test]
     fn unconstrained_solution_is_stationary_and_matches_reference() {

@@ -26,6 +26,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::box_lsq::{Limits, Progress, ARMIJO};
+use super::hessian::GnHessian;
 use super::{BlockLsqProblem, BoxLsqSolver};
 use crate::error::{Error, Result};
 
@@ -40,8 +41,7 @@ const RESTORE_STEPS: usize = 3;
 #[derive(Debug, Default, Clone)]
 pub(super) struct Saved {
     g: Vec<f64>,
-    diag: Vec<f64>,
-    off: Vec<f64>,
+    h: GnHessian,
     step: Vec<f64>,
     trial: Vec<f64>,
     fixed: Vec<bool>,
@@ -52,10 +52,10 @@ impl BoxLsqSolver {
     /// κ = sᵀHs / sᵀDs for the step in `work.step` over the free variables, given sᵀHs and with
     /// D the scaling at z; NaN when either is not positive.
     pub(super) fn step_curvature(&self, shs: f64) -> f64 {
-        let floor = self.scale_floor(self.n);
+        let floor = self.scale_floor();
         let sds: f64 = (0..self.g.len())
             .filter(|&k| !self.work.fixed[k])
-            .map(|k| self.scale(self.n, k, floor) * self.work.step[k] * self.work.step[k])
+            .map(|k| self.scale(k, floor) * self.work.step[k] * self.work.step[k])
             .sum();
         if shs > 0.0 && sds > 0.0 {
             shs / sds
@@ -79,7 +79,6 @@ impl BoxLsqSolver {
         ct: f64,
     ) -> Result<Option<f64>> {
         let Limits { lower, upper, .. } = lim;
-        let (nodes, n) = (self.nodes, self.n);
         self.save();
         self.take_derivatives(prob);
         let mut zt = std::mem::take(&mut self.saved.trial);
@@ -90,8 +89,8 @@ impl BoxLsqSolver {
                 break;
             }
             pr.nit += 1;
-            self.hold_active(n, &zt, lower, upper, kappa.sqrt());
-            if !self.reduced_step(nodes, n, &zt, lower, upper) {
+            self.hold_active(&zt, lower, upper, kappa.sqrt());
+            if !self.reduced_step(&zt, lower, upper) {
                 break;
             }
             self.project_step(&zt, lower, upper);
@@ -120,8 +119,7 @@ impl BoxLsqSolver {
     fn save(&mut self) {
         let s = &mut self.saved;
         s.g.clone_from(&self.g);
-        s.diag.clone_from(&self.diag);
-        s.off.clone_from(&self.off);
+        s.h.clone_from(&self.h);
         s.step.clone_from(&self.work.step);
         s.trial.clone_from(&self.work.trial);
         s.fixed.clone_from(&self.work.fixed);
@@ -131,8 +129,7 @@ impl BoxLsqSolver {
     fn restore(&mut self) {
         let s = &self.saved;
         self.g.copy_from_slice(&s.g);
-        self.diag.copy_from_slice(&s.diag);
-        self.off.copy_from_slice(&s.off);
+        self.h.clone_from(&s.h);
         self.work.step.copy_from_slice(&s.step);
         self.work.trial.copy_from_slice(&s.trial);
         self.work.fixed.copy_from_slice(&s.fixed);

@@ -1,9 +1,12 @@
 //! The real-time window solver (docs/user_guide/solver.rst): a bound-constrained Gauss-Newton /
 //! Levenberg-Marquardt method for least-squares problems min ‖r(z)‖² s.t. lower ≤ z ≤ upper whose
-//! Gauss-Newton Hessian 2JᵀJ is block-tridiagonal (the GP-MHE window: node i = window state x̄_i).
+//! Gauss-Newton Hessian 2JᵀJ is block-tridiagonal (the GP-MHE window: node i = window state x̄_i),
+//! optionally bordered by global variables that couple with every node (a quantity constant over
+//! the window, such as a GP's inducing outputs; bounded or not, as any variable).
 //!
 //! Each linear system is solved by a block-tridiagonal Cholesky factorisation (the Riccati-like
-//! recursion over the horizon, small dense nalgebra blocks), so one iteration costs O(M n³).
+//! recursion over the horizon, small dense nalgebra blocks), so one iteration costs O(M n³); m
+//! global variables add their Schur complement, O(M n² m + M n m² + m³).
 //!
 //! Two phases:
 //! 1. **Interior phase** (only when the start lies on or near a bound, or when asked): a primal-dual
@@ -25,17 +28,23 @@
 //! (`crate::mhe::WindowLsq`).
 //!
 //! Files: `options.rs` (settings, status, report), `block_tridiag.rs` (the block-tridiagonal
-//! Cholesky factorisation and products), `box_lsq.rs` ([`BoxLsqSolver`]: buffers, the driver
-//! `solve` and what both phases share), `barrier.rs` (the interior phase), `active_set.rs` (the
-//! active-set phase), `damping.rs` (its damping), `correction.rs` (its correction of steps along
-//! stiff valleys), `stiff_tests.rs` (tests on stiff windows).
+//! Cholesky factorisation and products), `hessian.rs` (the Gauss-Newton Hessian, block-tridiagonal
+//! or bordered by global variables), `bordered.rs` (its factorisation), `box_lsq.rs`
+//! ([`BoxLsqSolver`]: buffers, the driver `solve` and what both phases share), `barrier.rs` (the
+//! interior phase), `active_set.rs` (the active-set phase), `damping.rs` (its damping),
+//! `correction.rs` (its correction of steps along stiff valleys), `stiff_tests.rs` (tests on
+//! stiff windows), `global_tests.rs` (tests on windows with global variables).
 
 mod active_set;
 mod barrier;
 mod block_tridiag;
+mod bordered;
 mod box_lsq;
 mod correction;
 mod damping;
+#[cfg(test)]
+mod global_tests;
+mod hessian;
 mod options;
 #[cfg(test)]
 mod stiff_tests;
@@ -63,6 +72,15 @@ pub trait BlockLsqProblem {
     /// 2JᵀJ at the last point evaluated with derivatives: `diag` holds the n×n diagonal blocks
     /// (block i row-major at i·n·n), `off` the blocks (i, i+1).
     fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]);
+    /// Number of global variables: they follow the nodes' variables in z and may couple with
+    /// every node (0, the default, for a plain window).
+    fn global_dim(&self) -> usize {
+        0
+    }
+    /// The rest of 2JᵀJ when [`global_dim`](Self::global_dim) m > 0: `border` (nodes·n × m,
+    /// row-major) the blocks between the nodes' variables and the global ones, `corner` (m × m,
+    /// row-major) the global block. Not called when m = 0.
+    fn gauss_newton_border_into(&self, _border: &mut [f64], _corner: &mut [f64]) {}
     /// The rounding noise of J at the last point evaluated, if the problem can estimate it
     /// (cost changes below it cannot be measured); 0 when J is exact to rounding.
     fn cost_noise(&self) -> f64 {

@@ -6,7 +6,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::{BlockLsqProblem, SolverOptions};
+use super::{projected_gradient_norm, BlockLsqProblem, SolverOptions};
 use crate::error::Result;
 
 /// The defaults without the early decrement stop: tests of first-order optimality run to
@@ -42,6 +42,12 @@ pub(super) struct Synthetic {
     pub(super) wr: f64,
     /// cost is +inf when z[0] exceeds this (tests robustness to failed evaluations)
     pub(super) blowup: f64,
+    /// Global variables θ (after the nodes in z): the process rows are
+    /// z_{j+1} − f(z_j) − (1 + 0.2 z_j) ⊙ Gθ, with G (n × m, row-major) in `g` and prior rows
+    /// θ − θ̄ (θ̄ in `theta_bar`).
+    pub(super) globals: usize,
+    pub(super) g: Vec<f64>,
+    pub(super) theta_bar: Vec<f64>,
     pub(super) r: Vec<f64>,
     pub(super) jac: DMatrix<f64>,
 }
@@ -74,6 +80,9 @@ impl Synthetic {
             wq,
             wr,
             blowup: f64::INFINITY,
+            globals: 0,
+            g: Vec::new(),
+            theta_bar: Vec::new(),
             r: vec![0.0; rows],
             jac: DMatrix::zeros(rows, nodes * n),
         };
@@ -94,6 +103,24 @@ impl Synthetic {
         }
         p
     }
+    /// The problem of [`Synthetic::new`] with `m` global variables (see the field `globals`).
+    pub(super) fn with_globals(nodes: usize, n: usize, m: usize, seed: u64) -> Self {
+        let mut p = Self::new(nodes, n, seed);
+        let mut rng = Lcg(seed ^ 0x5eed);
+        p.globals = m;
+        p.g = (0..n * m).map(|_| 0.5 * rng.next()).collect();
+        p.theta_bar = (0..m).map(|_| rng.next()).collect();
+        p.r.resize(p.r.len() + m, 0.0);
+        p.jac = DMatrix::zeros(p.r.len(), nodes * n + m);
+        p
+    }
+
+    /// (Gθ)_r for the global variables at the end of z.
+    fn g_theta(&self, z: &[f64], r: usize) -> f64 {
+        let (m, th) = (self.globals, &z[self.nodes * self.n..]);
+        (0..m).map(|c| self.g[r * m + c] * th[c]).sum()
+    }
+
     fn f(&self, x: &[f64], out: &mut [f64], jac: &mut DMatrix<f64>) {
         let n = self.n;
         for r in 0..n {
@@ -127,13 +154,19 @@ impl Synthetic {
         }
         let mut fx = vec![0.0; n];
         let mut fj = DMatrix::zeros(n, n);
+        let (nx, m) = (self.nodes * n, self.globals);
         for j in 0..self.nodes - 1 {
             self.f(&z[j * n..(j + 1) * n], &mut fx, &mut fj);
             for r in 0..n {
-                self.r[row] = self.wq * (z[(j + 1) * n + r] - fx[r]);
+                let (xr, gt) = (z[j * n + r], self.g_theta(z, r));
+                self.r[row] = self.wq * (z[(j + 1) * n + r] - fx[r] - (1.0 + 0.2 * xr) * gt);
                 self.jac[(row, (j + 1) * n + r)] = self.wq;
                 for c in 0..n {
                     self.jac[(row, j * n + c)] = -self.wq * fj[(r, c)];
+                }
+                self.jac[(row, j * n + r)] -= self.wq * 0.2 * gt;
+                for c in 0..m {
+                    self.jac[(row, nx + c)] = -self.wq * (1.0 + 0.2 * xr) * self.g[r * m + c];
                 }
                 row += 1;
             }
@@ -149,6 +182,11 @@ impl Synthetic {
                 }
                 row += 1;
             }
+        }
+        for c in 0..m {
+            self.r[row] = z[nx + c] - self.theta_bar[c];
+            self.jac[(row, nx + c)] = 1.0;
+            row += 1;
         }
     }
     pub(super) fn dense_hessian(&self) -> DMatrix<f64> {
@@ -188,6 +226,21 @@ impl BlockLsqProblem for Synthetic {
             }
         }
     }
+    fn global_dim(&self) -> usize {
+        self.globals
+    }
+    fn gauss_newton_border_into(&self, border: &mut [f64], corner: &mut [f64]) {
+        let h = self.dense_hessian();
+        let (nx, m) = (self.nodes * self.n, self.globals);
+        for c in 0..m {
+            for k in 0..nx {
+                border[k * m + c] = h[(k, nx + c)];
+            }
+            for j in 0..m {
+                corner[j * m + c] = h[(nx + j, nx + c)];
+            }
+        }
+    }
 }
 
 /// The model's trajectory from `x0` over the window (an MHE warm start: on the valley of a
@@ -208,14 +261,77 @@ pub(super) fn random_z(nodes: usize, n: usize, seed: u64) -> Vec<f64> {
     (0..nodes * n).map(|_| rng.next()).collect()
 }
 
+/// Reference: projected gradient descent with Armijo backtracking on the dense problem,
+/// many iterations (slow but independent of the Gauss-Newton machinery).
+pub(super) fn reference_projected_gradient(
+    p: &mut Synthetic,
+    z0: &[f64],
+    lo: &[f64],
+    hi: &[f64],
+) -> (Vec<f64>, f64) {
+    let mut z: Vec<f64> = z0
+        .iter()
+        .zip(lo.iter().zip(hi))
+        .map(|(&v, (&l, &u))| v.clamp(l, u))
+        .collect();
+    let mut c = p.evaluate(&z, true).unwrap();
+    let mut g = vec![0.0; z.len()];
+    let mut step = 1.0;
+    for _ in 0..1500 {
+        p.gradient_into(&mut g);
+        if projected_gradient_norm(&z, &g, lo, hi) < 1e-9 {
+            break;
+        }
+        step *= 4.0;
+        loop {
+            let zt: Vec<f64> = (0..z.len())
+                .map(|k| (z[k] - step * g[k]).clamp(lo[k], hi[k]))
+                .collect();
+            let dec: f64 = (0..z.len()).map(|k| g[k] * (z[k] - zt[k])).sum();
+            let ct = p.evaluate(&zt, true).unwrap();
+            if ct <= c - 1e-4 * dec {
+                z = zt;
+                c = ct;
+                break;
+            }
+            step *= 0.5;
+            p.evaluate(&z, true).unwrap();
+            if step < 1e-20 {
+                return (z, c);
+            }
+        }
+    }
+    (z, c)
+}
+
+/// Sizes of the problems with global variables the tests run: (nodes, n, m).
+#[cfg(test)]
+pub(super) const GLOBAL_SIZES: [(usize, usize, usize); 4] =
+    [(1, 2, 3), (5, 3, 1), (6, 2, 7), (4, 1, 12)];
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn synthetic_jacobian_matches_finite_differences() {
+        check_jacobian(Synthetic::new(5, 3, 7), random_z(5, 3, 8));
+        check_jacobian(Synthetic::with_globals(5, 3, 2, 7), random_z(5, 3, 8 + 2));
+        // The Hessian really is block-tridiagonal.
         let mut p = Synthetic::new(5, 3, 7);
-        let z = random_z(5, 3, 8);
+        p.residuals(&random_z(5, 3, 8));
+        let hd = p.dense_hessian();
+        for i in 0..15usize {
+            for j in 0..15 {
+                if (i / 3).abs_diff(j / 3) > 1 {
+                    assert_eq!(hd[(i, j)], 0.0);
+                }
+            }
+        }
+    }
+
+    fn check_jacobian(mut p: Synthetic, mut z: Vec<f64>) {
+        z.resize(p.jac.ncols(), 0.3);
         p.residuals(&z);
         let (r0, jac) = (p.r.clone(), p.jac.clone());
         let h = 1e-6;
@@ -226,15 +342,6 @@ mod tests {
             for row in 0..r0.len() {
                 let fd = (p.r[row] - r0[row]) / h;
                 assert!((fd - jac[(row, k)]).abs() < 1e-4, "row {row} col {k}");
-            }
-        }
-        // The Hessian really is block-tridiagonal.
-        let hd = p.dense_hessian();
-        for i in 0..15usize {
-            for j in 0..15 {
-                if (i / 3).abs_diff(j / 3) > 1 {
-                    assert_eq!(hd[(i, j)], 0.0);
-                }
             }
         }
     }
