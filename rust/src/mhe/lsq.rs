@@ -30,6 +30,12 @@ impl BlockLsqProblem for WindowLsq<'_> {
     fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
         self.eval.gauss_newton_blocks_into(diag, off);
     }
+    fn global_dim(&self) -> usize {
+        self.problem.n_globals()
+    }
+    fn gauss_newton_border_into(&self, border: &mut [f64], corner: &mut [f64]) {
+        self.eval.gauss_newton_border_into(border, corner);
+    }
     fn cost_noise(&self) -> f64 {
         self.eval.cost_noise()
     }

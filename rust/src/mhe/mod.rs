@@ -5,6 +5,8 @@
 //!   model [`GpStageModel`];
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]),
 //!   its output rows through the penalty of [`loss`];
+//! * [`globals`]: global variables of the window (a model's quantities constant over it,
+//!   estimated with the states) and their joint arrival prior ([`GlobalPrior`]);
 //! * [`history`]: the last M + 1 steps, the arrival priors, the previous window and what the
 //!   last update reported ([`outcome`]);
 //! * [`lsq`]: the window as the solver's least-squares problem ([`WindowLsq`]);
@@ -14,6 +16,7 @@
 pub mod arrival;
 pub mod bank;
 pub mod estimator;
+pub mod globals;
 pub mod history;
 pub mod innovation;
 pub mod loss;
@@ -28,6 +31,7 @@ pub use bank::{
     bank_threads, BankRow, BankSample, EstimatorBank, Member, MemberSettings, ModelState, Solution,
 };
 pub use estimator::{MovingHorizon, Pending, Step, UpdateReport};
+pub use globals::GlobalPrior;
 pub use history::{History, HistoryState, Sample, WindowData};
 pub use innovation::Innovation;
 pub use loss::Loss;

@@ -14,6 +14,11 @@
 //!   - process (n rows, nodes i and i+1, for i < M_t): a_{M_t−1−i} L⁻¹ (x̄_{i+1} − m_x(d̄_i)),
 //!     L Lᵀ = diag σ²_x(d̄_i) + Q0.
 //!
+//! With n_g global variables g (a model's quantities constant over the window, such as a sparse
+//! GP's inducing outputs; [`StageModel::n_globals`]) z ends with g, the prior rows become the n +
+//! n_g rows a_{M_t} S ([x̄_0; g] − [x̂; ĝ]) of the joint arrival prior (`globals.rs`), and every
+//! model row also depends on g through the model's means.
+//!
 //! Q0 and R0 are covariances (docs/user_guide/weights.rst), diagonal (each row is divided by
 //! its standard deviation) or full (the block is whitened with its Cholesky factor,
 //! `weights.rs`). η = 1 is allowed (no discount).
@@ -21,6 +26,7 @@
 // Index loops mirror the block formulas of docs/user_guide/window.rst and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
+use super::globals::{global_block, global_row, selected_rows, GlobalPrior};
 use super::loss::Loss;
 use super::stage::{StageEval, StageModel};
 use super::weights::{whiten, Block, Covariance};
@@ -59,6 +65,8 @@ pub struct WindowProblem {
     loss: Loss,
     /// Per node, the output covariance given with that sample (None: R0).
     r_rows: Vec<Option<Covariance>>,
+    /// The joint arrival prior of (x̄_0, g) when the model has global variables.
+    globals: Option<GlobalPrior>,
 }
 
 /// The settings a problem was built with (for copies and checkpoints of an estimator).
@@ -128,6 +136,7 @@ impl WindowProblem {
             x_prior: vec![0.0; n],
             loss: Loss::Squared,
             r_rows: vec![None],
+            globals: None,
         })
     }
 
@@ -296,7 +305,25 @@ impl WindowProblem {
     /// Total number of residual rows for the current data.
     pub fn n_residuals(&self) -> usize {
         let outputs: usize = (0..self.n_nodes()).map(|i| self.measured(i).count()).sum();
-        self.n + self.m_t * self.n + outputs
+        self.n + self.n_globals() + self.m_t * self.n + outputs
+    }
+
+    /// Number of global variables n_g (0 unless [`WindowProblem::set_global_prior`] was called).
+    pub fn n_globals(&self) -> usize {
+        self.globals.as_ref().map_or(0, GlobalPrior::dim)
+    }
+
+    /// Makes the window estimate n_g global variables g with the states, with the joint arrival
+    /// prior a_{M_t} S ([x̄_0; g] − [x̂; ĝ]) replacing the prior on x̄_0: `g_prior` is ĝ (n_g
+    /// values), `joint_sqrt` S ((n + n_g)² values, row-major). On error nothing changes.
+    pub fn set_global_prior(&mut self, g_prior: &[f64], joint_sqrt: &[f64]) -> Result<()> {
+        self.globals = Some(GlobalPrior::new(self.n, g_prior, joint_sqrt)?);
+        Ok(())
+    }
+
+    /// The joint arrival prior of the global variables, if any.
+    pub fn global_prior(&self) -> Option<&GlobalPrior> {
+        self.globals.as_ref()
     }
 
     /// Weight √(2η^{M_t−1−i}) of the stage at node i (√2 for node M_t).
@@ -315,11 +342,14 @@ impl WindowProblem {
         out: &mut WindowEval,
     ) -> Result<()> {
         self.check_model(model)?;
-        let nodes = self.n_nodes();
-        check_len("z", z, nodes * self.n)?;
+        let (nodes, ng) = (self.n_nodes(), self.n_globals());
+        check_len("z", z, nodes * self.n + ng)?;
         check_finite("z", z)?;
+        if ng > 0 {
+            model.set_globals(&z[nodes * self.n..])?;
+        }
         self.evaluate_model(model, z, out)?;
-        out.reset(self.n, nodes, self.n_residuals(), want_jacobian);
+        out.reset(self.n, nodes, ng, self.n_residuals(), want_jacobian);
         let mut row = self.write_prior_rows(z, want_jacobian, out);
         for i in 0..nodes {
             let a = self.stage_weight(i);
@@ -340,6 +370,16 @@ impl WindowProblem {
 
     fn check_model(&self, model: &dyn StageModel) -> Result<()> {
         let (n, m, p) = (self.n, self.m, self.p);
+        if model.n_globals() != self.n_globals() {
+            return Err(Error::invalid(
+                "model",
+                format!(
+                    "has {} global variables, the window's prior {}",
+                    model.n_globals(),
+                    self.n_globals()
+                ),
+            ));
+        }
         if model.dim_x() != n || model.dim_u() != m || model.dim_y() != p {
             return Err(Error::invalid(
                 "model",
@@ -370,17 +410,29 @@ impl WindowProblem {
             out.d[i * nd + n..(i + 1) * nd].copy_from_slice(&self.u[i * m..(i + 1) * m]);
         }
         out.stage.resize(k, n, m, p);
+        let ng = self.n_globals();
+        if ng > 0 {
+            out.stage.resize_globals(k, n, p, ng);
+        }
         if k > 0 {
             model.evaluate(&out.d, &mut out.stage)?;
             out.stage.check_sizes(k, n, m, p)?;
+            if ng > 0 {
+                out.stage.check_global_sizes(k, n, p, ng)?;
+            }
         }
         Ok(())
     }
 
-    /// The prior block a_{M_t} S (x̄_0 − x̂(t − M_t)): rows 0 … n−1. Returns the next row.
+    /// The prior block a_{M_t} S (x̄_0 − x̂(t − M_t)): rows 0 … n−1 (with global variables the
+    /// joint prior's n + n_g rows, `globals.rs`). Returns the next row.
     fn write_prior_rows(&self, z: &[f64], want_jacobian: bool, out: &mut WindowEval) -> usize {
         let n = self.n;
         let a = (2.0 * self.eta.powi(self.m_t as i32)).sqrt();
+        if let Some(gp) = &self.globals {
+            let nx = self.n_nodes() * n;
+            return gp.write_rows(a, &z[..n], &self.x_prior, &z[nx..], want_jacobian, out);
+        }
         for r in 0..n {
             let mut acc = 0.0;
             for c in 0..n {
@@ -430,7 +482,12 @@ impl WindowProblem {
                         &mut out.ja[row * n..(row + 1) * n],
                     )
                 });
-                (out.r[row], out.dr[row], _) = w.write(derivs);
+                let scale;
+                (out.r[row], out.dr[row], scale) = w.write(derivs);
+                if want_jacobian && out.ng > 0 {
+                    let dm = &st.dmean_y_dg[t * out.ng..(t + 1) * out.ng];
+                    global_row(&mut out.jg[row * out.ng..(row + 1) * out.ng], scale, dm);
+                }
                 out.node[row] = i;
                 out.process[row] = false;
                 row += 1;
@@ -450,7 +507,8 @@ impl WindowProblem {
             var_rounding: &st.var_y_rounding,
         };
         let block = part.write(cov, a, n, nd, want_jacobian)?;
-        Ok(out.take_block(block, i, row, false))
+        let dg = selected_rows(&st.dmean_y_dg, i * p, &measured, out.ng);
+        Ok(out.take_block(block, i, row, false, &dg))
     }
 
     /// The process rows of stage i (nodes i and i+1) from `row` on (weight a). Returns the
@@ -487,6 +545,10 @@ impl WindowProblem {
                 });
                 let scale;
                 (out.r[row], out.dr[row], scale) = w.write(derivs);
+                if want_jacobian && out.ng > 0 {
+                    let dm = &st.dmean_x_dg[t * out.ng..(t + 1) * out.ng];
+                    global_row(&mut out.jg[row * out.ng..(row + 1) * out.ng], scale, dm);
+                }
                 if want_jacobian {
                     // ∂r/∂x̄_{i+1}: the target is the next state itself.
                     let jb = &mut out.jb[row * n..(row + 1) * n];
@@ -512,7 +574,8 @@ impl WindowProblem {
             var_rounding: &st.var_x_rounding,
         };
         let block = part.write(&self.q0, a, n, nd, want_jacobian)?;
-        Ok(out.take_block(block, i, row, true))
+        let dg = selected_rows(&st.dmean_x_dg, i * n, &all, out.ng);
+        Ok(out.take_block(block, i, row, true, &dg))
     }
 }
 
@@ -621,17 +684,21 @@ fn residual_rounding(r: f64, dr_mean: f64, ds_rel: f64) -> f64 {
 
 /// Residuals and the block-banded Jacobian of one window evaluation. Row `k` belongs to node
 /// `node[k]`; `ja` holds ∂r_k/∂x̄_{node} (n values per row) and, for process rows, `jb` holds
-/// ∂r_k/∂x̄_{node+1} (zero for other rows).
+/// ∂r_k/∂x̄_{node+1} (zero for other rows), and `jg` ∂r_k/∂g when the window has global
+/// variables.
 #[derive(Debug, Default, Clone)]
 pub struct WindowEval {
-    n: usize,
-    nodes: usize,
-    has_jacobian: bool,
-    r: Vec<f64>,
-    node: Vec<usize>,
-    process: Vec<bool>,
-    ja: Vec<f64>,
-    jb: Vec<f64>,
+    pub(super) n: usize,
+    pub(super) nodes: usize,
+    /// Number of global variables and ∂r_k/∂g (n_g values per row; empty when n_g = 0).
+    pub(super) ng: usize,
+    pub(super) has_jacobian: bool,
+    pub(super) r: Vec<f64>,
+    pub(super) node: Vec<usize>,
+    pub(super) process: Vec<bool>,
+    pub(super) ja: Vec<f64>,
+    pub(super) jb: Vec<f64>,
+    pub(super) jg: Vec<f64>,
     /// Scratch reused between evaluations: the k×nd stage points and the model's values there.
     d: Vec<f64>,
     stage: StageEval,
@@ -646,8 +713,25 @@ pub struct WindowEval {
 impl WindowEval {
     /// Copies a weighted block of stage i into rows `row..`: ∂r/∂x̄_i into `ja` and, for a
     /// process block (target x̄_{i+1}), ∂r/∂target into `jb`. Returns the next row.
-    fn take_block(&mut self, b: WrittenBlock, i: usize, row: usize, process: bool) -> usize {
-        let (n, k) = (self.n, b.r.len());
+    /// `dg`: the block rows' ∂mean/∂g (k × n_g, empty without global variables).
+    fn take_block(
+        &mut self,
+        b: WrittenBlock,
+        i: usize,
+        row: usize,
+        process: bool,
+        dg: &[f64],
+    ) -> usize {
+        let (n, k, ng) = (self.n, b.r.len(), self.ng);
+        if ng > 0 && !b.ja.is_empty() {
+            global_block(
+                &mut self.jg[row * ng..(row + k) * ng],
+                &b.dtarget,
+                dg,
+                k,
+                ng,
+            );
+        }
         for q in 0..k {
             let at = row + q;
             self.r[at] = b.r[q];
@@ -676,6 +760,10 @@ impl WindowEval {
                 self.ja[k * n..(k + 1) * n]
                     .iter_mut()
                     .for_each(|v| *v *= slope);
+                let ng = self.ng;
+                self.jg[k * ng..(k + 1) * ng]
+                    .iter_mut()
+                    .for_each(|v| *v *= slope);
             }
         }
     }
@@ -697,9 +785,10 @@ impl WindowEval {
         Ok(())
     }
 
-    fn reset(&mut self, n: usize, nodes: usize, rows: usize, want_jacobian: bool) {
+    fn reset(&mut self, n: usize, nodes: usize, ng: usize, rows: usize, want_jacobian: bool) {
         self.n = n;
         self.nodes = nodes;
+        self.ng = ng;
         self.has_jacobian = want_jacobian;
         self.r.resize(rows, 0.0);
         self.dr.clear();
@@ -710,6 +799,8 @@ impl WindowEval {
             self.ja.resize(rows * n, 0.0);
             self.jb.clear();
             self.jb.resize(rows * n, 0.0);
+            self.jg.clear();
+            self.jg.resize(rows * ng, 0.0);
         }
     }
 
@@ -731,8 +822,8 @@ impl WindowEval {
         if !self.has_jacobian {
             return 0.0;
         }
-        let n = self.n;
-        let mut sq = vec![0.0; self.nodes * n];
+        let (n, ng, nx) = (self.n, self.ng, self.nodes * self.n);
+        let mut sq = vec![0.0; nx + ng];
         for (k, &d) in self.dr.iter().enumerate() {
             let i = self.node[k];
             for l in 0..n {
@@ -740,6 +831,9 @@ impl WindowEval {
                 if self.process[k] {
                     sq[(i + 1) * n + l] += (2.0 * self.jb[k * n + l] * d).powi(2);
                 }
+            }
+            for c in 0..ng {
+                sq[nx + c] += (2.0 * self.jg[k * ng + c] * d).powi(2);
             }
         }
         sq.iter().fold(0.0f64, |a, &b| a.max(b)).sqrt()
@@ -755,9 +849,9 @@ impl WindowEval {
     pub fn n_residuals(&self) -> usize {
         self.r.len()
     }
-    /// Number of decision variables, n_nodes · n.
+    /// Number of decision variables, n_nodes · n + n_g.
     pub fn n_vars(&self) -> usize {
-        self.nodes * self.n
+        self.nodes * self.n + self.ng
     }
     pub fn n_nodes(&self) -> usize {
         self.nodes
@@ -769,10 +863,13 @@ impl WindowEval {
         self.has_jacobian
     }
 
-    /// 2Jᵀr into `g` (length n_nodes·n). Needs an evaluation with the Jacobian.
+    /// 2Jᵀr into `g` (length n_nodes·n + n_g). Needs an evaluation with the Jacobian.
     pub fn gradient_into(&self, g: &mut [f64]) {
         let n = self.n;
         g.iter_mut().for_each(|v| *v = 0.0);
+        if self.ng > 0 {
+            self.global_gradient_into(&mut g[self.nodes * n..]);
+        }
         for (k, &rk) in self.r.iter().enumerate() {
             let i = self.node[k];
             for l in 0..n {
@@ -840,11 +937,11 @@ impl WindowEval {
         }
     }
 
-    /// 2JᵀJ as a dense (n_nodes·n)² matrix, row-major (for the SciPy solvers and tests; the
+    /// 2JᵀJ as a dense (n_nodes·n + n_g)² matrix, row-major (for the SciPy solvers and tests; the
     /// window solver uses the blocks of [`WindowEval::gauss_newton_blocks_into`]).
     pub fn dense_gauss_newton(&self) -> Vec<f64> {
         let (n, nodes) = (self.n, self.nodes);
-        let (nn, nv) = (n * n, nodes * n);
+        let (nn, nv) = (n * n, self.n_vars());
         let mut diag = vec![0.0; nodes * nn];
         let mut off = vec![0.0; nodes.saturating_sub(1) * nn];
         self.gauss_newton_blocks_into(&mut diag, &mut off);
@@ -861,13 +958,16 @@ impl WindowEval {
                 }
             }
         }
+        if self.ng > 0 {
+            self.dense_global_blocks(&mut h);
+        }
         h
     }
 
-    /// The dense Jacobian (n_residuals × n_nodes·n, row-major) into `jac`.
+    /// The dense Jacobian (n_residuals × (n_nodes·n + n_g), row-major) into `jac`.
     pub fn dense_jacobian_into(&self, jac: &mut [f64]) {
-        let n = self.n;
-        let cols = self.nodes * n;
+        let (n, ng) = (self.n, self.ng);
+        let cols = self.n_vars();
         jac.iter_mut().for_each(|v| *v = 0.0);
         for k in 0..self.r.len() {
             let i = self.node[k];
@@ -877,6 +977,8 @@ impl WindowEval {
                 jac[k * cols + (i + 1) * n..k * cols + (i + 2) * n]
                     .copy_from_slice(&self.jb[k * n..(k + 1) * n]);
             }
+            jac[(k + 1) * cols - ng..(k + 1) * cols]
+                .copy_from_slice(&self.jg[k * ng..(k + 1) * ng]);
         }
     }
 }

@@ -30,6 +30,10 @@ pub struct StageEval {
     pub var_x_rounding: Vec<f64>,
     pub mean_y_rounding: Vec<f64>,
     pub var_y_rounding: Vec<f64>,
+    /// For a model with n_g global variables g ([`StageModel::n_globals`]): ∂mean_x/∂g (k×n×n_g)
+    /// and ∂mean_y/∂g (k×p×n_g), row-major; empty otherwise. The variances do not depend on g.
+    pub dmean_x_dg: Vec<f64>,
+    pub dmean_y_dg: Vec<f64>,
 }
 
 impl StageEval {
@@ -58,6 +62,17 @@ impl StageEval {
 }
 
 impl StageEval {
+    /// Sizes the Jacobians with respect to n_g global variables for k points (zero-filled).
+    pub fn resize_globals(&mut self, k: usize, n: usize, p: usize, ng: usize) {
+        for (v, len) in [
+            (&mut self.dmean_x_dg, k * n * ng),
+            (&mut self.dmean_y_dg, k * p * ng),
+        ] {
+            v.clear();
+            v.resize(len, 0.0);
+        }
+    }
+
     /// Copies point `i` of `src` into point `j` of `self` (both sized for dimensions n, p, nd).
     pub(crate) fn copy_point(
         &mut self,
@@ -79,6 +94,19 @@ impl StageEval {
         row(&mut self.var_y, &src.var_y, j, i, p);
         row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
         row(&mut self.dvar_y, &src.dvar_y, j, i, p * nd);
+    }
+
+    /// Fails unless the Jacobians with respect to n_g global variables have the size for k
+    /// points.
+    pub(super) fn check_global_sizes(&self, k: usize, n: usize, p: usize, ng: usize) -> Result<()> {
+        if self.dmean_x_dg.len() == k * n * ng && self.dmean_y_dg.len() == k * p * ng {
+            Ok(())
+        } else {
+            Err(Error::invalid(
+                "model",
+                "returned global Jacobians of the wrong size",
+            ))
+        }
     }
 
     /// Fails unless every buffer has the size for k points (guards against a model that
@@ -131,6 +159,18 @@ pub trait StageModel {
     fn dim_y(&self) -> usize;
     /// Evaluate at k points d (k×(n+m) row-major) into `out` (resized as needed, reused).
     fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()>;
+
+    /// Number of global variables g: quantities the means depend on at every point (such as a
+    /// sparse GP's inducing outputs), estimated with the window's states. 0 by default.
+    fn n_globals(&self) -> usize {
+        0
+    }
+
+    /// Sets g (n_globals values) for the evaluations that follow; with g, `evaluate` also
+    /// writes ∂mean/∂g (`StageEval::dmean_x_dg`, `dmean_y_dg`). Fails on a wrong length.
+    fn set_globals(&mut self, g: &[f64]) -> Result<()> {
+        check_len("globals", g, self.n_globals())
+    }
 
     /// The one-step prediction m_x(x, u) into `out` (n): by default the means of one
     /// evaluation at d = [x; u]. The warm start and the filtering form's arrival prior use it.
