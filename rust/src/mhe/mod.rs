@@ -3,6 +3,8 @@
 //!
 //! * [`stage`]: what a model provides at a batch of points ([`StageModel`]), and the learned
 //!   model [`GpStageModel`];
+//! * [`learning`]: the learned model whose sparse f-GPs keep learning, their inducing outputs
+//!   the window's global variables ([`LearningStageModel`]);
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]),
 //!   its output rows through the penalty of [`loss`];
 //! * [`globals`]: global variables of the window (a model's quantities constant over it,
@@ -19,6 +21,7 @@ pub mod estimator;
 pub mod globals;
 pub mod history;
 pub mod innovation;
+pub mod learning;
 pub mod loss;
 pub mod lsq;
 pub mod outcome;
@@ -34,6 +37,7 @@ pub use estimator::{MovingHorizon, Pending, Step, UpdateReport};
 pub use globals::GlobalPrior;
 pub use history::{History, HistoryState, Sample, WindowData};
 pub use innovation::Innovation;
+pub use learning::LearningStageModel;
 pub use loss::Loss;
 pub use lsq::WindowLsq;
 pub use outcome::{Outcome, Solved};

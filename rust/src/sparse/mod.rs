@@ -18,7 +18,8 @@
 //! sparse counterpart of [`crate::gp::MultiGp`], with the same prediction methods.
 //! `inducing.rs` chooses Z from the data by greedy conditional-variance selection;
 //! `posterior.rs` gives the posterior of the inducing outputs u = f(Z), the weights of the
-//! equivalent recursive GP (`crate::rgp::Rgp::from_sparse`).
+//! equivalent recursive GP (`crate::rgp::Rgp::from_sparse`); `learning.rs` replaces it (a GP that
+//! keeps learning online) and gives the mean's derivative with respect to it.
 //!
 //! **Jitter policy.** Kuu is factored as is if its Cholesky factorisation succeeds with every
 //! pivot L_ii² ≥ 10⁻¹¹ σ_f² (smaller pivots mean inducing points the others nearly determine, and
@@ -28,6 +29,7 @@
 //! prediction and the objective use Kuu + δI). If the largest fails, a `Numerical` error results.
 
 mod inducing;
+mod learning;
 mod objective;
 mod posterior;
 mod predict;

@@ -391,3 +391,69 @@ fn bad_input_is_rejected_with_the_argument_named() {
     assert!(select_inducing(&x, &theta(2), 0).is_err());
     assert!(select_inducing(&x[..3], &theta(2), 2).is_err());
 }
+
+/// A replaced posterior N(μ, Σ) of the inducing outputs predicts J μ and σ_f² − J K Jᵀ + J Σ Jᵀ
+/// (J = k(d, Z) K⁻¹, dense), J is the mean's derivative with respect to μ, and the GP's own
+/// posterior predicts as the fit.
+#[test]
+fn replaced_inducing_posterior_predicts_as_the_dense_formulas() {
+    let (nd, n, m) = (2, 60, 8);
+    let (x, y) = data(n, nd, 31);
+    let z = greedy(&x, nd, m);
+    let (d, _) = data(6, nd, 32);
+    let th = theta(nd);
+    let fitted = SparseGp::new(&x, &y, &z, &th, SparseMethod::Vfe).unwrap();
+    let (mu0, sigma0) = fitted.inducing_posterior();
+    let mut same = fitted.clone();
+    same.set_inducing_posterior(&mu0, sigma0.as_ref()).unwrap();
+    let (a, b) = (predict(&fitted, &d), predict(&same, &d));
+    for j in 0..6 {
+        assert!(
+            rel(b.0[j], a.0[j]) < 1e-9 && rel(b.1[j], a.1[j]) < 1e-7,
+            "{j}"
+        );
+    }
+    // Another posterior: shifted mean, covariance shrunk and correlated.
+    let mu: Vec<f64> = mu0
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v + 0.1 * i as f64)
+        .collect();
+    let s = DMatrix::from_fn(m, m, |i, j| sigma0[(i, j)]);
+    let c = DMatrix::from_fn(m, m, |i, j| 0.5 * (-((i as f64 - j as f64).powi(2))).exp());
+    let sigma = &c * &s * c.transpose() + DMatrix::identity(m, m) * 1e-3;
+    let mut gp = fitted.clone();
+    let sf = faer::Mat::from_fn(m, m, |i, j| sigma[(i, j)]);
+    gp.set_inducing_posterior(&mu, sf.as_ref()).unwrap();
+    let (mean, var, _, _) = predict(&gp, &d);
+    let kern = gp.kernel().clone();
+    let pt = |a: &[f64], i: usize| a[i * nd..(i + 1) * nd].to_vec();
+    let kuu = DMatrix::from_fn(m, m, |i, j| kern.eval(&pt(&z, i), &pt(&z, j)))
+        + DMatrix::identity(m, m) * gp.jitter();
+    let mut jac = vec![0.0; 6 * m];
+    gp.inducing_jacobian_into(&d, &mut jac).unwrap();
+    for k in 0..6 {
+        let ks = DVector::from_fn(m, |i, _| kern.eval(&pt(&z, i), &pt(&d, k)));
+        let jk = kuu.clone().cholesky().unwrap().solve(&ks);
+        for i in 0..m {
+            assert!((jac[k * m + i] - jk[i]).abs() < 1e-8 * (1.0 + jk[i].abs()));
+        }
+        let want_mean = jk.dot(&DVector::from_column_slice(&mu));
+        let want_var = kern.variance() - jk.dot(&(&kuu * &jk)) + jk.dot(&(&sigma * &jk));
+        assert!(
+            (mean[k] - want_mean).abs() < 1e-9 * (1.0 + want_mean.abs()),
+            "{k}"
+        );
+        assert!(
+            (var[k] - want_var).abs() < 1e-9,
+            "{k}: {} vs {want_var}",
+            var[k]
+        );
+    }
+    // Not positive definite: refused, the GP unchanged.
+    let bad = faer::Mat::from_fn(m, m, |i, j| if i == j { -1.0 } else { 0.0 });
+    let mut kept = gp.clone();
+    let e = kept.set_inducing_posterior(&mu0, bad.as_ref()).unwrap_err();
+    assert!(matches!(e, Error::Numerical(_)));
+    assert_eq!(predict(&kept, &d).0, mean);
+}
