@@ -74,7 +74,7 @@ pub fn ekf_step(
         || Error::numerical("arrival covariance update: a matrix is not positive definite");
     let s = DMatrix::from_row_slice(n, n, s);
     let mut info = s.transpose() * &s;
-    if let Some((rows, _)) = output_rows(st, problem, y0)? {
+    if let Some((rows, _)) = output_rows(st, problem, y0, 0)? {
         info += rows.transpose() * rows;
     }
     let pi_plus = info.cholesky().ok_or_else(not_pd)?.inverse();
@@ -115,7 +115,7 @@ pub fn ekf_mean_step(
     let mut info = s.transpose() * &s;
     let z0 = DVector::from_column_slice(z0);
     let mut b = &info * DVector::from_column_slice(x_prior);
-    if let Some((rows, target)) = output_rows(st, problem, y0)? {
+    if let Some((rows, target)) = output_rows(st, problem, y0, 0)? {
         let target = target + &rows * &z0;
         info += rows.transpose() * &rows;
         b += rows.transpose() * target;
@@ -150,11 +150,13 @@ fn check_node_values(st: &StageEval, problem: &WindowProblem) -> Result<()> {
 /// The whitened rows of the leaving node's output y_0 as the window weighs them, on its measured
 /// channels: J = ψ′(e) L⁻¹C and targets ψ(e) with e = L⁻¹(y_0 − m_y) (J = L⁻¹C and e for the
 /// squared loss), L Lᵀ = R + diag σ²_y (R the covariance given with y_0, or R0), C = ∂m_y/∂x, read
-/// from `st` at the node; None without a measured channel.
-fn output_rows(
+/// from `st` at the node, followed by ∂m_y/∂g for `ng` > 0 global variables; None without a
+/// measured channel.
+pub(super) fn output_rows(
     st: &StageEval,
     problem: &WindowProblem,
     y0: Option<&[f64]>,
+    ng: usize,
 ) -> Result<Option<(DMatrix<f64>, DVector<f64>)>> {
     let (n, p) = (problem.dim_x(), problem.dim_y());
     let nd = n + problem.dim_u();
@@ -169,7 +171,10 @@ fn output_rows(
         &measured,
         &measured.iter().map(|&k| st.var_y[k]).collect::<Vec<_>>(),
     );
-    let c = DMatrix::from_fn(measured.len(), n, |i, j| st.dmean_y[measured[i] * nd + j]);
+    let c = DMatrix::from_fn(measured.len(), n + ng, |i, j| match j < n {
+        true => st.dmean_y[measured[i] * nd + j],
+        false => st.dmean_y_dg[measured[i] * ng + j - n],
+    });
     let rc = r.cholesky().ok_or_else(not_pd)?;
     let mut rows = rc.l().solve_lower_triangular(&c).ok_or_else(not_pd)?;
     let e = DVector::from_iterator(

@@ -3,6 +3,8 @@
 //!
 //! * [`stage`]: what a model provides at a batch of points ([`StageModel`]), and the learned
 //!   model [`GpStageModel`];
+//! * [`joint_arrival`]: the arrival prior of the first state and the global variables together
+//!   ([`JointArrival`]), one EKF step of the pair per slide;
 //! * [`learning`]: the learned model whose sparse f-GPs keep learning, their inducing outputs
 //!   the window's global variables ([`LearningStageModel`]);
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]),
@@ -21,6 +23,7 @@ pub mod estimator;
 pub mod globals;
 pub mod history;
 pub mod innovation;
+pub mod joint_arrival;
 pub mod learning;
 pub mod loss;
 pub mod lsq;
@@ -37,6 +40,7 @@ pub use estimator::{MovingHorizon, Pending, Step, UpdateReport};
 pub use globals::GlobalPrior;
 pub use history::{History, HistoryState, Sample, WindowData};
 pub use innovation::Innovation;
+pub use joint_arrival::JointArrival;
 pub use learning::LearningStageModel;
 pub use loss::Loss;
 pub use lsq::WindowLsq;

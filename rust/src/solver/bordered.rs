@@ -125,6 +125,19 @@ impl BorderedCholesky {
         solve_upper_triangular_in_place(l.transpose(), rhs, Par::Seq);
     }
 
+    /// The global variables' block of H⁻¹, S⁻¹ (m × m, row-major), after a successful
+    /// [`factor`](Self::factor); None without global variables or if it is not finite.
+    pub fn global_block_of_inverse(&self) -> Option<Vec<f64>> {
+        let m = self.m;
+        if m == 0 {
+            return None;
+        }
+        let mut inv = Mat::<f64>::identity(m, m);
+        self.solve_schur(inv.as_mut());
+        let out: Vec<f64> = (0..m * m).map(|k| inv[(k / m, k % m)]).collect();
+        out.iter().all(|v| v.is_finite()).then_some(out)
+    }
+
     /// The `which` diagonal blocks over the nodes of H⁻¹ (row-major, stacked), after a
     /// successful [`factor`](Self::factor): T⁻¹'s plus Z_i S⁻¹ Z_iᵀ = W_i W_iᵀ with W = Z L⁻ᵀ.
     /// None if one is not finite.
@@ -252,6 +265,13 @@ mod tests {
                 }
             }
             assert_eq!(last[..], all[(nodes - 1) * n * n..]);
+            let global = chol.global_block_of_inverse().unwrap();
+            for a in 0..m {
+                for b in 0..m {
+                    let want = inv[(nodes * n + a, nodes * n + b)];
+                    assert!((global[a * m + b] - want).abs() <= 1e-9 * (1.0 + want.abs()));
+                }
+            }
         }
     }
 

@@ -210,6 +210,28 @@ impl BoxLsqSolver {
         )
     }
 
+    /// 4·sym of the global variables' block of H⁻¹ (m × m; see `last_node_covariance`): their
+    /// Laplace covariance. None without global variables, before any solve, or if H is
+    /// singular.
+    pub fn global_covariance(&mut self) -> Option<Vec<f64>> {
+        if self.h.m == 0 || !self.factor_undamped() {
+            return None;
+        }
+        let b = self.chol.global_block_of_inverse()?;
+        Some(symmetrised(&b, self.h.m))
+    }
+
+    /// Factors the undamped H with nothing held, in the solver's own factor and scratch.
+    fn factor_undamped(&mut self) -> bool {
+        if self.h.nodes == 0 {
+            return false;
+        }
+        self.work.shift.fill(0.0);
+        self.work.fixed.fill(false);
+        self.chol
+            .factor(&self.h, &self.work.shift, &self.work.fixed)
+    }
+
     /// The `which` diagonal blocks of H⁻¹ (see `last_node_covariance`), factored in the
     /// solver's own factor with its own scratch (`shift`, `fixed`), so no per-update allocation
     /// of blocks.

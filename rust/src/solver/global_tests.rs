@@ -121,5 +121,12 @@ fn window_covariance_with_globals_is_the_dense_inverse() {
             }
         }
         assert_eq!(last[..], cov[(nodes - 1) * n * n..]);
+        let global = s.global_covariance().unwrap();
+        for a in 0..m {
+            for b in 0..m {
+                let want = inv[(nodes * n + a, nodes * n + b)];
+                assert!((global[a * m + b] - want).abs() <= 1e-8 * (1.0 + want.abs()));
+            }
+        }
     }
 }
