@@ -14,6 +14,8 @@
 use super::arrival::{ekf_mean_step, ekf_step, evaluate_at, Arrival, ArrivalMean, ArrivalWeight};
 use super::history::{History, HistoryState, WindowData};
 use super::innovation::{innovation, Innovation};
+use super::joint_arrival::{joint_ekf_step, LeavingNode};
+use super::learning_state::{Learning, LearningState, LearningUpdate};
 use super::lsq::WindowLsq;
 use super::outcome::{last_block, Outcome, Solved};
 use super::problem::{Form, WindowEval, WindowProblem};
@@ -52,6 +54,8 @@ pub struct Pending {
     /// The next window's arrival mean (smoothed or filtered) and weight, when it slides.
     next_arrival_mean: Option<Vec<f64>>,
     next_arrival_sqrt: Option<Vec<f64>>,
+    /// What the update changes in the learning state, if the estimator learns.
+    learning: Option<LearningUpdate>,
 }
 
 /// The data of one update.
@@ -96,6 +100,8 @@ pub struct MovingHorizon {
     /// How many times the weights were replaced (`set_weights`): lets a caller that keeps its
     /// own copy of the weights tell whether a replacement took effect.
     weights_version: u64,
+    /// The model's global variables estimated with the states (`learning_state.rs`), if any.
+    learning: Option<Learning>,
 }
 
 /// A one-step prediction m_x(x, u) and the bits of the point it was made at (a model is a
@@ -187,7 +193,51 @@ impl MovingHorizon {
             arrival: Arrival::default(),
             prediction: LastPrediction::default(),
             weights_version: 0,
+            learning: None,
         })
+    }
+
+    /// Makes the estimator estimate the model's n_g global variables g with the states (a GP
+    /// that keeps learning), from the prior N(g0, sigma0) (n_g² values, row-major), g drifting
+    /// by a random walk of variance `drift` per step. The arrival cost then follows the joint
+    /// EKF of the first state and g (`joint_arrival.rs`), whatever the arrival weight setting.
+    /// Only before the first update; on error nothing changes.
+    pub fn enable_learning(&mut self, g0: &[f64], sigma0: &[f64], drift: f64) -> Result<()> {
+        if self.history.t() != 0 {
+            return Err(Error::invalid(
+                "learning",
+                "must be enabled before the first update",
+            ));
+        }
+        self.learning = Some(Learning::new(
+            g0,
+            sigma0,
+            drift,
+            &initial_covariance(&self.problem)?,
+        )?);
+        self.staged = None;
+        self.has_window = false;
+        Ok(())
+    }
+
+    /// The learning part (None unless [`MovingHorizon::enable_learning`]).
+    pub fn learning(&self) -> Option<&Learning> {
+        self.learning.as_ref()
+    }
+
+    /// Replaces the learning state (checkpoints; see [`Learning::set_state`]); an error if the
+    /// estimator does not learn. Drops any staged window; nothing changes on error.
+    pub fn set_learning_state(&mut self, state: LearningState) -> Result<()> {
+        let n = self.problem.dim_x();
+        let l = self
+            .learning
+            .as_mut()
+            .ok_or_else(|| Error::invalid("learning", "this estimator does not learn"))?;
+        l.set_state(n, state)?;
+        self.staged = None;
+        self.has_window = false;
+        self.evaluated_at.clear();
+        Ok(())
     }
 
     /// How many times the weights were replaced since construction.
@@ -271,7 +321,15 @@ impl MovingHorizon {
 
     /// Forgets every step: t = 0, x̂(0) = x0 with covariance P2⁻¹, arrival weight P2.
     pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
-        self.history.reset(x0, initial_covariance(&self.problem)?)?;
+        let x_cov = initial_covariance(&self.problem)?;
+        if let Some(l) = self.learning.as_mut() {
+            let mut fresh = l.clone();
+            fresh.reset(&x_cov)?;
+            self.history.reset(x0, x_cov)?;
+            self.learning = Some(fresh);
+        } else {
+            self.history.reset(x0, x_cov)?;
+        }
         self.history
             .set_arrival_sqrt(self.problem.p2_sqrt().to_vec());
         self.staged = None;
@@ -404,8 +462,12 @@ impl MovingHorizon {
         };
         let n = self.problem.dim_x();
         let covariance = blocks.as_deref().map(|b| last_block(b, n * n));
+        let g_cov = match (&solve, &self.learning) {
+            (Ok(_), Some(_)) => self.solver.global_covariance(),
+            _ => None,
+        };
         let solved = Solved::Rust(solve.clone());
-        let pending = self.finish(model, z, blocks, cost, &solved)?;
+        let pending = self.finish_with(model, z, blocks, g_cov, cost, &solved)?;
         let report = UpdateReport {
             x_window: pending.x_window.clone(),
             x_prior: pending.data.x_prior.clone(),
@@ -456,14 +518,24 @@ impl MovingHorizon {
             ArrivalWeight::Ekf => self.history.arrival_sqrt().to_vec(),
         };
         self.problem.set_prior_weight(&weight)?;
+        if let Some(l) = &self.learning {
+            l.prepare(model, &mut self.problem)?;
+        }
         self.evaluated_at.clear();
-        let z0 = self.warm_start(model, &data)?;
+        let mut z0 = self.warm_start(model, &data)?;
         let n = self.problem.dim_x();
         self.lower.clear();
         self.upper.clear();
         for _ in 0..data.nodes {
             self.lower.extend_from_slice(&self.x_bounds.0[..n]);
             self.upper.extend_from_slice(&self.x_bounds.1[..n]);
+        }
+        if let Some(l) = &self.learning {
+            // The global variables: warm-started at the last posterior mean, unbounded.
+            z0.extend_from_slice(&l.state().g);
+            self.lower
+                .resize(self.lower.len() + l.dim(), f64::NEG_INFINITY);
+            self.upper.resize(self.upper.len() + l.dim(), f64::INFINITY);
         }
         self.staged = Some(data);
         self.has_window = true;
@@ -627,7 +699,13 @@ impl MovingHorizon {
         cost: f64,
         solved: &Solved,
     ) -> Result<(Vec<f64>, Vec<f64>)> {
-        let pending = self.finish(model, z, window_covariance, cost, solved)?;
+        if self.learning.is_some() {
+            return Err(Error::invalid(
+                "solver",
+                "an estimator that learns is solved by the core's solver only",
+            ));
+        }
+        let pending = self.finish_with(model, z, window_covariance, None, cost, solved)?;
         let out = (pending.x_window.clone(), pending.data.x_prior.clone());
         self.apply(pending);
         Ok(out)
@@ -635,12 +713,14 @@ impl MovingHorizon {
 
     /// Everything [`MovingHorizon::commit`] computes (its fallible part, the model's
     /// evaluations), as a [`Pending`] record; the history is unchanged and the staged window
-    /// is taken.
-    fn finish(
+    /// is taken. With learning, z ends with g and `g_cov` is its covariance (None: keep the
+    /// last).
+    fn finish_with(
         &mut self,
         model: &mut dyn StageModel,
-        z: Vec<f64>,
+        mut z: Vec<f64>,
         window_covariance: Option<Vec<f64>>,
+        g_cov: Option<Vec<f64>>,
         cost: f64,
         solved: &Solved,
     ) -> Result<Pending> {
@@ -649,8 +729,13 @@ impl MovingHorizon {
             .staged
             .as_ref()
             .ok_or_else(|| Error::invalid("z", "no window staged: call prepare first"))?;
-        check_len("z", &z, data.nodes * n)?;
+        let ng = self.learning.as_ref().map_or(0, Learning::dim);
+        check_len("z", &z, data.nodes * n + ng)?;
         check_finite("z", &z)?;
+        let g = z.split_off(data.nodes * n);
+        if ng > 0 {
+            model.set_globals(&g)?;
+        }
         if let Some(c) = &window_covariance {
             check_len("P_window", c, data.nodes * n * n)?;
             check_finite("P_window", c)?;
@@ -669,7 +754,15 @@ impl MovingHorizon {
         let ekf_weight = self.arrival.weight == ArrivalWeight::Ekf;
         let filtered_mean = self.arrival.mean == ArrivalMean::Filtered;
         let (mut weight, mut mean) = (None, None);
-        if slides && (ekf_weight || filtered_mean) {
+        let mut learning = None;
+        if let Some(l) = &self.learning {
+            let (x_mean, arrival) = match slides {
+                true => self.joint_arrival_step(model, l, data, &z, &g)?,
+                false => (None, None),
+            };
+            mean = x_mean.filter(|_| filtered_mean);
+            learning = Some(LearningUpdate { arrival, g, g_cov });
+        } else if slides && (ekf_weight || filtered_mean) {
             let p = self.problem.dim_y();
             let y0 = data.present[0].then(|| &data.y[..p]);
             let s = match self.arrival.weight {
@@ -718,6 +811,52 @@ impl MovingHorizon {
             outcome,
             next_arrival_mean: mean.or(smoothed),
             next_arrival_sqrt: weight,
+            learning,
+        })
+    }
+
+    /// The joint arrival prior of the next window (`joint_arrival.rs`) over the staged window's
+    /// first node at the solution (z, g): the filtered x̂ and the next [`JointArrival`]; (None,
+    /// None) when the step fails numerically (the prior is kept).
+    fn joint_arrival_step(
+        &self,
+        model: &mut dyn StageModel,
+        l: &Learning,
+        data: &WindowData,
+        z: &[f64],
+        g: &[f64],
+    ) -> Result<(Option<Vec<f64>>, Option<super::JointArrival>)> {
+        let (n, m, p) = (
+            self.problem.dim_x(),
+            self.problem.dim_u(),
+            self.problem.dim_y(),
+        );
+        let y0 = data.present[0].then(|| &data.y[..p]);
+        let mut at = z.to_vec();
+        at.extend_from_slice(g);
+        let fresh;
+        let st = if self.evaluated_at == at {
+            self.eval.stage()
+        } else {
+            fresh = evaluate_at(model, &z[..n], &data.u[..m])?;
+            &fresh
+        };
+        let node = LeavingNode {
+            st,
+            z0: &z[..n],
+            g,
+            y0,
+        };
+        let step = joint_ekf_step(
+            &self.problem,
+            &node,
+            &data.x_prior,
+            &l.state().arrival,
+            l.drift(),
+        );
+        Ok(match keep_on_numerical(step)? {
+            Some((x, arrival)) => (Some(x), Some(arrival)),
+            None => (None, None),
         })
     }
 
@@ -732,6 +871,7 @@ impl MovingHorizon {
             outcome,
             next_arrival_mean,
             next_arrival_sqrt,
+            learning,
         } = pending;
         let s0 = data.s0;
         self.history.push(data, x_window, next_prior, outcome);
@@ -740,6 +880,9 @@ impl MovingHorizon {
         }
         if let Some(next) = next_arrival_sqrt {
             self.history.set_arrival_sqrt(next);
+        }
+        if let (Some(l), Some(update)) = (self.learning.as_mut(), learning) {
+            l.apply(update);
         }
     }
 

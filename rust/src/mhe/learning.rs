@@ -2,9 +2,12 @@
 //! sparse; their inducing outputs u_o = f_o(Z_o) (o = 1 … n) are the window's global variables
 //! g = [u_1; …; u_n] ([`StageModel::n_globals`]). The mean of f_o at d is J_o(d) u_o plus its
 //! prior mean (and x_o in the residual form), J_o(d) = k(d, Z_o) (K_o + δI)⁻¹, so ∂m_o/∂u_o =
-//! J_o(d); the variances are those of the current posterior N(μ_u, Σ_u) of every u_o
-//! ([`LearningStageModel::set_posterior`], `crate::sparse` `learning.rs`) and do not depend on g.
-//! The h-GPs (exact or sparse) are fixed.
+//! J_o(d). The variances are those given u, σ²_o − J_o (K_o + δI) J_oᵀ: the uncertainty of u is
+//! not in the model but in the window, as the prior of g (`joint_arrival.rs`), so that with the
+//! states known the window's posterior of g is the recursive GP's (Huber's update, whose
+//! observation noise is this variance). The variances do not depend on g. The h-GPs (exact or
+//! sparse) are fixed. [`LearningStageModel::snapshot`] gives the sparse GPs of a posterior
+//! N(μ_u, Σ_u), predicting with the full variance σ² − J K Jᵀ + J Σ_u Jᵀ.
 
 use std::sync::Arc;
 
@@ -33,9 +36,9 @@ pub struct LearningStageModel {
 
 impl LearningStageModel {
     /// `f` has n outputs on inputs of dimension n + `dim_u`; `h` (None when p = 0) has p outputs
-    /// on the same inputs. The posterior of the inducing outputs starts as the fitted one.
+    /// on the same inputs. g starts at the fitted posterior mean.
     pub fn new(
-        f: SparseMultiGp,
+        mut f: SparseMultiGp,
         h: Option<GpModel>,
         dim_u: usize,
         f_residual: bool,
@@ -53,8 +56,12 @@ impl LearningStageModel {
             }
         }
         let mut offsets = vec![0];
-        for gp in f.gps() {
-            offsets.push(offsets.last().copied().unwrap_or(0) + gp.n_inducing());
+        for o in 0..n {
+            let gp = f
+                .gp_mut(o)
+                .ok_or_else(|| Error::invalid("f", "missing output"))?;
+            gp.set_conditional(true);
+            offsets.push(offsets[o] + gp.n_inducing());
         }
         Ok(Self {
             f,
@@ -88,10 +95,9 @@ impl LearningStageModel {
         self.h.as_ref()
     }
 
-    /// The current posterior of the inducing outputs, N(μ_u, Σ_u) (n_g values and n_g × n_g,
-    /// block-diagonal: the outputs' blocks); before any `set_posterior`, the fit's, the prior
-    /// of learning.
-    pub fn posterior(&self) -> (Vec<f64>, Mat<f64>) {
+    /// The fitted posterior of the inducing outputs, N(μ_u, Σ_u) (n_g values and n_g × n_g,
+    /// block-diagonal: the outputs' blocks): the prior learning starts from.
+    pub fn fitted_posterior(&self) -> (Vec<f64>, Mat<f64>) {
         let ng = self.n_globals();
         let mut mean = Vec::with_capacity(ng);
         let mut cov = Mat::zeros(ng, ng);
@@ -106,33 +112,26 @@ impl LearningStageModel {
         (mean, cov)
     }
 
-    /// Sets the posterior of the inducing outputs: mean g (n_g values) and covariance `cov`
-    /// (n_g × n_g; only its diagonal blocks, one per output, enter the variances). Nothing
-    /// changes on error (a `Numerical` error if a block is not positive definite).
-    pub fn set_posterior(&mut self, mean: &[f64], cov: MatRef<'_, f64>) -> Result<()> {
+    /// The f-GPs with the posterior N(mean, cov) of the inducing outputs (n_g values, n_g × n_g;
+    /// only the outputs' diagonal blocks enter their variances), predicting with the full
+    /// variance: the learned model as a fixed one. A `Numerical` error if a block is not
+    /// positive definite.
+    pub fn snapshot(&self, mean: &[f64], cov: MatRef<'_, f64>) -> Result<SparseMultiGp> {
         let ng = self.n_globals();
         check_len("mean", mean, ng)?;
         if cov.nrows() != ng || cov.ncols() != ng {
             return Err(Error::invalid("cov", format!("must be {ng} x {ng}")));
         }
-        let mut factors = Vec::with_capacity(self.n);
-        for (o, gp) in self.f.gps().iter().enumerate() {
+        let mut f = self.f.clone();
+        for o in 0..self.n {
             let (a, b) = (self.offsets[o], self.offsets[o + 1]);
-            factors.push(gp.variance_factor(cov.submatrix(a, a, b - a, b - a))?);
-        }
-        if let Some(bad) = mean.iter().position(|v| !v.is_finite()) {
-            return Err(Error::invalid("mean", format!("entry {bad} is not finite")));
-        }
-        for (o, lb) in factors.into_iter().enumerate() {
-            let (a, b) = (self.offsets[o], self.offsets[o + 1]);
-            let gp = self
-                .f
+            let gp = f
                 .gp_mut(o)
                 .ok_or_else(|| Error::invalid("f", "missing output"))?;
-            gp.set_inducing_mean(&mean[a..b])?;
-            gp.set_variance_factor(lb)?;
+            gp.set_inducing_posterior(&mean[a..b], cov.submatrix(a, a, b - a, b - a))?;
+            gp.set_conditional(false);
         }
-        Ok(())
+        Ok(f)
     }
 
     /// GP values at the k points `d` into `out` (sized for k points and n_g global variables).
@@ -254,15 +253,14 @@ mod tests {
     }
 
     #[test]
-    fn with_the_fitted_posterior_it_predicts_as_the_fixed_model() {
+    fn it_predicts_the_fixed_models_means_and_its_snapshot_the_fixed_model() {
         let (f, h) = model();
         let mut fixed =
             GpStageModel::new(GpModel::Sparse(f.clone()), Some(h.clone()), 1, true).unwrap();
         let mut learning = LearningStageModel::new(f, Some(h), 1, true).unwrap();
         assert_eq!(learning.n_globals(), 15);
         assert_eq!(learning.offsets(), &[0, 6, 15]);
-        let (mu, sigma) = learning.posterior();
-        learning.set_posterior(&mu, sigma.as_ref()).unwrap();
+        let (mu, sigma) = learning.fitted_posterior();
         learning.set_globals(&mu).unwrap();
         let d = points();
         let (mut a, mut b) = (StageEval::default(), StageEval::default());
@@ -273,16 +271,43 @@ mod tests {
                 .zip(y)
                 .all(|(p, q)| (p - q).abs() <= 1e-9 * (1.0 + q.abs()))
         };
-        assert!(close(&b.mean_x, &a.mean_x) && close(&b.var_x, &a.var_x));
-        assert!(close(&b.dmean_x, &a.dmean_x) && close(&b.dvar_x, &a.dvar_x));
-        assert_eq!((b.mean_y, b.var_y), (a.mean_y, a.var_y));
+        assert!(close(&b.mean_x, &a.mean_x) && close(&b.dmean_x, &a.dmean_x));
+        assert_eq!((&b.mean_y, &b.var_y), (&a.mean_y, &a.var_y));
+        // The variance given u is below the fit's (the posterior of u adds J Σ_u Jᵀ ≥ 0).
+        assert!(b.var_x.iter().zip(&a.var_x).all(|(c, p)| c <= p));
+        // The snapshot of the fitted posterior is the fitted model.
+        let snap = learning.snapshot(&mu, sigma.as_ref()).unwrap();
+        let mut again = GpStageModel::new(GpModel::Sparse(snap), None, 1, true).unwrap();
+        let mut c = StageEval::default();
+        again.evaluate(&d, &mut c).unwrap();
+        assert!(close(&c.mean_x, &a.mean_x) && close(&c.dmean_x, &a.dmean_x));
+        assert!(close(&c.var_x, &a.var_x) && close(&c.dvar_x, &a.dvar_x));
+    }
+
+    #[test]
+    fn conditional_variance_and_its_gradient_match_finite_differences() {
+        let (f, h) = model();
+        let mut learning = LearningStageModel::new(f, Some(h), 1, false).unwrap();
+        let d = points();
+        let mut ev = StageEval::default();
+        learning.evaluate(&d, &mut ev).unwrap();
+        let mut e2 = StageEval::default();
+        for c in 0..3 {
+            let mut dp = d.clone();
+            dp[c] += 1e-6;
+            learning.evaluate(&dp, &mut e2).unwrap();
+            for o in 0..2 {
+                let fd = (e2.var_x[o] - ev.var_x[o]) / 1e-6;
+                assert!((ev.dvar_x[o * 3 + c] - fd).abs() <= 1e-5 * (1.0 + fd.abs()));
+            }
+        }
     }
 
     #[test]
     fn mean_jacobian_with_respect_to_the_globals_matches_finite_differences() {
         let (f, h) = model();
         let mut learning = LearningStageModel::new(f, Some(h), 1, false).unwrap();
-        let (mu, _) = learning.posterior();
+        let (mu, _) = learning.fitted_posterior();
         let g: Vec<f64> = mu
             .iter()
             .enumerate()
@@ -310,21 +335,16 @@ mod tests {
     }
 
     #[test]
-    fn bad_posteriors_are_refused_and_change_nothing() {
+    fn bad_input_is_refused() {
         let (f, h) = model();
         let mut learning = LearningStageModel::new(f, Some(h), 1, false).unwrap();
-        let (mu, sigma) = learning.posterior();
-        let before = learning.f().gps()[1].inducing_posterior();
+        let (mu, sigma) = learning.fitted_posterior();
         let mut bad = sigma.clone();
         bad[(10, 10)] = -1.0;
-        let e = learning.set_posterior(&mu, bad.as_ref()).unwrap_err();
+        let e = learning.snapshot(&mu, bad.as_ref()).unwrap_err();
         assert!(matches!(e, Error::Numerical(_)));
-        let e = learning
-            .set_posterior(&mu[1..], sigma.as_ref())
-            .unwrap_err();
+        let e = learning.snapshot(&mu[1..], sigma.as_ref()).unwrap_err();
         assert!(matches!(e, Error::InvalidInput { ref arg, .. } if arg == "mean"));
-        let after = learning.f().gps()[1].inducing_posterior();
-        assert_eq!(before.0, after.0);
         let e = learning.set_globals(&mu[1..]).unwrap_err();
         assert!(matches!(e, Error::InvalidInput { ref arg, .. } if arg == "globals"));
         let (f, h) = model();

@@ -7,6 +7,7 @@
 //!   ([`JointArrival`]), one EKF step of the pair per slide;
 //! * [`learning`]: the learned model whose sparse f-GPs keep learning, their inducing outputs
 //!   the window's global variables ([`LearningStageModel`]);
+//! * [`learning_state`]: what an estimator with global variables carries ([`Learning`]);
 //! * [`problem`]: one window as a least-squares problem ([`WindowProblem`], [`WindowEval`]),
 //!   its output rows through the penalty of [`loss`];
 //! * [`globals`]: global variables of the window (a model's quantities constant over it,
@@ -25,6 +26,9 @@ pub mod history;
 pub mod innovation;
 pub mod joint_arrival;
 pub mod learning;
+pub mod learning_state;
+#[cfg(test)]
+mod learning_tests;
 pub mod loss;
 pub mod lsq;
 pub mod outcome;
@@ -42,6 +46,7 @@ pub use history::{History, HistoryState, Sample, WindowData};
 pub use innovation::Innovation;
 pub use joint_arrival::JointArrival;
 pub use learning::LearningStageModel;
+pub use learning_state::{Learning, LearningState, LearningUpdate};
 pub use loss::Loss;
 pub use lsq::WindowLsq;
 pub use outcome::{Outcome, Solved};

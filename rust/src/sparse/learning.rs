@@ -1,5 +1,6 @@
 //! A sparse GP whose posterior of the inducing outputs u = f(Z) is replaced: the model of a GP that
-//! keeps learning online (`crate::mhe::LearningStageModel`). With N(μ_u, Σ_u) in place of the
+//! keeps learning online (`crate::mhe::LearningStageModel`), which predicts with the variance
+//! given u, σ_f² − J (Kuu + δI) Jᵀ ([`SparseGp::set_conditional`]), and its snapshot. With N(μ_u, Σ_u) in place of the
 //! fitted posterior (`posterior.rs`), the mean at d is J μ_u with J = k(d, Z) (Kuu + δI)⁻¹, that is
 //! t = (Kuu + δI)⁻¹ μ_u, and the latent variance σ_f² − J (Kuu + δI) Jᵀ + J Σ_u Jᵀ, that is
 //! L_B L_Bᵀ = B = Lᵀ Σ_u⁻¹ L (P = L B Lᵀ = K Σ_u⁻¹ K): the prediction code is unchanged. J is
@@ -16,6 +17,12 @@ use crate::error::{check_finite, check_len, Error, Result};
 use crate::gp::kernel_column;
 
 impl SparseGp {
+    /// Whether predictions give the variance given the inducing outputs (u known), σ_f² −
+    /// J (Kuu + δI) Jᵀ, rather than the posterior's; the mean and its gradients are the same.
+    pub fn set_conditional(&mut self, on: bool) {
+        self.conditional = on;
+    }
+
     /// Sets the mean of the inducing outputs, μ_u (m values): t = (Kuu + δI)⁻¹ μ_u.
     pub fn set_inducing_mean(&mut self, mu: &[f64]) -> Result<()> {
         let m = self.n_inducing();

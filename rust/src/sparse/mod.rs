@@ -158,6 +158,9 @@ pub struct SparseGp {
     t: Vec<f64>,
     objective: f64,
     mean_rounding: f64,
+    /// Whether predictions give the variance given the inducing outputs, σ_f² − k*ᵀ Kuu⁻¹ k*,
+    /// instead of the posterior's (`learning.rs`).
+    conditional: bool,
 }
 
 impl SparseGp {
@@ -198,6 +201,7 @@ impl SparseGp {
             t: fit.t,
             objective: fit.value,
             mean_rounding,
+            conditional: false,
             x,
         })
     }

@@ -1,5 +1,6 @@
 //! Predictions of the sparse GPs: for k test points d, with k* = k(Z, d) (m values),
-//! mean k*ᵀ t, latent variance σ_f² − ‖v‖² + ‖w‖² with v = L⁻¹ k*, w = L_B⁻¹ v (that is
+//! mean k*ᵀ t, latent variance σ_f² − ‖v‖² + ‖w‖² with v = L⁻¹ k*, w = L_B⁻¹ v (w = 0 for the
+//! variance given the inducing outputs, `learning.rs`) (that is
 //! σ_f² − k*ᵀ (Kuu⁻¹ − P⁻¹) k*, without explicit inverses), and their gradients w.r.t. d:
 //! ∂mean/∂d_l = −w_l Σ_i t_i k_i (d_l − z_il), ∂var/∂d_l = 2 w_l Σ_i β_i k_i (d_l − z_il) with
 //! β = (Kuu⁻¹ − P⁻¹) k* = L⁻ᵀ (v − L_B⁻ᵀ w). O(m n_d) per point for the mean, O(m²) for the
@@ -91,9 +92,14 @@ impl SparseGp {
         let v = MatMut::from_column_major_slice_mut(&mut ws.v[..], m, k);
         solve_lower_triangular_in_place(self.l.as_ref(), v, Par::Seq);
         ws.w.clear();
-        ws.w.extend_from_slice(&ws.v);
-        let wm = MatMut::from_column_major_slice_mut(&mut ws.w[..], m, k);
-        solve_lower_triangular_in_place(self.lb.as_ref(), wm, Par::Seq);
+        if self.conditional {
+            // Given the inducing outputs: no posterior term (w = 0, β = L⁻ᵀ v).
+            ws.w.resize(m * k, 0.0);
+        } else {
+            ws.w.extend_from_slice(&ws.v);
+            let wm = MatMut::from_column_major_slice_mut(&mut ws.w[..], m, k);
+            solve_lower_triangular_in_place(self.lb.as_ref(), wm, Par::Seq);
+        }
         for j in 0..k {
             let sq = |a: &[f64]| a[j * m..(j + 1) * m].iter().map(|x| x * x).sum::<f64>();
             // Clamp round-off negatives at 0 (a test point on top of noise-free data).
@@ -101,9 +107,11 @@ impl SparseGp {
         }
         let Some((_, dvar)) = grads else { return };
         // β = L⁻ᵀ (v − L_B⁻ᵀ w), into v.
-        let wm = MatMut::from_column_major_slice_mut(&mut ws.w[..], m, k);
-        solve_upper_triangular_in_place(self.lb.transpose(), wm, Par::Seq);
-        ws.v.iter_mut().zip(&ws.w).for_each(|(a, b)| *a -= b);
+        if !self.conditional {
+            let wm = MatMut::from_column_major_slice_mut(&mut ws.w[..], m, k);
+            solve_upper_triangular_in_place(self.lb.transpose(), wm, Par::Seq);
+            ws.v.iter_mut().zip(&ws.w).for_each(|(a, b)| *a -= b);
+        }
         let v = MatMut::from_column_major_slice_mut(&mut ws.v[..], m, k);
         solve_upper_triangular_in_place(self.l.transpose(), v, Par::Seq);
         for (j, dj) in d.chunks_exact(nd).enumerate() {

@@ -1,0 +1,155 @@
+//! What a moving-horizon estimator carries when its model has global variables g (a GP that keeps
+//! learning, `learning.rs`): the joint arrival prior of the window's first state and g
+//! (`joint_arrival.rs`), the posterior of g after the last update (the next warm start, and what
+//! a snapshot of the learned model is made of), the random-walk drift of g per step, and the
+//! prior g starts from (for a reset).
+//!
+//! Before each window the estimator hands the model the last posterior mean
+//! ([`StageModel::set_globals`]) and the window the joint prior ([`Learning::prepare`]); the
+//! model's state is thus a function of the estimator's, and a failed update leaves nothing to
+//! undo.
+
+use super::joint_arrival::{joint_sqrt, JointArrival};
+use super::problem::WindowProblem;
+use super::stage::StageModel;
+use crate::error::{check_finite, check_len, Error, Result};
+
+/// The learning part of an estimator (module docs).
+#[derive(Debug, Clone)]
+pub struct Learning {
+    drift: f64,
+    /// The prior of g at t = 0: mean and covariance (n_g², row-major).
+    g0: Vec<f64>,
+    sigma0: Vec<f64>,
+    state: LearningState,
+}
+
+/// The learning state an update changes (for checkpoints): the joint arrival prior of the
+/// window's first node, and the posterior of g after the last update (mean, n_g × n_g
+/// covariance, row-major).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearningState {
+    pub arrival: JointArrival,
+    pub g: Vec<f64>,
+    pub g_cov: Vec<f64>,
+}
+
+impl Learning {
+    /// Learning from the prior N(g0, sigma0) with `drift` ≥ 0 per step, the states' initial
+    /// covariance being `x_cov` (n × n).
+    pub fn new(g0: &[f64], sigma0: &[f64], drift: f64, x_cov: &[f64]) -> Result<Self> {
+        let ng = g0.len();
+        if ng == 0 {
+            return Err(Error::invalid("g0", "needs at least one global variable"));
+        }
+        check_len("sigma0", sigma0, ng * ng)?;
+        check_finite("g0", g0)?;
+        check_finite("sigma0", sigma0)?;
+        if !(drift.is_finite() && drift >= 0.0) {
+            return Err(Error::invalid("drift", "must be finite and >= 0"));
+        }
+        // Positive definite (with the states' block, checked by the joint factor).
+        let arrival = initial_arrival(g0, sigma0, x_cov)?;
+        joint_sqrt(&arrival.cov, arrival.cov.len().isqrt())?;
+        Ok(Self {
+            drift,
+            g0: g0.to_vec(),
+            sigma0: sigma0.to_vec(),
+            state: LearningState {
+                arrival,
+                g: g0.to_vec(),
+                g_cov: sigma0.to_vec(),
+            },
+        })
+    }
+
+    pub fn drift(&self) -> f64 {
+        self.drift
+    }
+
+    /// n_g.
+    pub fn dim(&self) -> usize {
+        self.g0.len()
+    }
+
+    pub fn state(&self) -> &LearningState {
+        &self.state
+    }
+
+    /// Back to the prior N(g0, sigma0), the states' covariance being `x_cov`.
+    pub fn reset(&mut self, x_cov: &[f64]) -> Result<()> {
+        let arrival = initial_arrival(&self.g0, &self.sigma0, x_cov)?;
+        self.state = LearningState {
+            arrival,
+            g: self.g0.clone(),
+            g_cov: self.sigma0.clone(),
+        };
+        Ok(())
+    }
+
+    /// Replaces the state (from [`Learning::state`] of an estimator with the same dimensions);
+    /// lengths and finiteness are checked and nothing changes on error.
+    pub fn set_state(&mut self, n: usize, s: LearningState) -> Result<()> {
+        let ng = self.dim();
+        let arrival = JointArrival::new(n, s.arrival.g, s.arrival.cov)?;
+        if arrival.dim() != ng {
+            return Err(Error::invalid(
+                "arrival",
+                format!("needs {ng} global variables"),
+            ));
+        }
+        check_len("g", &s.g, ng)?;
+        check_len("g_cov", &s.g_cov, ng * ng)?;
+        check_finite("g", &s.g)?;
+        check_finite("g_cov", &s.g_cov)?;
+        self.state = LearningState {
+            arrival,
+            g: s.g,
+            g_cov: s.g_cov,
+        };
+        Ok(())
+    }
+
+    /// Hands the model the last posterior mean of g and the window the joint arrival prior.
+    pub fn prepare(&self, model: &mut dyn StageModel, problem: &mut WindowProblem) -> Result<()> {
+        let s = &self.state;
+        model.set_globals(&s.g)?;
+        let d = problem.dim_x() + self.dim();
+        problem.set_global_prior(&s.arrival.g, &joint_sqrt(&s.arrival.cov, d)?)
+    }
+
+    /// Records an update: the next arrival prior when the window slid, the posterior of g.
+    pub fn apply(&mut self, update: LearningUpdate) {
+        if let Some(arrival) = update.arrival {
+            self.state.arrival = arrival;
+        }
+        self.state.g = update.g;
+        if let Some(cov) = update.g_cov {
+            self.state.g_cov = cov;
+        }
+    }
+}
+
+/// What one update changes in [`Learning`]: the next arrival prior (None: the window did not
+/// slide, or its update failed numerically), g of the solution and its covariance (None: not
+/// computable, the last one is kept).
+#[derive(Debug, Clone)]
+pub struct LearningUpdate {
+    pub arrival: Option<JointArrival>,
+    pub g: Vec<f64>,
+    pub g_cov: Option<Vec<f64>>,
+}
+
+/// N([x̂; g0], diag(x_cov, sigma0)) with x̂ kept by the estimator: the joint prior at t = 0.
+fn initial_arrival(g0: &[f64], sigma0: &[f64], x_cov: &[f64]) -> Result<JointArrival> {
+    let (n, ng) = (x_cov.len().isqrt(), g0.len());
+    let d = n + ng;
+    let mut cov = vec![0.0; d * d];
+    for r in 0..n {
+        cov[r * d..r * d + n].copy_from_slice(&x_cov[r * n..(r + 1) * n]);
+    }
+    for r in 0..ng {
+        cov[(n + r) * d + n..(n + r + 1) * d].copy_from_slice(&sigma0[r * ng..(r + 1) * ng]);
+    }
+    JointArrival::new(n, g0.to_vec(), cov)
+}
