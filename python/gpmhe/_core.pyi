@@ -81,7 +81,16 @@ class SparseMultiGP:
         thetas: npt.NDArray[np.float64],
         method: str,
         mean: npt.NDArray[np.float64] | None = None,
-    ) -> None: ...
+        posterior: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None] | None = None,
+    ) -> None:
+        """`posterior`: per output None or (mean, covariance) of its inducing outputs, replacing
+        the fit's."""
+        ...
+    def replaced_posterior(
+        self,
+    ) -> list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]] | None]:
+        """Per output, the posterior of its inducing outputs that replaced the fit's, or None."""
+        ...
     @property
     def n_outputs(self) -> int: ...
     @property
@@ -305,6 +314,24 @@ class StageModel:
         `f_residual`: f's GPs model x(t+1) − x(t)."""
         ...
     @staticmethod
+    def learning(
+        f_gp: SparseMultiGP,
+        h_gp: MultiGP | SparseMultiGP | None,
+        dim_u: int,
+        f_residual: bool,
+    ) -> StageModel:
+        """As `gp`, with sparse f-GPs whose inducing outputs the estimator learns."""
+        ...
+    def fitted_posterior(self) -> tuple[_F, _F, list[int]]:
+        """A learning model's fitted posterior of the inducing outputs (mean, covariance) and
+        the start of each f-GP's block."""
+        ...
+    def snapshot(self, mean: _F, cov: _F) -> SparseMultiGP:
+        """A learning model's f-GPs with the posterior N(mean, cov) of their inducing outputs."""
+        ...
+    @property
+    def learns(self) -> bool: ...
+    @staticmethod
     def callback(
         stage_eval: Callable[[_F], tuple[_F, _F, _F, _F, _F, _F, _F, _F]],
         dim_x: int,
@@ -419,6 +446,14 @@ class MovingHorizon:
         ...
     def reset(self, x0: _F) -> None:
         """Forget every step: t = 0, x̂(0) = x0 with covariance P2⁻¹."""
+        ...
+    def enable_learning(self, g0: _F, sigma0: _F, drift: float) -> None:
+        """Learn the model's global variables from the prior N(g0, sigma0) with a random walk
+        of variance `drift` per step (before the first update only)."""
+        ...
+    @property
+    def learning(self) -> tuple[_F, _F] | None:
+        """(g, its covariance) after the last update; None if the estimator does not learn."""
         ...
     def set_weights(
         self,

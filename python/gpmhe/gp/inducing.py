@@ -166,18 +166,29 @@ class Sparse:
     def save_entries(self, model: "_core.SparseMultiGP") -> dict:
         """The file entries of the model and the settings beyond the exact GP's."""
         zs = model.inducing
+        # A posterior of the inducing outputs that replaced the fit's (a GP that learned online):
+        # the data alone would give the fit's.
+        replaced = {}
+        for o, post in enumerate(model.replaced_posterior()):
+            if post is not None:
+                replaced[f"posterior_mean_{o}"], replaced[f"posterior_cov_{o}"] = post
         return dict(inducing=np.vstack(zs), inducing_counts=np.array([len(z) for z in zs], dtype=np.int64),
                     method=model.method, n_inducing=self.n_inducing, optimize_inducing=self.optimize_inducing,
-                    inducing_given=self.inducing is not None)
+                    inducing_given=self.inducing is not None, **replaced)
 
     def load_model(self, D: np.ndarray, R: np.ndarray, theta: np.ndarray, coef: Any,
-                   inducing: List[np.ndarray]) -> "_core.SparseMultiGP":
-        """The model of a saved file's entries."""
-        return _core.SparseMultiGP(D, R, [np.ascontiguousarray(z) for z in inducing], theta, self.method, coef)
+                   inducing: Tuple[List[np.ndarray], Any]) -> "_core.SparseMultiGP":
+        """The model of a saved file's entries (``inducing``: the points per output and the
+        replaced posteriors, `read_settings`)."""
+        zs, posterior = inducing
+        return _core.SparseMultiGP(D, R, [np.ascontiguousarray(z) for z in zs], theta, self.method, coef,
+                                   posterior)
 
 
-def read_settings(f: Any, nd: int, q: int, one_output: bool) -> Tuple[dict, List[np.ndarray]]:
-    """(the sparse constructor's settings, the inducing points per output) of a saved file."""
+def read_settings(f: Any, nd: int, q: int, one_output: bool) -> Tuple[dict, Tuple[List[np.ndarray], Any]]:
+    """(the sparse constructor's settings, (the inducing points per output, the posteriors of
+    the inducing outputs that replaced the fit's: None, or one entry per output, None or (mean,
+    covariance))) of a saved file."""
     Z, counts = f.floats("inducing", (None, nd)), f.array("inducing_counts", "i", (None,))
     if len(counts) != q or np.any(counts < 1) or counts.sum() != len(Z):
         raise f.error("inducing_counts", f"must be {q} positive counts summing to {len(Z)}")
@@ -185,4 +196,6 @@ def read_settings(f: Any, nd: int, q: int, one_output: bool) -> Tuple[dict, List
     given = (zs[0] if one_output else list(zs)) if f.boolean("inducing_given") else None
     settings = dict(n_inducing=f.integer("n_inducing", 1), method=f.string("method"), inducing=given,
                     optimize_inducing=f.boolean("optimize_inducing"))
-    return settings, zs
+    posterior = [(f.floats(f"posterior_mean_{o}", (len(z),)), f.floats(f"posterior_cov_{o}", (len(z), len(z))))
+                 if f"posterior_mean_{o}" in f else None for o, z in enumerate(zs)]
+    return settings, (zs, posterior if any(p is not None for p in posterior) else None)

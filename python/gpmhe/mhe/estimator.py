@@ -353,7 +353,8 @@ class GPMHE(SettingsView, Runs):
     def __init__(self, model, x0, horizon=15, eta=0.91, P2=None, Q0=None, R0=None,
                  x_bounds=None, form="prediction", solver="gauss-newton", solver_options=None,
                  P0=None, arrival_mean="smoothed", arrival_weight="ekf", p0=None, P_p0=None,
-                 p_bounds=None, p_drift=None, loss="squared", loss_scale=None):
+                 p_bounds=None, p_drift=None, loss="squared", loss_scale=None, learning=False,
+                 learning_options=None):
         from gpmhe.models import KnownModel, LearnedModel
 
         if not isinstance(model, (KnownModel, LearnedModel)):
@@ -364,7 +365,9 @@ class GPMHE(SettingsView, Runs):
             dims, horizon=horizon, eta=eta, P2=P2, Q0=Q0, R0=R0, x_bounds=x_bounds, form=form,
             solver=solver, solver_options=solver_options, P0=P0, arrival_mean=arrival_mean,
             arrival_weight=arrival_weight, p0=p0, P_p0=P_p0, p_bounds=p_bounds, p_drift=p_drift,
-            loss=loss, loss_scale=loss_scale)
+            loss=loss, loss_scale=loss_scale, learning=learning, learning_options=learning_options)
+        if settings.learning:
+            model._check_learning()
         if Q0 is None and R0 is None and P2 is None and P0 is None:
             warnings.warn(NO_NOISE_INFORMATION, SettingsWarning, stacklevel=2)
         self._init(model, settings, x0)
@@ -388,8 +391,25 @@ class GPMHE(SettingsView, Runs):
         object.__setattr__(self, "model", model)
         object.__setattr__(self, "_settings", settings)
         object.__setattr__(self, "_core_model", core_model)
-        object.__setattr__(self, "_core", _core.MovingHorizon(
-            core_model._stage_model(), x0=settings.core_state(x0), **settings.core_arguments()))
+        stage = core_model._learning_stage_model() if settings.learning else core_model._stage_model()
+        core = _core.MovingHorizon(stage, x0=settings.core_state(x0), **settings.core_arguments())
+        if settings.learning:
+            # The prior of the inducing outputs: the fit's posterior.
+            g0, sigma0, _ = stage.fitted_posterior()
+            core.enable_learning(g0, sigma0, settings.learning_drift)
+        object.__setattr__(self, "_stage", stage)
+        object.__setattr__(self, "_core", core)
+
+    @property
+    def learned_model(self):
+        """The model as learned so far (``learning=True``): a `LearnedModel` whose f-GPs have the
+        current posterior of their inducing outputs N(u, P_u) (the window's estimate after the
+        last update; the fit's before any), a fixed model that saves, copies, predicts and can be
+        certified like any other. None without learning."""
+        post = self._core.learning
+        if post is None:
+            return None
+        return self.model._with_f_posterior(self._stage.snapshot(*post))
 
     # ---- settings: one MHESettings value; the weights are settable -------------------------
     #: The attributes a user may set (each takes effect from the next update).

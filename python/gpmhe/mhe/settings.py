@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from gpmhe import _core
-from gpmhe._validation import box, finite_vector, integer, one_of, options, positive
+from gpmhe._validation import boolean, box, finite_vector, integer, one_of, options, positive
 from gpmhe.models.parameters import Scaling
 from gpmhe._validation import positive_scalar, symmetric_matrix
 
@@ -119,13 +119,18 @@ class MHESettings:
     p_bounds: Optional[Tuple[np.ndarray, np.ndarray]]
     p_drift: np.ndarray
     p_scale: np.ndarray
+    # a learned model whose f-GPs keep learning online: on, and the random-walk variance of
+    # their inducing outputs per step
+    learning: bool = False
+    learning_drift: float = 0.0
 
     # ---- building and changing --------------------------------------------------------------
     @classmethod
     def build(cls, dims, horizon=15, eta=0.91, P2=None, Q0=None, R0=None, x_bounds=None,
               form="prediction", solver="gauss-newton", solver_options=None, P0=None,
               arrival_mean="smoothed", arrival_weight="ekf", p0=None, P_p0=None, p_bounds=None,
-              p_drift=None, loss="squared", loss_scale=None):
+              p_drift=None, loss="squared", loss_scale=None, learning=False,
+              learning_options=None):
         """The validated settings of an estimator on a model of dimensions ``dims`` = (n, p, m,
         k); ValueError naming the first invalid argument."""
         n, p, _, k = dims
@@ -143,7 +148,23 @@ class MHESettings:
             solver_options=dict(options("solver_options", solver_options, SOLVERS[solver])),
             arrival_mean=one_of("arrival_mean", arrival_mean, ("estimate", "smoothed", "filtered")),
             arrival_weight=one_of("arrival_weight", arrival_weight, ("constant", "ekf")),
-            **cls._loss(loss, loss_scale), **cls._parameters(k, p0, P_p0, p_bounds, p_drift))
+            **cls._loss(loss, loss_scale), **cls._parameters(k, p0, P_p0, p_bounds, p_drift),
+            **cls._learning(learning, learning_options, solver, k))
+
+    @staticmethod
+    def _learning(learning, learning_options, solver, k):
+        """Whether the model learns online, and its drift (``learning_options``: ``drift``, the
+        variance per step of the random walk of the inducing outputs, default 0)."""
+        learning = boolean("learning", learning)
+        opts = dict(options("learning_options", learning_options, dict(drift="tol")))
+        if opts and not learning:
+            raise ValueError("learning_options: given without learning=True")
+        if learning and solver != "gauss-newton":
+            raise ValueError(f"learning: needs solver='gauss-newton' (the window estimates the "
+                             f"GPs' inducing outputs with the states), got {solver!r}")
+        if learning and k:
+            raise ValueError("learning: not with a model's parameters (dim_p > 0)")
+        return dict(learning=learning, learning_drift=float(opts.get("drift", 0.0)))
 
     @staticmethod
     def _loss(loss, loss_scale):
@@ -283,6 +304,8 @@ class MHESettings:
         if self.dims[3]:
             out.update(p0=self.p0, P_p0=self.P_p0, p_lower=self.p_bounds[0],
                        p_upper=self.p_bounds[1], p_drift=self.p_drift)
+        if self.learning:
+            out.update(learning=True, learning_drift=self.learning_drift)
         return out
 
     @classmethod
@@ -304,6 +327,9 @@ class MHESettings:
             raw["loss"], scale = f.string("loss"), f.float("loss_scale")
             if raw["loss"] != "squared":  # the squared loss's saved scale is always 1
                 raw["loss_scale"] = scale
+        if f.version >= 8 and "learning" in f:
+            raw.update(learning=f.boolean("learning"),
+                       learning_options=dict(drift=f.float("learning_drift")))
         if k:
             raw.update(p0=f.floats("p0", (k,)), P_p0=f.floats("P_p0", (k, k)),
                        p_bounds=(f.floats("p_lower", (k,)), f.floats("p_upper", (k,))),

@@ -67,6 +67,17 @@ class SettingsView:
         return self._settings.dims[3]
 
     @property
+    def learning(self):
+        """Whether the f-GPs keep learning online (see `GPMHE`, ``learning``)."""
+        return self._settings.learning
+
+    @property
+    def learning_options(self):
+        """The learning settings as applied: ``{"drift": ...}`` (empty without learning)."""
+        s = self._settings
+        return {"drift": s.learning_drift} if s.learning else {}
+
+    @property
     def horizon(self):
         """The window length M."""
         return self._settings.horizon

@@ -8,6 +8,8 @@ itself (`_stage_model`). See the user guide, *Learned models* and *Weights from 
 
 from __future__ import annotations
 
+import copy
+
 import warnings
 
 import numpy as np
@@ -464,6 +466,34 @@ class LearnedModel(SharedOnCopy):
             return _core.StageModel.callback(self.stage_eval, self.dim_x, self.dim_u, self.dim_y,
                                              predict=self._predict_f64)
         return self._gp_stage_model()
+
+    def _check_learning(self):
+        """ValueError unless the f-GPs can learn online (`GPMHE`, ``learning=True``): sparse GPs
+        (the inducing outputs are what is learned) without a nominal model."""
+        from gpmhe.gp import SparseMultiOutputGP
+
+        if not isinstance(self.f_gp, SparseMultiOutputGP):
+            raise ValueError("learning: needs sparse f-GPs (a SparseMultiOutputGP: "
+                             "LearnedModel.from_trajectories(..., n_inducing=...)); their inducing "
+                             "outputs are what is learned")
+        if self.nominal is not None:
+            raise ValueError("learning: not with a nominal model")
+
+    def _learning_stage_model(self):
+        """The core's model of an estimator that learns: the f-GPs with their inducing outputs
+        estimated by the window (`gpmhe._core.StageModel.learning`)."""
+        self._check_learning()
+        h = None if self.h_gp is None else self.h_gp._core_model
+        return _core.StageModel.learning(self.f_gp._core_model, h, self.dim_u, self.f_residual)
+
+    def _with_f_posterior(self, core_f):
+        """This model with the f-GPs' core model ``core_f`` (the same GPs with another posterior
+        of their inducing outputs): a new, independent `LearnedModel`."""
+        f_gp = copy.copy(self.f_gp)
+        fit = f_gp._fitted
+        f_gp._fitted = fit._replace(model=core_f)
+        f_gp._diagnostics = None
+        return LearnedModel(f_gp, self.h_gp, self.dim_u, self.f_residual, self.nominal)
 
     def __getstate__(self):
         """Pickles without the core's view of the GPs (`_gp_stage_model` builds it again)."""

@@ -225,6 +225,28 @@ impl MovingHorizon {
         self.learning.as_ref()
     }
 
+    /// A learning part from its prior (as [`MovingHorizon::enable_learning`] takes it) and
+    /// state, checked, for [`MovingHorizon::set_learning`] (copies and checkpoints).
+    pub fn restored_learning(
+        &self,
+        g0: &[f64],
+        sigma0: &[f64],
+        drift: f64,
+        state: LearningState,
+    ) -> Result<Learning> {
+        let mut l = Learning::new(g0, sigma0, drift, &initial_covariance(&self.problem)?)?;
+        l.set_state(self.problem.dim_x(), state)?;
+        Ok(l)
+    }
+
+    /// Installs (or removes) the learning part; drops any staged window.
+    pub fn set_learning(&mut self, learning: Option<Learning>) {
+        self.learning = learning;
+        self.staged = None;
+        self.has_window = false;
+        self.evaluated_at.clear();
+    }
+
     /// Replaces the learning state (checkpoints; see [`Learning::set_state`]); an error if the
     /// estimator does not learn. Drops any staged window; nothing changes on error.
     pub fn set_learning_state(&mut self, state: LearningState) -> Result<()> {
@@ -888,6 +910,9 @@ impl MovingHorizon {
 
     /// The innovation of the newest sample (`innovation.rs`).
     pub fn innovation(&self, model: &mut dyn StageModel) -> Result<Innovation> {
+        if let Some(l) = &self.learning {
+            model.set_globals(&l.state().g)?;
+        }
         innovation(&self.problem, &self.history, model)
     }
 

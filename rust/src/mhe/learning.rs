@@ -21,6 +21,8 @@ use crate::sparse::{SparseMultiGp, SparseWorkspace};
 /// A GP stage model whose sparse f-GPs' inducing outputs are global variables (module docs).
 #[derive(Debug, Clone)]
 pub struct LearningStageModel {
+    /// The f-GPs as fitted (shared), and the copy whose inducing outputs are g.
+    fitted: Arc<SparseMultiGp>,
     f: SparseMultiGp,
     h: Option<Arc<GpModel>>,
     f_residual: bool,
@@ -38,7 +40,7 @@ impl LearningStageModel {
     /// `f` has n outputs on inputs of dimension n + `dim_u`; `h` (None when p = 0) has p outputs
     /// on the same inputs. g starts at the fitted posterior mean.
     pub fn new(
-        mut f: SparseMultiGp,
+        f: SparseMultiGp,
         h: Option<GpModel>,
         dim_u: usize,
         f_residual: bool,
@@ -55,6 +57,8 @@ impl LearningStageModel {
                 ));
             }
         }
+        let fitted = Arc::new(f.clone());
+        let mut f = f;
         let mut offsets = vec![0];
         for o in 0..n {
             let gp = f
@@ -64,6 +68,7 @@ impl LearningStageModel {
             offsets.push(offsets[o] + gp.n_inducing());
         }
         Ok(Self {
+            fitted,
             f,
             h: h.map(Arc::new),
             f_residual,
@@ -81,9 +86,9 @@ impl LearningStageModel {
         &self.offsets
     }
 
-    /// The f-GPs with their current posterior.
-    pub fn f(&self) -> &SparseMultiGp {
-        &self.f
+    /// The f-GPs as fitted.
+    pub fn fitted(&self) -> &Arc<SparseMultiGp> {
+        &self.fitted
     }
 
     pub fn f_residual(&self) -> bool {
@@ -101,7 +106,7 @@ impl LearningStageModel {
         let ng = self.n_globals();
         let mut mean = Vec::with_capacity(ng);
         let mut cov = Mat::zeros(ng, ng);
-        for (o, gp) in self.f.gps().iter().enumerate() {
+        for (o, gp) in self.fitted.gps().iter().enumerate() {
             let (mu, sigma) = gp.inducing_posterior();
             let a = self.offsets[o];
             cov.as_mut()

@@ -67,6 +67,11 @@ impl Learning {
         self.drift
     }
 
+    /// The prior of g at t = 0: mean and covariance (n_g², row-major).
+    pub fn prior(&self) -> (&[f64], &[f64]) {
+        (&self.g0, &self.sigma0)
+    }
+
     /// n_g.
     pub fn dim(&self) -> usize {
         self.g0.len()

@@ -161,6 +161,11 @@ impl PyEstimatorBank {
             Model::Callback { .. } => {
                 Inner::Callback(EstimatorBank::new(&template.core, &(), &settings)?)
             }
+            Model::Learning(_) => {
+                return Err(PyValueError::new_err(
+                    "model: a bank does not run estimators that learn (learning=True)",
+                ))
+            }
         };
         Ok(Self {
             inner,

@@ -29,8 +29,12 @@ impl PySparseMultiGp {
     /// SparseMultiGP(x, y, z, thetas, method, mean=None): x (N, n_d), y (N, q), z a list of q
     /// arrays (m_o, n_d), thetas (q, n_d + 2), method "vfe" or "fitc"; with a prior mean
     /// (coefficients (q, n_d + 1)), y are the residuals y − m(x), as for `MultiGP`.
+    ///
+    /// `posterior`: for each output None or (mean (m_o,), covariance (m_o, m_o)), a posterior of
+    /// its inducing outputs that replaces the fit's (as `replaced_posterior` gives it).
     #[new]
-    #[pyo3(signature = (x, y, z, thetas, method, mean=None))]
+    #[pyo3(signature = (x, y, z, thetas, method, mean=None, posterior=None))]
+    #[allow(clippy::too_many_arguments)]
     fn py_new(
         py: Python<'_>,
         x: PyReadonlyArray2<'_, f64>,
@@ -39,6 +43,7 @@ impl PySparseMultiGp {
         thetas: PyReadonlyArray2<'_, f64>,
         method: &str,
         mean: Option<PyReadonlyArray2<'_, f64>>,
+        posterior: Option<Vec<Option<Posterior<'_>>>>,
     ) -> PyResult<Self> {
         let method = SparseMethod::parse(method)?;
         let (x, n, nd) = slice2("x", &x)?;
@@ -67,12 +72,12 @@ impl PySparseMultiGp {
             .collect::<PyResult<Vec<&[f64]>>>()?;
         let mean = affine_mean(mean.as_ref(), q, nd)?;
         let inner = detach_interruptible(py, || SparseMultiGp::new(x, y, &zs, thetas, method))?;
-        Ok(Self {
-            inner: match mean {
-                Some(m) => inner.with_mean(m)?,
-                None => inner,
-            },
-        })
+        let mut inner = match mean {
+            Some(m) => inner.with_mean(m)?,
+            None => inner,
+        };
+        replace_posteriors(&mut inner, posterior.unwrap_or_default())?;
+        Ok(Self { inner })
     }
 
     // ---- copies and pickles -----------------------------------------------------------------
@@ -90,6 +95,8 @@ impl PySparseMultiGp {
             }
         }
         let thetas: Vec<f64> = gps.iter().flat_map(|g| g.theta().to_vec()).collect();
+        let posterior = self.replaced_posterior(py)?;
+        let any = posterior.iter().any(Option::is_some);
         let args = (
             x,
             array2(py, y, n, q)?,
@@ -97,8 +104,32 @@ impl PySparseMultiGp {
             array2(py, thetas, q, nd + 2)?,
             self.inner.method().name(),
             mean_coefficients(py, self.inner.mean())?,
+            any.then_some(posterior),
         );
         (py.get_type::<Self>(), args).into_pyobject(py)
+    }
+
+    /// For each output, the posterior of its inducing outputs that replaced the fit's (mean,
+    /// covariance), or None (the fit's).
+    #[allow(clippy::type_complexity)]
+    fn replaced_posterior<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<Vec<Option<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray2<f64>>)>>> {
+        self.inner
+            .gps()
+            .iter()
+            .map(|g| {
+                g.replaced_posterior()
+                    .map(|(mu, cov)| {
+                        Ok((
+                            PyArray1::from_slice(py, mu),
+                            array2(py, cov.clone(), mu.len(), mu.len())?,
+                        ))
+                    })
+                    .transpose()
+            })
+            .collect()
     }
 
     /// Immutable: a copy is the same object.
@@ -258,6 +289,40 @@ pub(super) fn extract_model(arg: &str, obj: &Bound<'_, PyAny>) -> PyResult<GpMod
     Err(PyValueError::new_err(format!(
         "{arg}: must be a gpmhe._core.MultiGP or SparseMultiGP"
     )))
+}
+
+/// A posterior of one output's inducing outputs: (mean, covariance).
+type Posterior<'py> = (PyReadonlyArray1<'py, f64>, PyReadonlyArray2<'py, f64>);
+
+/// Replaces each output's posterior of its inducing outputs where one is given (q entries);
+/// nothing changes on error.
+fn replace_posteriors(
+    gp: &mut SparseMultiGp,
+    posterior: Vec<Option<Posterior<'_>>>,
+) -> PyResult<()> {
+    if posterior.is_empty() {
+        return Ok(());
+    }
+    let q = gp.n_outputs();
+    if posterior.len() != q {
+        return Err(PyValueError::new_err(format!(
+            "posterior: needs {q} entries (one per output)"
+        )));
+    }
+    let mut out = gp.clone();
+    for (o, p) in posterior.iter().enumerate() {
+        let Some((mu, cov)) = p else { continue };
+        let (c, rows, cols) = slice2("posterior", cov)?;
+        let g = out
+            .gp_mut(o)
+            .ok_or_else(|| PyValueError::new_err("posterior: no such output"))?;
+        g.set_inducing_posterior(
+            slice1("posterior", mu)?,
+            faer::MatRef::from_row_major_slice(c, rows, cols),
+        )?;
+    }
+    *gp = out;
+    Ok(())
 }
 
 /// The Python object (`MultiGP` or `SparseMultiGP`) of a core model.

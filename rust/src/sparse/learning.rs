@@ -10,6 +10,8 @@ use faer::linalg::solvers::Llt;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
+use std::sync::Arc;
+
 use faer::{Mat, MatMut, MatRef, Par, Side};
 
 use super::{SparseGp, SparseMultiGp};
@@ -73,7 +75,15 @@ impl SparseGp {
         let lb = self.variance_factor(sigma)?;
         self.set_inducing_mean(mu)?;
         self.lb = lb;
+        let m = self.n_inducing();
+        let cov = (0..m * m).map(|k| sigma[(k / m, k % m)]).collect();
+        self.replaced = Some(Arc::new((mu.to_vec(), cov)));
         Ok(())
+    }
+
+    /// The posterior (mean, row-major covariance) that replaced the fit's, if any.
+    pub fn replaced_posterior(&self) -> Option<&(Vec<f64>, Vec<f64>)> {
+        self.replaced.as_deref()
     }
 
     /// Installs an L_B from [`SparseGp::variance_factor`] (of this GP; the size is checked).

@@ -161,6 +161,9 @@ pub struct SparseGp {
     /// Whether predictions give the variance given the inducing outputs, σ_f² − k*ᵀ Kuu⁻¹ k*,
     /// instead of the posterior's (`learning.rs`).
     conditional: bool,
+    /// The posterior of the inducing outputs (mean, row-major covariance) that replaced the
+    /// fit's, if one did (`learning.rs`): kept so that a copy rebuilt from the data is the same.
+    replaced: Option<Arc<(Vec<f64>, Vec<f64>)>>,
 }
 
 impl SparseGp {
@@ -202,6 +205,7 @@ impl SparseGp {
             objective: fit.value,
             mean_rounding,
             conditional: false,
+            replaced: None,
             x,
         })
     }

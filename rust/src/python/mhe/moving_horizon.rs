@@ -50,6 +50,8 @@ impl PyMovingHorizon {
                 }
                 r
             }
+            // Its state is set by the estimator before every use: nothing to undo.
+            Model::Learning(model) => detach_interruptible(py, || f(core, &mut **model)),
             Model::Compiled { model, .. } => {
                 let m = &mut **model;
                 match py.detach(|| interruptible(|| f(core, &mut *m))) {
@@ -210,6 +212,35 @@ impl PyMovingHorizon {
     }
 
     /// Forgets every step: t = 0, x̂(0) = x0.
+    /// Makes the estimator learn the model's global variables (a `StageModel.learning`: the
+    /// f-GPs' inducing outputs) from the prior N(g0, sigma0), drifting by a random walk of
+    /// variance `drift` per step. Before the first update only; on error nothing changes.
+    fn enable_learning(
+        &mut self,
+        g0: PyReadonlyArray1<'_, f64>,
+        sigma0: PyReadonlyArray2<'_, f64>,
+        drift: f64,
+    ) -> PyResult<()> {
+        let (s0, _, _) = slice2("sigma0", &sigma0)?;
+        self.core.enable_learning(slice1("g0", &g0)?, s0, drift)?;
+        Ok(())
+    }
+
+    /// The learning state: None if the estimator does not learn, else (g (n_g,), its covariance
+    /// (n_g, n_g)) after the last update (the prior before any).
+    #[getter]
+    fn learning<'py>(&self, py: Python<'py>) -> PyResult<Option<(Arr1<'py>, Arr2<'py>)>> {
+        let Some(l) = self.core.learning() else {
+            return Ok(None);
+        };
+        let s = l.state();
+        let ng = s.g.len();
+        Ok(Some((
+            PyArray1::from_slice(py, &s.g),
+            array2(py, s.g_cov.clone(), ng, ng)?,
+        )))
+    }
+
     fn reset(&mut self, x0: PyReadonlyArray1<'_, f64>) -> PyResult<()> {
         self.core.reset(slice1("x0", &x0)?)?;
         self.staged_cache = None;
@@ -437,7 +468,7 @@ impl PyMovingHorizon {
         // later updates reuse).
         let saved = match &self.model {
             Model::Gp(gp) => Some(gp.cache()),
-            Model::Callback { .. } | Model::Compiled { .. } => None,
+            _ => None,
         };
         let inn = self.run(py, |core, model| core.innovation(model));
         if let (Some(saved), Model::Gp(gp)) = (saved, &mut self.model) {

@@ -8,7 +8,10 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use super::stage_model::Model;
-use crate::mhe::{Covariance, GpStageModel, HistoryState, MovingHorizon, Outcome, GP_CACHE_PARTS};
+use crate::mhe::{
+    Covariance, GpStageModel, HistoryState, JointArrival, Learning, LearningState, MovingHorizon,
+    Outcome, GP_CACHE_PARTS,
+};
 use crate::python::convert::array2;
 
 /// The float64 array `state[key]` with `cols` columns (2-D), as a flat row-major vector; a
@@ -53,8 +56,9 @@ fn state_usize(state: &Bound<'_, PyDict>, key: &str) -> PyResult<usize> {
 
 /// The estimator's state as a dict of plain values: the history (`t`, `window_t0` (ints), `u`
 /// (rows, m), `y` (rows, p), `present` (rows,) bool, `r_given` (rows,) bool and `r` (rows, p²),
-/// `priors` (k, n), `x_window` (nodes, n), `arrival_sqrt` (n, n)), the last update's report (`outcome_*`, see `outcome_items`) and, for
-/// the learned model, its evaluation cache (`cache_*`).
+/// `priors` (k, n), `x_window` (nodes, n), `arrival_sqrt` (n, n)), the last update's report
+/// (`outcome_*`, see `outcome_items`), for the learned model its evaluation cache (`cache_*`),
+/// and for an estimator that learns its learning part (`learning_*`, see `learning_items`).
 pub(super) fn get_state<'py>(
     py: Python<'py>,
     core: &MovingHorizon,
@@ -93,7 +97,57 @@ pub(super) fn get_state<'py>(
             d.set_item(format!("cache_{name}"), PyArray1::from_vec(py, part))?;
         }
     }
+    if let Some(l) = core.learning() {
+        learning_items(py, &d, l, n)?;
+    }
     Ok(d)
+}
+
+/// Writes the learning part: its prior `learning_g0` (n_g,), `learning_sigma0` (n_g, n_g),
+/// `learning_drift`, and its state `learning_arrival_g` (n_g,), `learning_arrival_cov` (n + n_g,
+/// n + n_g), `learning_g` (n_g,), `learning_g_cov` (n_g, n_g).
+fn learning_items(py: Python<'_>, d: &Bound<'_, PyDict>, l: &Learning, n: usize) -> PyResult<()> {
+    let (g0, sigma0) = l.prior();
+    let (ng, s) = (l.dim(), l.state().clone());
+    d.set_item("learning_g0", PyArray1::from_slice(py, g0))?;
+    d.set_item("learning_sigma0", array2(py, sigma0.to_vec(), ng, ng)?)?;
+    d.set_item("learning_drift", l.drift())?;
+    d.set_item("learning_arrival_g", PyArray1::from_vec(py, s.arrival.g))?;
+    d.set_item(
+        "learning_arrival_cov",
+        array2(py, s.arrival.cov, n + ng, n + ng)?,
+    )?;
+    d.set_item("learning_g", PyArray1::from_vec(py, s.g))?;
+    d.set_item("learning_g_cov", array2(py, s.g_cov, ng, ng)?)?;
+    Ok(())
+}
+
+/// The learning part in a state dict (None without `learning_g0`), checked against `core`.
+fn read_learning(state: &Bound<'_, PyDict>, core: &MovingHorizon) -> PyResult<Option<Learning>> {
+    if !state.contains("learning_g0")? {
+        return Ok(None);
+    }
+    let n = core.problem().dim_x();
+    let g0 = state_rows_1d(state, "learning_g0")?;
+    let ng = g0.len();
+    let drift: f64 = state_item(state, "learning_drift")?
+        .extract()
+        .map_err(|_| PyValueError::new_err("learning_drift: must be a number"))?;
+    let learning_state = LearningState {
+        arrival: JointArrival {
+            g: state_rows_1d(state, "learning_arrival_g")?,
+            cov: state_rows(state, "learning_arrival_cov", n + ng)?,
+        },
+        g: state_rows_1d(state, "learning_g")?,
+        g_cov: state_rows(state, "learning_g_cov", ng)?,
+    };
+    let sigma0 = state_rows(state, "learning_sigma0", ng)?;
+    Ok(Some(core.restored_learning(
+        &g0,
+        &sigma0,
+        drift,
+        learning_state,
+    )?))
 }
 
 /// Restores `get_state`'s dict into `core`; returns the learned model with the restored cache
@@ -141,9 +195,13 @@ pub(super) fn set_state(
                 .map_err(|e| PyValueError::new_err(format!("cache_{e}")))?;
             Some(gp)
         }
-        Model::Callback { .. } | Model::Compiled { .. } => None,
+        _ => None,
     };
+    let learning = read_learning(state, core)?;
     core.set_history_state(s)?;
+    if learning.is_some() {
+        core.set_learning(learning);
+    }
     Ok(gp)
 }
 

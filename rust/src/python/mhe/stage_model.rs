@@ -1,8 +1,9 @@
-//! The model of a `MovingHorizon` as the core's [`StageModel`]: the learned GPs or a compiled
-//! CasADi model (both run without the GIL), or a known model's Python functions
+//! The model of a `MovingHorizon` as the core's [`StageModel`]: the learned GPs (fixed, or
+//! learning online) or a compiled CasADi model (all run without the GIL), or a known model's Python functions
 //! (`gpmhe.KnownModel.stage_eval`, run with the GIL) behind [`CallbackModel`], and the Python
 //! class `StageModel` that holds one of them.
 
+use faer::MatRef;
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn};
 use pyo3::exceptions::{PyArithmeticError, PyException, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -12,8 +13,9 @@ use std::sync::Arc;
 
 use crate::compiled::{CompiledLibrary, CompiledModel};
 use crate::error::Error;
-use crate::mhe::{GpStageModel, StageEval, StageModel};
-use crate::python::convert::{slice1, slice2};
+use crate::gp_model::GpModel;
+use crate::mhe::{GpStageModel, LearningStageModel, StageEval, StageModel};
+use crate::python::convert::{array2, slice1, slice2};
 use crate::python::sparse::{extract_model, model_object};
 
 /// A [`StageModel`] backed by the Python callable `stage_eval(d) -> (mean_x, var_x, dmean_x,
@@ -144,6 +146,8 @@ pub(crate) enum Model {
         dims: (usize, usize, usize),
     },
     Gp(Box<GpStageModel>),
+    /// Sparse f-GPs whose inducing outputs the estimator learns (`crate::mhe::learning`).
+    Learning(Box<LearningStageModel>),
     Compiled {
         model: Box<CompiledModel>,
         rebuild: Py<PyAny>,
@@ -163,6 +167,7 @@ impl Model {
                 dims: *dims,
             },
             Model::Gp(gp) => Model::Gp(gp.clone()),
+            Model::Learning(l) => Model::Learning(l.clone()),
             Model::Compiled { model, rebuild } => Model::Compiled {
                 model: Box::new(CompiledModel::new(Arc::clone(model.library()))),
                 rebuild: rebuild.clone_ref(py),
@@ -174,6 +179,7 @@ impl Model {
         match self {
             Model::Callback { dims, .. } => *dims,
             Model::Gp(gp) => (gp.dim_x(), gp.dim_u(), gp.dim_y()),
+            Model::Learning(l) => (l.dim_x(), l.dim_u(), l.dim_y()),
             Model::Compiled { model, .. } => model.library().dims(),
         }
     }
@@ -208,6 +214,12 @@ impl Model {
                 let args = (f, h, gp.dim_u(), gp.f_residual());
                 (cls.getattr("gp")?, args).into_pyobject(py)
             }
+            Model::Learning(l) => {
+                let f = model_object(py, &GpModel::Sparse((**l.fitted()).clone()))?;
+                let h = l.h().map(|h| model_object(py, h)).transpose()?;
+                let args = (f, h, l.dim_u(), l.f_residual());
+                (cls.getattr("learning")?, args).into_pyobject(py)
+            }
             Model::Compiled { rebuild, .. } => (rebuild.clone_ref(py), ()).into_pyobject(py),
         }
     }
@@ -218,6 +230,15 @@ impl Model {
 #[pyclass(name = "StageModel", module = "gpmhe._core", frozen)]
 pub(crate) struct PyStageModel {
     pub(crate) model: Model,
+}
+
+impl PyStageModel {
+    fn learning_model(&self) -> PyResult<&LearningStageModel> {
+        match &self.model {
+            Model::Learning(l) => Ok(l),
+            _ => Err(PyValueError::new_err("model: not a learning model")),
+        }
+    }
 }
 
 #[pymethods]
@@ -238,6 +259,69 @@ impl PyStageModel {
         Ok(Self {
             model: Model::Gp(Box::new(gp)),
         })
+    }
+
+    /// The learned model whose f-GPs keep learning: `f_gp` a `SparseMultiGP` (dim_x outputs),
+    /// its inducing outputs estimated by the estimator with the states; `h_gp` and the others as
+    /// for `gp`.
+    #[staticmethod]
+    fn learning(
+        f_gp: &Bound<'_, PyAny>,
+        h_gp: Option<&Bound<'_, PyAny>>,
+        dim_u: usize,
+        f_residual: bool,
+    ) -> PyResult<Self> {
+        let GpModel::Sparse(f) = extract_model("f_gp", f_gp)? else {
+            return Err(PyValueError::new_err(
+                "f_gp: learning needs sparse GPs (a SparseMultiGP)",
+            ));
+        };
+        let h = h_gp.map(|h| extract_model("h_gp", h)).transpose()?;
+        let model = LearningStageModel::new(f, h, dim_u, f_residual)?;
+        Ok(Self {
+            model: Model::Learning(Box::new(model)),
+        })
+    }
+
+    /// The learning model's fitted posterior of the inducing outputs: (mean (n_g,), covariance
+    /// (n_g, n_g)), the prior learning starts from; and the start of each f-GP's block (dim_x + 1
+    /// values). ValueError for another model.
+    #[allow(clippy::type_complexity)]
+    fn fitted_posterior<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(
+        Bound<'py, PyArray1<f64>>,
+        Bound<'py, numpy::PyArray2<f64>>,
+        Vec<usize>,
+    )> {
+        let l = self.learning_model()?;
+        let (mean, cov) = l.fitted_posterior();
+        let ng = mean.len();
+        let cov: Vec<f64> = (0..ng * ng).map(|k| cov[(k / ng, k % ng)]).collect();
+        Ok((
+            PyArray1::from_vec(py, mean),
+            array2(py, cov, ng, ng)?,
+            l.offsets().to_vec(),
+        ))
+    }
+
+    /// The learning model's f-GPs with the posterior N(mean, cov) of their inducing outputs, as
+    /// a `SparseMultiGP` that predicts with the full posterior variance. ValueError for another
+    /// model or bad input; `NumericalError` if a block of `cov` is not positive definite.
+    fn snapshot(
+        &self,
+        py: Python<'_>,
+        mean: PyReadonlyArray1<'_, f64>,
+        cov: PyReadonlyArray2<'_, f64>,
+    ) -> PyResult<Py<PyAny>> {
+        let l = self.learning_model()?;
+        let (c, rows, cols) = slice2("cov", &cov)?;
+        let f = l.snapshot(
+            slice1("mean", &mean)?,
+            MatRef::from_row_major_slice(c, rows, cols),
+        )?;
+        model_object(py, &GpModel::Sparse(f))
     }
 
     /// A model given by the Python callable `stage_eval` (see `gpmhe.KnownModel`), with
@@ -290,6 +374,12 @@ impl PyStageModel {
                 rebuild: rebuild.unbind(),
             },
         })
+    }
+
+    /// Whether the model learns online (`StageModel.learning`).
+    #[getter]
+    fn learns(&self) -> bool {
+        matches!(self.model, Model::Learning(_))
     }
 
     /// Whether the model runs compiled code without Python (the GPs or a compiled CasADi model).
