@@ -18,8 +18,9 @@ __all__ = ["FORMAT_VERSION", "save", "load"]
 # (loss, loss_scale); 5: the output covariance given with each sample in the history (core_r_given,
 # core_r); 6: a model with a time step keeps each sample's interval as the last column of core_u;
 # 7: the estimate and covariance before the last update and the window's covariances
-# (core_outcome_x_before, core_outcome_P_before, core_outcome_P_window).
-FORMAT_VERSION = 7
+# (core_outcome_x_before, core_outcome_P_before, core_outcome_P_window); 8: an estimator that
+# learns (learning, learning_drift and its core state core_learning_*; no evaluation cache).
+FORMAT_VERSION = 8
 
 _CACHE_PARTS = ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y",
                 "dvar_y")
@@ -57,7 +58,7 @@ def load(cls, path, model):
                              f"dim_y={p}, dim_u={m}, dim_p={k}")
         settings = MHESettings.from_file(f, (n, p, m, k))
         est = cls._from_settings(model, settings, np.clip(np.zeros(n), *settings.x_bounds))
-        state = _core_state(f, n + k, m, p, kind, est._dt)
+        state = _core_state(f, n + k, m, p, kind, est._dt, settings.learning)
         state.update(_outcome(f, n + k) if f.version >= 3
                      else _outcome_of_format2(f, state["t"], n, k, settings.scaling))
         try:
@@ -67,9 +68,9 @@ def load(cls, path, model):
     return est
 
 
-def _core_state(f, na, m, p, kind, dt):
-    """The core's history (and the learned model's cache) in the file; ``dt`` the time step of
-    a model that has one (None: none)."""
+def _core_state(f, na, m, p, kind, dt, learning):
+    """The core's history (and the learned model's cache, or the learning state of an estimator
+    that learns) in the file; ``dt`` the time step of a model that has one (None: none)."""
     state = {"t": f.integer("core_t"), "window_t0": f.integer("core_window_t0"),
              "present": f.array("core_present", "b", (None,))}
     timed = dt is not None and f.version >= 6  # earlier files: every interval was dt
@@ -83,7 +84,16 @@ def _core_state(f, na, m, p, kind, dt):
     if f.version >= 5:  # earlier files: every sample with R0
         state["r_given"] = f.array("core_r_given", "b", (None,))
         state["r"] = f.floats("core_r", (None, p * p))
-    if kind == "LearnedModel":
+    if learning:
+        g0 = f.floats("core_learning_g0", (None,))
+        ng = len(g0)
+        state.update(learning_g0=g0, learning_sigma0=f.floats("core_learning_sigma0", (ng, ng)),
+                     learning_drift=f.float("core_learning_drift"),
+                     learning_arrival_g=f.floats("core_learning_arrival_g", (ng,)),
+                     learning_arrival_cov=f.floats("core_learning_arrival_cov", (na + ng, na + ng)),
+                     learning_g=f.floats("core_learning_g", (ng,)),
+                     learning_g_cov=f.floats("core_learning_g_cov", (ng, ng)))
+    elif kind == "LearnedModel":
         for key in _CACHE_PARTS:
             state["cache_" + key] = f.floats("core_cache_" + key, (None,))
     return state

@@ -367,6 +367,9 @@ class GPMHE(SettingsView, Runs):
             arrival_weight=arrival_weight, p0=p0, P_p0=P_p0, p_bounds=p_bounds, p_drift=p_drift,
             loss=loss, loss_scale=loss_scale, learning=learning, learning_options=learning_options)
         if settings.learning:
+            if not isinstance(model, LearnedModel):
+                raise ValueError("learning: needs a LearnedModel with sparse f-GPs, got a "
+                                 f"{type(model).__name__}")
             model._check_learning()
         if Q0 is None and R0 is None and P2 is None and P0 is None:
             warnings.warn(NO_NOISE_INFORMATION, SettingsWarning, stacklevel=2)

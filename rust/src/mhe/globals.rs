@@ -58,8 +58,10 @@ impl GlobalPrior {
         &self.sqrt
     }
 
-    /// Writes the rows a S ([x̄_0; g] − [x̂; ĝ]) from row 0 (their ∂/∂x̄_0 into `ja`, ∂/∂g into
-    /// `jg`). Returns the next row.
+    /// Writes the rows S ([a (x̄_0 − x̂); √2 (g − ĝ)]) from row 0 (their ∂/∂x̄_0 into `ja`, ∂/∂g
+    /// into `jg`): the states' part discounted as the window's prior (a = √(2η^{M_t})), g's not
+    /// (its prior carries everything learned before the window; discounting it every window
+    /// would forget it geometrically). Returns the next row.
     pub(super) fn write_rows(
         &self,
         a: f64,
@@ -71,15 +73,16 @@ impl GlobalPrior {
     ) -> usize {
         let (n, ng) = (self.n, self.dim());
         let d = n + ng;
+        let a_g = std::f64::consts::SQRT_2;
         let dev: Vec<f64> = (0..d)
             .map(|c| match c < n {
-                true => x0[c] - x_prior[c],
-                false => g[c - n] - self.mean[c - n],
+                true => a * (x0[c] - x_prior[c]),
+                false => a_g * (g[c - n] - self.mean[c - n]),
             })
             .collect();
         for r in 0..d {
             let s = &self.sqrt[r * d..(r + 1) * d];
-            out.r[r] = a * s.iter().zip(&dev).map(|(a, b)| a * b).sum::<f64>();
+            out.r[r] = s.iter().zip(&dev).map(|(a, b)| a * b).sum::<f64>();
             out.node[r] = 0;
             out.process[r] = false;
             if want_jacobian {
@@ -90,7 +93,7 @@ impl GlobalPrior {
                 out.jg[r * ng..(r + 1) * ng]
                     .iter_mut()
                     .zip(&s[n..])
-                    .for_each(|(j, v)| *j = a * v);
+                    .for_each(|(j, v)| *j = a_g * v);
             }
         }
         d

@@ -16,8 +16,8 @@
 //!
 //! With n_g global variables g (a model's quantities constant over the window, such as a sparse
 //! GP's inducing outputs; [`StageModel::n_globals`]) z ends with g, the prior rows become the n +
-//! n_g rows a_{M_t} S ([x̄_0; g] − [x̂; ĝ]) of the joint arrival prior (`globals.rs`), and every
-//! model row also depends on g through the model's means.
+//! n_g rows S ([a_{M_t} (x̄_0 − x̂); √2 (g − ĝ)]) of the joint arrival prior (`globals.rs`: g's
+//! prior is not discounted), and every model row also depends on g through the model's means.
 //!
 //! Q0 and R0 are covariances (docs/user_guide/weights.rst), diagonal (each row is divided by
 //! its standard deviation) or full (the block is whitened with its Cholesky factor,
@@ -314,7 +314,7 @@ impl WindowProblem {
     }
 
     /// Makes the window estimate n_g global variables g with the states, with the joint arrival
-    /// prior a_{M_t} S ([x̄_0; g] − [x̂; ĝ]) replacing the prior on x̄_0: `g_prior` is ĝ (n_g
+    /// prior S ([a_{M_t} (x̄_0 − x̂); √2 (g − ĝ)]) replacing the prior on x̄_0: `g_prior` is ĝ (n_g
     /// values), `joint_sqrt` S ((n + n_g)² values, row-major). On error nothing changes.
     pub fn set_global_prior(&mut self, g_prior: &[f64], joint_sqrt: &[f64]) -> Result<()> {
         self.globals = Some(GlobalPrior::new(self.n, g_prior, joint_sqrt)?);
