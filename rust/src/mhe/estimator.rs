@@ -468,26 +468,25 @@ impl MovingHorizon {
             self.solver
                 .solve(&mut lsq, &mut z, &self.lower, &self.upper, &self.opts)
         };
-        let (solve, cost, blocks) = match solve {
+        let (solve, cost, blocks, g_cov) = match solve {
             Ok(report) => {
                 self.evaluated_at.extend_from_slice(&z);
-                let blocks = self.solver.window_covariance();
-                (Ok(report.clone()), report.cost, blocks)
+                let (blocks, g_cov) = match self.learning {
+                    Some(_) => self.solver.window_and_global_covariance(),
+                    None => (self.solver.window_covariance(), None),
+                };
+                (Ok(report.clone()), report.cost, blocks, g_cov)
             }
             // A numerical failure keeps the warm start; anything else is an error.
             Err(e @ Error::Numerical(_)) => {
                 z = z0;
                 let cost = self.evaluate(model, &z, false)?.cost();
-                (Err(e), cost, None)
+                (Err(e), cost, None, None)
             }
             Err(e) => return Err(e),
         };
         let n = self.problem.dim_x();
         let covariance = blocks.as_deref().map(|b| last_block(b, n * n));
-        let g_cov = match (&solve, &self.learning) {
-            (Ok(_), Some(_)) => self.solver.global_covariance(),
-            _ => None,
-        };
         let solved = Solved::Rust(solve.clone());
         let pending = self.finish_with(model, z, blocks, g_cov, cost, &solved)?;
         let report = UpdateReport {

@@ -8,6 +8,8 @@
 //! * the window's gradient 2Jᵀr and Gauss-Newton Hessian 2JᵀJ with respect to g: the border
 //!   (nodes·n × n_g) and corner (n_g × n_g) of the solver's bordered Hessian.
 
+use std::sync::Arc;
+
 use faer::linalg::matmul::matmul;
 use faer::{Accum, MatMut, MatRef, Par};
 
@@ -21,6 +23,25 @@ pub struct GlobalPrior {
     n: usize,
     mean: Vec<f64>,
     sqrt: Vec<f64>,
+    gram: Arc<PriorGram>,
+}
+
+/// The prior rows' Gram blocks S_xᵀS_g (n × n_g) and S_gᵀS_g (n_g × n_g), row-major (S = [S_x
+/// S_g]): their part of the Gauss-Newton Hessian, the same at every evaluation of a window.
+#[derive(Debug, Clone)]
+pub(super) struct PriorGram {
+    xg: Vec<f64>,
+    gg: Vec<f64>,
+}
+
+/// Where a window evaluation's prior rows are and what scales them (`WindowEval`).
+#[derive(Debug, Clone)]
+pub(super) struct PriorRows {
+    gram: Arc<PriorGram>,
+    /// The rows 0 … rows − 1, with weights a (states) and a_g (g).
+    rows: usize,
+    a: f64,
+    a_g: f64,
 }
 
 impl GlobalPrior {
@@ -36,10 +57,19 @@ impl GlobalPrior {
         check_len("joint_sqrt", sqrt, d * d)?;
         check_finite("g_prior", mean)?;
         check_finite("joint_sqrt", sqrt)?;
+        let ng = mean.len();
+        let s = MatRef::from_row_major_slice(sqrt, d, d);
+        let (sx, sg) = (s.subcols(0, n), s.subcols(n, ng));
+        let (mut xg, mut gg) = (vec![0.0; n * ng], vec![0.0; ng * ng]);
+        let xg_m = MatMut::from_row_major_slice_mut(&mut xg, n, ng);
+        matmul(xg_m, Accum::Replace, sx.transpose(), sg, 1.0, Par::Seq);
+        let gg_m = MatMut::from_row_major_slice_mut(&mut gg, ng, ng);
+        matmul(gg_m, Accum::Replace, sg.transpose(), sg, 1.0, Par::Seq);
         Ok(Self {
             n,
             mean: mean.to_vec(),
             sqrt: sqrt.to_vec(),
+            gram: Arc::new(PriorGram { xg, gg }),
         })
     }
 
@@ -96,6 +126,12 @@ impl GlobalPrior {
                     .for_each(|(j, v)| *j = a_g * v);
             }
         }
+        out.prior = Some(PriorRows {
+            gram: Arc::clone(&self.gram),
+            rows: d,
+            a,
+            a_g,
+        });
         d
     }
 }
@@ -134,17 +170,38 @@ impl WindowEval {
     }
 
     /// The border 2 J_xᵀ J_g (nodes·n × n_g, row-major) and corner 2 J_gᵀ J_g (n_g × n_g) of
-    /// the Gauss-Newton Hessian. Needs an evaluation with the Jacobian.
+    /// the Gauss-Newton Hessian. Needs an evaluation with the Jacobian. The prior rows add
+    /// their precomputed Gram blocks; every other row only its nonzero range of ∂r/∂g (a process
+    /// row of a GP's state touches that GP's inducing outputs only).
     pub fn gauss_newton_border_into(&self, border: &mut [f64], corner: &mut [f64]) {
         let (n, ng) = (self.n, self.ng);
         border.fill(0.0);
-        for (k, jg) in self.jg.chunks_exact(ng).enumerate() {
+        corner.fill(0.0);
+        let first = self.prior.as_ref().map_or(0, |p| p.rows);
+        if let Some(p) = &self.prior {
+            let (sx, sg) = (2.0 * p.a * p.a_g, 2.0 * p.a_g * p.a_g);
+            border[..n * ng]
+                .iter_mut()
+                .zip(&p.gram.xg)
+                .for_each(|(b, v)| *b = sx * v);
+            corner
+                .iter_mut()
+                .zip(&p.gram.gg)
+                .for_each(|(c, v)| *c = sg * v);
+        }
+        for (k, jg) in self.jg.chunks_exact(ng).enumerate().skip(first) {
+            let Some(lo) = jg.iter().position(|&v| v != 0.0) else {
+                continue;
+            };
+            let hi = ng - jg.iter().rev().position(|&v| v != 0.0).unwrap_or(0);
+            let jr = &jg[lo..hi];
             let i = self.node[k];
             let mut add = |node: usize, jx: &[f64]| {
                 for (l, &v) in jx.iter().enumerate() {
                     if v != 0.0 {
-                        let b = &mut border[(node * n + l) * ng..(node * n + l + 1) * ng];
-                        b.iter_mut().zip(jg).for_each(|(b, j)| *b += 2.0 * v * j);
+                        let row = (node * n + l) * ng;
+                        let b = &mut border[row + lo..row + hi];
+                        b.iter_mut().zip(jr).for_each(|(b, j)| *b += 2.0 * v * j);
                     }
                 }
             };
@@ -152,11 +209,14 @@ impl WindowEval {
             if self.process[k] {
                 add(i + 1, &self.jb[k * n..(k + 1) * n]);
             }
+            for (a, &va) in jr.iter().enumerate() {
+                if va != 0.0 {
+                    let row = (lo + a) * ng;
+                    let c = &mut corner[row + lo..row + hi];
+                    c.iter_mut().zip(jr).for_each(|(c, j)| *c += 2.0 * va * j);
+                }
+            }
         }
-        let rows = self.r.len();
-        let jg = MatRef::from_row_major_slice(&self.jg, rows, ng);
-        let c = MatMut::from_row_major_slice_mut(corner, ng, ng);
-        matmul(c, Accum::Replace, jg.transpose(), jg, 2.0, Par::Seq);
     }
 
     /// Adds the border and corner to a dense Gauss-Newton Hessian (row-major, n_vars²).

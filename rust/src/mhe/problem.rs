@@ -26,7 +26,7 @@
 // Index loops mirror the block formulas of docs/user_guide/window.rst and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
-use super::globals::{global_block, global_row, selected_rows, GlobalPrior};
+use super::globals::{global_block, global_row, selected_rows, GlobalPrior, PriorRows};
 use super::loss::Loss;
 use super::stage::{StageEval, StageModel};
 use super::weights::{whiten, Block, Covariance};
@@ -699,6 +699,8 @@ pub struct WindowEval {
     pub(super) ja: Vec<f64>,
     pub(super) jb: Vec<f64>,
     pub(super) jg: Vec<f64>,
+    /// The joint prior's rows (with global variables): their precomputed Gram blocks.
+    pub(super) prior: Option<PriorRows>,
     /// Scratch reused between evaluations: the k×nd stage points and the model's values there.
     d: Vec<f64>,
     stage: StageEval,
@@ -789,6 +791,7 @@ impl WindowEval {
         self.n = n;
         self.nodes = nodes;
         self.ng = ng;
+        self.prior = None;
         self.has_jacobian = want_jacobian;
         self.r.resize(rows, 0.0);
         self.dr.clear();

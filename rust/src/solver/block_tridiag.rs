@@ -125,6 +125,62 @@ impl BlockTridiagCholesky {
     }
 }
 
+/// An n × n nalgebra matrix as a faer view.
+fn view(m: &DMatrix<f64>) -> faer::MatRef<'_, f64> {
+    faer::MatRef::from_column_major_slice(m.as_slice(), m.nrows(), m.ncols())
+}
+
+impl BlockTridiagCholesky {
+    /// Solves A X = B in place for `cols` right-hand sides at once after a successful
+    /// [`factor`](Self::factor): `b` is row-major (nodes·n × cols), so each node's rows form one
+    /// n × cols block (the solves of [`solve_in_place`](Self::solve_in_place) on matrix blocks).
+    pub fn solve_many_in_place(&self, b: &mut [f64], cols: usize) {
+        let (n, nodes) = (self.n, self.l.len());
+        let block = n * cols;
+        for i in 0..nodes {
+            let (prev, cur) = b.split_at_mut(i * block);
+            let mut cur = faer::MatMut::from_row_major_slice_mut(&mut cur[..block], n, cols);
+            if i > 0 {
+                let yp = faer::MatRef::from_row_major_slice(&prev[(i - 1) * block..], n, cols);
+                let x = view(&self.x[i - 1]).transpose();
+                faer::linalg::matmul::matmul(
+                    cur.as_mut(),
+                    faer::Accum::Add,
+                    x,
+                    yp,
+                    -1.0,
+                    faer::Par::Seq,
+                );
+            }
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+                view(&self.l[i]),
+                cur,
+                faer::Par::Seq,
+            );
+        }
+        for i in (0..nodes).rev() {
+            let (cur, next) = b.split_at_mut((i + 1) * block);
+            let mut cur = faer::MatMut::from_row_major_slice_mut(&mut cur[i * block..], n, cols);
+            if i + 1 < nodes {
+                let xn = faer::MatRef::from_row_major_slice(&next[..block], n, cols);
+                faer::linalg::matmul::matmul(
+                    cur.as_mut(),
+                    faer::Accum::Add,
+                    view(&self.x[i]),
+                    xn,
+                    -1.0,
+                    faer::Par::Seq,
+                );
+            }
+            faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+                view(&self.l[i]).transpose(),
+                cur,
+                faer::Par::Seq,
+            );
+        }
+    }
+}
+
 /// Which diagonal blocks of A⁻¹ [`BlockTridiagCholesky::inverse_blocks`] returns.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum InverseBlocks {

@@ -25,7 +25,7 @@ pub struct BorderedCholesky {
     /// Variables of the nodes and global variables of the last factorisation.
     nx: usize,
     m: usize,
-    /// Z = T⁻¹B, column-major nx × m.
+    /// Z = T⁻¹B, row-major nx × m.
     z: Vec<f64>,
     /// The lower Cholesky factor of S (column-major m × m; the upper triangle is scratch).
     s: Vec<f64>,
@@ -45,17 +45,16 @@ impl BorderedCholesky {
         if m == 0 {
             return true;
         }
-        self.z.resize(nx * m, 0.0);
-        for (j, col) in self.z.chunks_exact_mut(nx).enumerate() {
-            for (k, v) in col.iter_mut().enumerate() {
-                *v = if fixed[k] || fixed[nx + j] {
-                    0.0
-                } else {
-                    h.border[k * m + j]
-                };
+        self.z.clear();
+        self.z.extend_from_slice(&h.border);
+        for (k, row) in self.z.chunks_exact_mut(m).enumerate() {
+            for (j, v) in row.iter_mut().enumerate() {
+                if fixed[k] || fixed[nx + j] {
+                    *v = 0.0;
+                }
             }
-            self.tri.solve_in_place(col);
         }
+        self.tri.solve_many_in_place(&mut self.z, m);
         self.schur_complement(h, shift, fixed)
     }
 
@@ -68,7 +67,7 @@ impl BorderedCholesky {
         let mut s = MatMut::from_column_major_slice_mut(&mut self.s, m, m);
         // Z's rows of held node variables are zero, so BᵀZ needs no masking of B.
         let b = MatRef::from_row_major_slice(&h.border, nx, m);
-        let z = MatRef::from_column_major_slice(&self.z, nx, m);
+        let z = MatRef::from_row_major_slice(&self.z, nx, m);
         matmul(s.as_mut(), Accum::Add, b.transpose(), z, -1.0, Par::Seq);
         for j in 0..m {
             if fixed[nx + j] {
@@ -101,15 +100,17 @@ impl BorderedCholesky {
         let (nx, m) = (self.nx, self.m);
         let (bx, bg) = b.split_at_mut(nx);
         if m > 0 {
-            for (j, col) in self.z.chunks_exact(nx).enumerate() {
-                bg[j] -= col.iter().zip(bx.iter()).map(|(a, v)| a * v).sum::<f64>();
+            // b_g − Zᵀ b_x
+            for (row, &v) in self.z.chunks_exact(m).zip(bx.iter()) {
+                bg.iter_mut().zip(row).for_each(|(g, a)| *g -= a * v);
             }
             self.solve_schur(MatMut::from_column_major_slice_mut(bg, m, 1));
         }
         self.tri.solve_in_place(bx);
-        for (j, col) in self.z.chunks_exact(nx).enumerate().take(m) {
-            let gj = bg[j];
-            bx.iter_mut().zip(col).for_each(|(v, a)| *v -= a * gj);
+        if m > 0 {
+            for (row, v) in self.z.chunks_exact(m).zip(bx.iter_mut()) {
+                *v -= row.iter().zip(bg.iter()).map(|(a, g)| a * g).sum::<f64>();
+            }
         }
     }
 
@@ -150,7 +151,7 @@ impl BorderedCholesky {
         }
         // Wᵀ = L⁻¹ Zᵀ (m × nx).
         let mut wt = Mat::<f64>::zeros(m, nx);
-        wt.copy_from(MatRef::from_column_major_slice(&self.z, nx, m).transpose());
+        wt.copy_from(MatRef::from_row_major_slice(&self.z, nx, m).transpose());
         solve_lower_triangular_in_place(self.schur_factor(), wt.as_mut(), Par::Seq);
         let first = match which {
             InverseBlocks::Last => nx / n - 1,

@@ -210,15 +210,27 @@ impl BoxLsqSolver {
         )
     }
 
-    /// 4·sym of the global variables' block of H⁻¹ (m × m; see `last_node_covariance`): their
-    /// Laplace covariance. None without global variables, before any solve, or if H is
-    /// singular.
-    pub fn global_covariance(&mut self) -> Option<Vec<f64>> {
-        if self.h.m == 0 || !self.factor_undamped() {
-            return None;
+    /// [`window_covariance`](Self::window_covariance) and 4·sym of the global variables' block
+    /// of H⁻¹ (m × m: their Laplace covariance; None without global variables) from one
+    /// factorisation; (None, None) before any solve or if H is singular.
+    pub fn window_and_global_covariance(&mut self) -> (Option<Vec<f64>>, Option<Vec<f64>>) {
+        if !self.factor_undamped() {
+            return (None, None);
         }
-        let b = self.chol.global_block_of_inverse()?;
-        Some(symmetrised(&b, self.h.m))
+        let n = self.h.n;
+        let window = self.chol.inverse_blocks(InverseBlocks::All).map(|b| {
+            b.chunks(n * n)
+                .flat_map(|block| symmetrised(block, n))
+                .collect()
+        });
+        let global = match self.h.m {
+            0 => None,
+            m => self
+                .chol
+                .global_block_of_inverse()
+                .map(|b| symmetrised(&b, m)),
+        };
+        (window, global)
     }
 
     /// Factors the undamped H with nothing held, in the solver's own factor and scratch.

@@ -121,7 +121,9 @@ fn window_covariance_with_globals_is_the_dense_inverse() {
             }
         }
         assert_eq!(last[..], cov[(nodes - 1) * n * n..]);
-        let global = s.global_covariance().unwrap();
+        let (both, global) = s.window_and_global_covariance();
+        assert_eq!(both.unwrap(), cov);
+        let global = global.unwrap();
         for a in 0..m {
             for b in 0..m {
                 let want = inv[(nodes * n + a, nodes * n + b)];

@@ -79,9 +79,11 @@ impl GnHessian {
             let row = &self.border[k * m..(k + 1) * m];
             *yk += row.iter().zip(xg).map(|(b, v)| b * v).sum::<f64>();
         }
-        for (j, (yj, corner)) in yg.iter_mut().zip(self.corner.chunks_exact(m)).enumerate() {
-            let s: f64 = corner.iter().zip(xg).map(|(c, v)| c * v).sum();
-            *yj = s + (0..nx).map(|k| self.border[k * m + j] * xx[k]).sum::<f64>();
+        for (yj, corner) in yg.iter_mut().zip(self.corner.chunks_exact(m)) {
+            *yj = corner.iter().zip(xg).map(|(c, v)| c * v).sum();
+        }
+        for (row, &v) in self.border.chunks_exact(m).zip(xx) {
+            yg.iter_mut().zip(row).for_each(|(y, b)| *y += b * v);
         }
     }
 }
