@@ -171,6 +171,14 @@ class GPMHE(SettingsView, Runs):
     loss_scale : float or None, default None
         The scale k of "huber" or "cauchy", in standard deviations; None: 1.345 (Huber) or
         2.385 (Cauchy). Not accepted with "squared".
+    learning : bool, default False
+        Keep learning the model online: the inducing outputs u of the sparse f-GPs (a
+        `LearnedModel` with `SparseMultiOutputGP` f-GPs and no nominal model) are estimated by
+        every window together with the states, from the fit's posterior of u as the prior; see
+        the user guide, *Learning while estimating*. Needs ``solver="gauss-newton"``.
+    learning_options : dict or None, default None
+        With ``learning``: ``drift``, the variance per step of a random walk of u (in the units
+        of f squared; default 0: the plant does not change, what is learned is kept).
 
     Attributes
     ----------
@@ -245,6 +253,12 @@ class GPMHE(SettingsView, Runs):
         where unbounded).
     p0, P_p0, p_bounds, p_drift
         The parameter settings (with parameters).
+    learning, learning_options
+        The learning settings (``learning_options`` as applied: ``{"drift": ...}``, empty
+        without learning).
+    learned_model : LearnedModel or None
+        With ``learning``: the model as learned so far (the f-GPs with the current posterior
+        of u), a fixed model like any other; None without.
     dim_x, dim_y, dim_u, dim_p : int
         The model's dimensions n, p, m and its number of parameters.
 
