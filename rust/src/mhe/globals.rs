@@ -241,6 +241,7 @@ impl WindowEval {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mhe::problem::tests::check_derivatives;
     use crate::mhe::{Form, Loss, StageEval, StageModel, WindowLsq, WindowProblem};
     use crate::solver::test_problem::strict;
     use crate::solver::BoxLsqSolver;
@@ -343,40 +344,14 @@ mod tests {
         z
     }
 
-    /// Gradient and dense Jacobian against central differences, and the solver's blocks
-    /// (diagonal, off-diagonal, border, corner) against the dense 2JᵀJ.
+    /// Gradient and dense Jacobian against central differences (the window's own check), and
+    /// the solver's blocks (diagonal, off-diagonal, border, corner) against the dense 2JᵀJ.
     fn check_window(w: &WindowProblem, z: &[f64]) {
         let mut model = WithGlobals::default();
+        let jac = check_derivatives(w, &mut model, z, 1e-5);
         let mut ev = WindowEval::default();
         w.evaluate(&mut model, z, true, &mut ev).unwrap();
         let (nv, rows) = (z.len(), ev.n_residuals());
-        let mut g = vec![0.0; nv];
-        ev.gradient_into(&mut g);
-        let mut jac = vec![0.0; rows * nv];
-        ev.dense_jacobian_into(&mut jac);
-        let mut e2 = WindowEval::default();
-        let h = 1e-6;
-        for c in 0..nv {
-            let mut zp = z.to_vec();
-            zp[c] += h;
-            w.evaluate(&mut model, &zp, false, &mut e2).unwrap();
-            let (cp, rp) = (e2.cost(), e2.residuals().to_vec());
-            zp[c] -= 2.0 * h;
-            w.evaluate(&mut model, &zp, false, &mut e2).unwrap();
-            let fd = (cp - e2.cost()) / (2.0 * h);
-            assert!(
-                (g[c] - fd).abs() <= 1e-5 * (1.0 + fd.abs()),
-                "grad {c}: {} vs {fd}",
-                g[c]
-            );
-            for r in 0..rows {
-                let fdr = (rp[r] - e2.residuals()[r]) / (2.0 * h);
-                assert!(
-                    (jac[r * nv + c] - fdr).abs() <= 1e-5 * (1.0 + fdr.abs()),
-                    "{r} {c}"
-                );
-            }
-        }
         let dense = ev.dense_gauss_newton();
         for a in 0..nv {
             for b in 0..nv {

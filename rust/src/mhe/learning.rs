@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use faer::{Mat, MatRef};
 
-use super::stage::{StageEval, StageModel};
+use super::stage::{add_state, count_points, predict_outputs, StageEval, StageModel};
 use crate::error::{check_len, Error, Result};
 use crate::gp_model::{GpModel, ModelWorkspace};
 use crate::sparse::{SparseMultiGp, SparseWorkspace};
@@ -142,7 +142,6 @@ impl LearningStageModel {
     /// GP values at the k points `d` into `out` (sized for k points and n_g global variables).
     fn predict(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
         let (n, nd) = (self.n, self.n + self.m);
-        let k = d.len() / nd;
         self.f.predict_with_gradients_into(
             d,
             &mut out.mean_x,
@@ -152,12 +151,7 @@ impl LearningStageModel {
             &mut self.ws,
         )?;
         if self.f_residual {
-            for i in 0..k {
-                for c in 0..n {
-                    out.mean_x[i * n + c] += d[i * nd + c];
-                    out.dmean_x[(i * n + c) * nd + c] += 1.0;
-                }
-            }
+            add_state(d, n, nd, out);
         }
         self.f.inducing_jacobians_into(d, &mut self.jac)?;
         let ng = self.n_globals();
@@ -168,14 +162,7 @@ impl LearningStageModel {
             }
         }
         if let Some(h) = &self.h {
-            h.predict_with_gradients_into(
-                d,
-                &mut out.mean_y,
-                &mut out.var_y,
-                &mut out.dmean_y,
-                &mut out.dvar_y,
-                &mut self.h_ws,
-            )?;
+            predict_outputs(h, d, out, &mut self.h_ws)?;
         }
         Ok(())
     }
@@ -211,17 +198,7 @@ impl StageModel for LearningStageModel {
 
     fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
         let (n, m, p) = (self.n, self.m, self.dim_y());
-        let nd = n + m;
-        if d.len() % nd != 0 {
-            return Err(Error::invalid(
-                "d",
-                format!(
-                    "length {} is not a multiple of dim_x + dim_u = {nd}",
-                    d.len()
-                ),
-            ));
-        }
-        let k = d.len() / nd;
+        let k = count_points(d, n + m)?;
         out.resize(k, n, m, p);
         out.resize_globals(k, n, p, self.n_globals());
         self.f

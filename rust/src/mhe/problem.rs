@@ -987,7 +987,7 @@ impl WindowEval {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::gp::MultiGp;
     use crate::mhe::GpStageModel;
@@ -1138,7 +1138,7 @@ mod tests {
 
     /// Window gradient and Jacobian against central differences (relative tolerance `tol`) for
     /// any model; returns the dense Jacobian.
-    fn check_derivatives(
+    pub(crate) fn check_derivatives(
         w: &WindowProblem,
         model: &mut dyn StageModel,
         z: &[f64],

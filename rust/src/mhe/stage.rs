@@ -313,7 +313,6 @@ impl GpStageModel {
     /// GP values at the k points `d` into `out` (already sized for k points).
     fn predict(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
         let (n, nd) = (self.n, self.n + self.m);
-        let k = d.len() / nd;
         self.f.predict_with_gradients_into(
             d,
             &mut out.mean_x,
@@ -323,22 +322,10 @@ impl GpStageModel {
             &mut self.ws,
         )?;
         if self.f_residual {
-            for i in 0..k {
-                for c in 0..n {
-                    out.mean_x[i * n + c] += d[i * nd + c];
-                    out.dmean_x[(i * n + c) * nd + c] += 1.0;
-                }
-            }
+            add_state(d, n, nd, out);
         }
         if let Some(h) = &self.h {
-            h.predict_with_gradients_into(
-                d,
-                &mut out.mean_y,
-                &mut out.var_y,
-                &mut out.dmean_y,
-                &mut out.dvar_y,
-                &mut self.ws,
-            )?;
+            predict_outputs(h, d, out, &mut self.ws)?;
         }
         Ok(())
     }
@@ -351,6 +338,48 @@ impl GpStageModel {
     pub fn gps(&self) -> (&Arc<GpModel>, Option<&Arc<GpModel>>) {
         (&self.f, self.h.as_ref())
     }
+}
+
+/// Adds each point's x to the means of f and the identity to their gradients (f's GPs model
+/// x(t+1) − x(t)): the points `d` of n_d = n + m values.
+pub(crate) fn add_state(d: &[f64], n: usize, nd: usize, out: &mut StageEval) {
+    for i in 0..d.len() / nd {
+        for c in 0..n {
+            out.mean_x[i * n + c] += d[i * nd + c];
+            out.dmean_x[(i * n + c) * nd + c] += 1.0;
+        }
+    }
+}
+
+/// The h-GPs' values and gradients at the points `d` into the output part of `out`.
+pub(crate) fn predict_outputs(
+    h: &GpModel,
+    d: &[f64],
+    out: &mut StageEval,
+    ws: &mut ModelWorkspace,
+) -> Result<()> {
+    h.predict_with_gradients_into(
+        d,
+        &mut out.mean_y,
+        &mut out.var_y,
+        &mut out.dmean_y,
+        &mut out.dvar_y,
+        ws,
+    )
+}
+
+/// The number of points of n_d values in `d`; an error naming `d` if it is not whole.
+pub(crate) fn count_points(d: &[f64], nd: usize) -> Result<usize> {
+    if d.len() % nd != 0 {
+        return Err(Error::invalid(
+            "d",
+            format!(
+                "length {} is not a multiple of dim_x + dim_u = {nd}",
+                d.len()
+            ),
+        ));
+    }
+    Ok(d.len() / nd)
 }
 
 /// What [`GpStageModel::rollback`] puts back: nothing (`Off`), the cache as it is (`Marked`,
@@ -433,16 +462,7 @@ impl StageModel for GpStageModel {
     fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
         let (n, m, p) = (self.n, self.m, self.dim_y());
         let nd = n + m;
-        if d.len() % nd != 0 {
-            return Err(Error::invalid(
-                "d",
-                format!(
-                    "length {} is not a multiple of dim_x + dim_u = {nd}",
-                    d.len()
-                ),
-            ));
-        }
-        let k = d.len() / nd;
+        let k = count_points(d, nd)?;
         out.resize(k, n, m, p);
         self.f
             .rounding_into(&mut out.mean_x_rounding, &mut out.var_x_rounding);
