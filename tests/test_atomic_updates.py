@@ -2,8 +2,8 @@
 leaves the estimator exactly as after some whole number of updates. It then continues bit for bit
 like a twin that was never interrupted and given the same data, and its checkpoint loads and
 continues the same way. Covers GPMHE on a learned model (the core runs without the GIL and checks
-for signals), on a known model (signals land in the Python model functions), on the SciPy solver
-path, and the parallel EstimatorBank."""
+for signals), on a learned model that keeps learning, on a known model (signals land in the
+Python model functions), on the SciPy solver path, and the parallel EstimatorBank."""
 
 import io
 import signal
@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pytest
 
-from gpmhe import GPMHE, EstimatorBank, KnownModel
+from gpmhe import GPMHE, EstimatorBank, KnownModel, LearnedModel
 from gpmhe.systems import batch_reactor as br
 
 ATTRS = ("t", "x", "P", "x_window", "x_arrival", "cost", "success", "nit", "nfev",
@@ -106,6 +106,28 @@ def test_interrupted_learned_gp_mhe_continues_like_its_twin_and_checkpoints(
         feed(loaded)
         feed(twin)
     assert_twins(loaded, twin)
+
+
+def test_interrupted_learning_gp_mhe_continues_like_its_twin_and_checkpoints(outputs):
+    states, outs = br.training_data(5, rng=0)
+    model = LearnedModel.from_trajectories(states, outs, n_inducing=12)
+    rng = np.random.default_rng(1)
+    feed = feeder(outputs)
+    make = lambda: learned_mhe(model, form="filtering", learning=True,  # noqa: E731
+                               learning_options={"drift": 1e-9})
+    est, twin = interrupted_like_a_twin(make, feed, rng, tries=20)
+    for a, b in zip(est._core.learning, twin._core.learning):
+        np.testing.assert_array_equal(a, b)
+    buf = io.BytesIO()
+    est.save(buf)
+    buf.seek(0)
+    loaded = GPMHE.load(buf, model)
+    for _ in range(5):
+        feed(loaded)
+        feed(twin)
+    assert_twins(loaded, twin)
+    for a, b in zip(loaded._core.learning, twin._core.learning):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_interrupted_known_model_mhe_continues_like_its_twin():
