@@ -292,6 +292,14 @@ impl MovingHorizon {
     ) -> Result<()> {
         let p = &self.problem;
         let (q0_now, r0_now, p2_now) = (p.q0().to_vec(), p.r0().to_vec(), p.p2_sqrt().to_vec());
+        // With learning, a new P2 restarts the states' block of the joint arrival prior.
+        let restart = match (p2_sqrt, &self.learning) {
+            (Some(s), Some(_)) => {
+                check_len("P2", s, p.dim_x() * p.dim_x())?;
+                Some(covariance_of_sqrt(p.dim_x(), s)?)
+            }
+            _ => None,
+        };
         self.problem.set_weights(
             eta.unwrap_or(p.eta()),
             q0.unwrap_or(&q0_now),
@@ -300,6 +308,9 @@ impl MovingHorizon {
         )?;
         if let Some(s) = p2_sqrt {
             self.history.set_arrival_sqrt(s.to_vec());
+        }
+        if let (Some(x_cov), Some(l)) = (restart, self.learning.as_mut()) {
+            l.restart_states(&x_cov);
         }
         self.weights_version += 1;
         self.staged = None;
@@ -979,8 +990,13 @@ fn keep_on_numerical<T>(r: Result<T>) -> Result<Option<T>> {
 /// P2⁻¹ = S⁻¹S⁻ᵀ (n × n, row-major, symmetric) for the window's P2 = SᵀS: the covariance of
 /// x̂(0) before any update.
 fn initial_covariance(problem: &WindowProblem) -> Result<Vec<f64>> {
-    let n = problem.dim_x();
-    let s = nalgebra::DMatrix::from_row_slice(n, n, problem.p2_sqrt());
+    covariance_of_sqrt(problem.dim_x(), problem.p2_sqrt())
+}
+
+/// (SᵀS)⁻¹, symmetrised (n × n row-major), of S (n × n row-major); an error naming P2 if S is
+/// singular.
+fn covariance_of_sqrt(n: usize, s: &[f64]) -> Result<Vec<f64>> {
+    let s = nalgebra::DMatrix::from_row_slice(n, n, s);
     let inv = s
         .try_inverse()
         .ok_or_else(|| Error::invalid("P2", "must be positive definite"))?;

@@ -92,6 +92,23 @@ impl Learning {
         Ok(())
     }
 
+    /// Restarts the states' block of the joint arrival prior at `x_cov` (n × n; a new arrival
+    /// weight P2), with no correlation to g; g's block is kept.
+    pub fn restart_states(&mut self, x_cov: &[f64]) {
+        let n = x_cov.len().isqrt();
+        let d = n + self.dim();
+        let cov = &mut self.state.arrival.cov;
+        for r in 0..d {
+            for c in 0..d {
+                if r < n && c < n {
+                    cov[r * d + c] = x_cov[r * n + c];
+                } else if r < n || c < n {
+                    cov[r * d + c] = 0.0;
+                }
+            }
+        }
+    }
+
     /// Replaces the state (from [`Learning::state`] of an estimator with the same dimensions);
     /// lengths and finiteness are checked and nothing changes on error.
     pub fn set_state(&mut self, n: usize, s: LearningState) -> Result<()> {

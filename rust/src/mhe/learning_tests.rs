@@ -254,3 +254,32 @@ fn failed_updates_change_nothing_and_checkpoints_continue_identically() {
     assert!(matches!(e, Error::InvalidInput { ref arg, .. } if arg == "g"));
     assert_eq!(late.learning().unwrap().state(), &before);
 }
+
+#[test]
+fn a_new_arrival_weight_restarts_the_states_block_and_keeps_gs() {
+    let model = LearningStageModel::new(sparse_f(), None, 1, false).unwrap();
+    let mut m = MeasuredStates(model.clone());
+    let mut est = estimator(&model, 3, 1e-4, 0.0);
+    for t in 0..8 {
+        est.update(&mut m, Some(&[0.1 * t as f64]), Some(&[0.5]))
+            .unwrap();
+    }
+    let before = est.learning().unwrap().state().arrival.clone();
+    let d = before.dim() + 1;
+    // S = [0.5]: P2 = 0.25, the states' arrival covariance 4.
+    est.set_weights(None, None, None, Some(&[0.5])).unwrap();
+    let after = est.learning().unwrap().state().arrival.clone();
+    assert_eq!(after.cov[0], 4.0);
+    assert!((1..d).all(|k| after.cov[k] == 0.0 && after.cov[k * d] == 0.0));
+    for r in 1..d {
+        assert_eq!(
+            after.cov[r * d + 1..(r + 1) * d],
+            before.cov[r * d + 1..(r + 1) * d]
+        );
+    }
+    assert_eq!(after.g, before.g);
+    // A singular S is refused and changes nothing.
+    let e = est.set_weights(None, None, None, Some(&[0.0])).unwrap_err();
+    assert!(matches!(e, Error::InvalidInput { .. }));
+    assert_eq!(est.learning().unwrap().state().arrival, after);
+}
