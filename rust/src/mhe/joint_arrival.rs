@@ -14,9 +14,10 @@
 //! `RecursiveGP.from_sparse` continues). The window's prior rows need S with SᵀS = Π⁻¹
 //! ([`joint_sqrt`]).
 
+use faer::linalg::matmul::matmul;
 use faer::linalg::solvers::Llt;
 use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
-use faer::{Mat, MatRef, Par, Side};
+use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
 use nalgebra::{DMatrix, DVector};
 
 use super::arrival::output_rows;
@@ -92,7 +93,7 @@ pub fn joint_ekf_step(
     drift: f64,
 ) -> Result<(Vec<f64>, JointArrival)> {
     let (n, ng) = (problem.dim_x(), prior.dim());
-    let (d, nd) = (n + ng, n + problem.dim_u());
+    let nd = n + problem.dim_u();
     let st = node.st;
     if st.dmean_x_dg.len() < n * ng || st.mean_x.len() < n || st.dmean_x.len() < n * nd {
         return Err(Error::numerical(
@@ -100,43 +101,127 @@ pub fn joint_ekf_step(
         ));
     }
     let not_pd = || Error::numerical("joint arrival update: a matrix is not positive definite");
-    let mut pi = DMatrix::from_row_slice(d, d, &prior.cov);
-    let w0 = DVector::from_iterator(d, node.z0.iter().chain(node.g).copied());
-    let mut w = DVector::from_iterator(d, x_prior.iter().chain(&prior.g).copied());
+    let w0: Vec<f64> = node.z0.iter().chain(node.g).copied().collect();
+    let mut w: Vec<f64> = x_prior.iter().chain(&prior.g).copied().collect();
+    let mut pi = prior.cov.clone();
     if let Some((j, e)) = output_rows(st, problem, node.y0, ng)? {
-        let pjt = &pi * j.transpose();
-        let s = &j * &pjt + DMatrix::identity(j.nrows(), j.nrows());
-        let chol = s.cholesky().ok_or_else(not_pd)?;
-        let innovation = e - &j * (&w - &w0);
-        w += &pjt * chol.solve(&innovation);
-        pi -= &pjt * chol.solve(&pjt.transpose());
+        measurement_update(&mut pi, &mut w, &w0, &j, &e).ok_or_else(not_pd)?;
     }
-    let a = DMatrix::from_fn(n, n, |i, c| st.dmean_x[i * nd + c]);
-    let b = DMatrix::from_fn(n, ng, |i, c| st.dmean_x_dg[i * ng + c]);
-    let (pxx, pxg) = (pi.view((0, 0), (n, n)), pi.view((0, n), (n, ng)));
-    let pgg = pi.view((n, n), (ng, ng)).into_owned();
-    let fx = &a * pxx + &b * pxg.transpose(); // (F Π⁺)_x· over the x columns
-    let fxg = &a * pxg + &b * &pgg; // Π'_xg
+    let a = MatRef::from_row_major_slice(&st.dmean_x[..n * nd], n, nd).subcols(0, n);
+    let b = MatRef::from_row_major_slice(&st.dmean_x_dg[..n * ng], n, ng);
     let all: Vec<usize> = (0..n).collect();
     let q = problem.q0_cov().with_variances(&all, &st.var_x[..n]);
-    let pxx_next = &fx * a.transpose() + &fxg * b.transpose() + q;
-    let mut next = DMatrix::zeros(d, d);
-    next.view_mut((0, 0), (n, n))
-        .copy_from(&((&pxx_next + pxx_next.transpose()) * 0.5));
-    next.view_mut((0, n), (n, ng)).copy_from(&fxg);
-    next.view_mut((n, 0), (ng, n)).copy_from(&fxg.transpose());
-    let pgg_sym = (&pgg + pgg.transpose()) * 0.5 + DMatrix::identity(ng, ng) * drift;
-    next.view_mut((n, n), (ng, ng)).copy_from(&pgg_sym);
-    let (x_plus, g_plus) = (w.rows(0, n), w.rows(n, ng));
-    let x_next = DVector::from_column_slice(&st.mean_x[..n])
-        + &a * (x_plus - w0.rows(0, n))
-        + &b * (g_plus - w0.rows(n, ng));
-    let cov: Vec<f64> = next.transpose().as_slice().to_vec(); // row-major (symmetric)
+    let cov = time_update(&pi, a, b, &q, drift);
+    // x' = m_x(w0) + A (x⁺ − x̄_0) + B (g⁺ − g).
+    let dw: Vec<f64> = w.iter().zip(&w0).map(|(p, q)| p - q).collect();
+    let x_next: Vec<f64> = (0..n)
+        .map(|r| {
+            let ax: f64 = (0..n).map(|c| a[(r, c)] * dw[c]).sum();
+            let bg: f64 = (0..ng).map(|c| b[(r, c)] * dw[n + c]).sum();
+            st.mean_x[r] + ax + bg
+        })
+        .collect();
     if x_next.iter().chain(cov.iter()).any(|v| !v.is_finite()) {
         return Err(not_pd());
     }
-    let g_next = g_plus.iter().copied().collect();
-    Ok((x_next.as_slice().to_vec(), JointArrival { g: g_next, cov }))
+    Ok((
+        x_next,
+        JointArrival {
+            g: w[n..].to_vec(),
+            cov,
+        },
+    ))
+}
+
+/// The update with the whitened output rows J (k × D, unit noise) and targets e, linearised at
+/// w0: K = Π Jᵀ (J Π Jᵀ + I)⁻¹, w += K (e − J (w − w0)), Π −= G Gᵀ with G = Π Jᵀ L⁻ᵀ
+/// (L Lᵀ = J Π Jᵀ + I). `pi` is D × D row-major. None if J Π Jᵀ + I is not positive definite.
+fn measurement_update(
+    pi: &mut [f64],
+    w: &mut [f64],
+    w0: &[f64],
+    j: &DMatrix<f64>,
+    e: &DVector<f64>,
+) -> Option<()> {
+    let (k, d) = (j.nrows(), j.ncols());
+    // J is column-major (nalgebra): Jᵀ is a row-major D × k view of the same values.
+    let jt = MatRef::from_row_major_slice(j.as_slice(), d, k);
+    let mut pjt = Mat::<f64>::zeros(d, k);
+    let p = MatRef::from_row_major_slice(pi, d, d);
+    matmul(pjt.as_mut(), Accum::Replace, p, jt, 1.0, Par::Seq);
+    let pjt_n = DMatrix::from_fn(d, k, |r, c| pjt[(r, c)]);
+    let s = j * &pjt_n + DMatrix::identity(k, k);
+    let chol = s.cholesky()?;
+    let dw = DVector::from_iterator(d, w.iter().zip(w0).map(|(a, b)| a - b));
+    let gain = &pjt_n * chol.solve(&(e - j * dw));
+    w.iter_mut().zip(gain.iter()).for_each(|(a, g)| *a += g);
+    // G = Π Jᵀ L⁻ᵀ: Gᵀ = L⁻¹ (Π Jᵀ)ᵀ.
+    let gt = chol.l().solve_lower_triangular(&pjt_n.transpose())?;
+    let g = MatRef::from_row_major_slice(gt.as_slice(), d, k);
+    let pm = MatMut::from_row_major_slice_mut(pi, d, d);
+    matmul(pm, Accum::Add, g, g.transpose(), -1.0, Par::Seq);
+    Some(())
+}
+
+/// Π' = F Π Fᵀ + diag(Q, drift I) with F = [A B; 0 I] (`pi` D × D row-major, A n × n, B
+/// n × n_g), symmetrised; row-major.
+fn time_update(
+    pi: &[f64],
+    a: MatRef<'_, f64>,
+    b: MatRef<'_, f64>,
+    q: &DMatrix<f64>,
+    drift: f64,
+) -> Vec<f64> {
+    let (n, ng) = (a.nrows(), b.ncols());
+    let d = n + ng;
+    let p = MatRef::from_row_major_slice(pi, d, d);
+    // Y = [A B] Π over the states' rows (n × D): the rows of F Π.
+    let mut y = Mat::<f64>::zeros(n, d);
+    matmul(
+        y.as_mut(),
+        Accum::Replace,
+        a,
+        p.subrows(0, n),
+        1.0,
+        Par::Seq,
+    );
+    matmul(y.as_mut(), Accum::Add, b, p.subrows(n, ng), 1.0, Par::Seq);
+    let mut pxx = Mat::<f64>::zeros(n, n);
+    matmul(
+        pxx.as_mut(),
+        Accum::Replace,
+        y.as_ref().subcols(0, n),
+        a.transpose(),
+        1.0,
+        Par::Seq,
+    );
+    matmul(
+        pxx.as_mut(),
+        Accum::Add,
+        y.as_ref().subcols(n, ng),
+        b.transpose(),
+        1.0,
+        Par::Seq,
+    );
+    let mut out = vec![0.0; d * d];
+    for r in 0..d {
+        for c in 0..d {
+            out[r * d + c] = match (r < n, c < n) {
+                (true, true) => 0.5 * (pxx[(r, c)] + pxx[(c, r)]) + q[(r, c)],
+                (true, false) => y[(r, c)],
+                (false, true) => y[(c, r)],
+                (false, false) => {
+                    let sym = 0.5 * (pi[r * d + c] + pi[c * d + r]);
+                    if r == c {
+                        sym + drift
+                    } else {
+                        sym
+                    }
+                }
+            };
+        }
+    }
+    out
 }
 
 #[cfg(test)]
