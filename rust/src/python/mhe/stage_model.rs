@@ -405,7 +405,8 @@ impl PyStageModel {
     ) -> PyResult<Bound<'py, PyTuple>> {
         let Model::Gp(gp) = &self.model else {
             return Err(PyValueError::new_err(
-                "model: a callback model evaluates in Python",
+                "model: only the fixed GP model evaluates here (a callback model evaluates in \
+                 Python, a learning model inside its estimator)",
             ));
         };
         let (n, m, p) = (gp.dim_x(), gp.dim_u(), gp.dim_y());
@@ -450,7 +451,8 @@ impl PyStageModel {
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
         let Model::Gp(gp) = &self.model else {
             return Err(PyValueError::new_err(
-                "model: a callback model predicts in Python",
+                "model: only the fixed GP model predicts here (a callback model predicts in \
+                 Python, a learning model inside its estimator)",
             ));
         };
         let (x, u) = (slice1("x", &x)?, slice1("u", &u)?);
