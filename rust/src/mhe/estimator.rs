@@ -104,8 +104,9 @@ pub struct MovingHorizon {
     learning: Option<Learning>,
 }
 
-/// A one-step prediction m_x(x, u) and the bits of the point it was made at (a model is a
-/// function of (x, u), so the same point gives the same prediction without calling it again).
+/// A one-step prediction m_x(x, u) with the model's global variables g (none without learning)
+/// and the bits of the point it was made at (a model is a function of (x, u, g), so the same
+/// point gives the same prediction without calling it again).
 #[derive(Debug, Clone, Default)]
 struct LastPrediction {
     d: Vec<u64>,
@@ -113,26 +114,27 @@ struct LastPrediction {
 }
 
 impl LastPrediction {
+    /// m_x(x, u) with the model's global variables set to `g` (left as they are when empty).
     fn predict(
         &mut self,
         model: &mut dyn StageModel,
-        x: &[f64],
-        u: &[f64],
+        (x, u, g): (&[f64], &[f64], &[f64]),
         out: &mut [f64],
     ) -> Result<()> {
-        let same = self.d.len() == x.len() + u.len()
-            && x.iter()
-                .chain(u)
-                .zip(&self.d)
-                .all(|(v, b)| v.to_bits() == *b)
+        let point = || x.iter().chain(u).chain(g);
+        let same = self.d.len() == x.len() + u.len() + g.len()
+            && point().zip(&self.d).all(|(v, b)| v.to_bits() == *b)
             && self.x_next.len() == out.len();
         if same {
             out.copy_from_slice(&self.x_next);
             return Ok(());
         }
         self.d.clear();
+        if !g.is_empty() {
+            model.set_globals(g)?;
+        }
         model.predict_state(x, u, out)?;
-        self.d.extend(x.iter().chain(u).map(|v| v.to_bits()));
+        self.d.extend(point().map(|v| v.to_bits()));
         self.x_next.clear();
         self.x_next.extend_from_slice(out);
         Ok(())
@@ -337,8 +339,9 @@ impl MovingHorizon {
         if self.problem.form() == Form::Filtering && self.arrival.mean == ArrivalMean::Estimate {
             let (window, _) = self.history.x_window();
             let mut out = vec![0.0; n];
-            self.prediction
-                .predict(model, &window[window.len() - n..], u, &mut out)?;
+            let g = self.learning.as_ref().map_or(&[][..], |l| &l.state().g[..]);
+            let x = &window[window.len() - n..];
+            self.prediction.predict(model, (x, u, g), &mut out)?;
             check_finite("u", &out)
                 .map_err(|_| Error::numerical("the model's prediction with u is not finite"))?;
             prior = Some(out);
@@ -599,8 +602,9 @@ impl MovingHorizon {
             // x̂(t − 1): the last node (filtering form) or the one before it (prediction form).
             let from = window.len() - if form == Form::Filtering { n } else { 2 * n };
             let mut out = vec![0.0; n];
-            self.prediction
-                .predict(model, &window[from..from + n], u, &mut out)?;
+            let g = self.learning.as_ref().map_or(&[][..], |l| &l.state().g[..]);
+            let x = &window[from..from + n];
+            self.prediction.predict(model, (x, u, g), &mut out)?;
             check_finite("u_last", &out).map_err(|_| {
                 Error::numerical("the model's prediction with the revised input is not finite")
             })?;
@@ -684,8 +688,9 @@ impl MovingHorizon {
         for i in kept..data.nodes {
             let (done, rest) = z.split_at_mut(i * n);
             let u = &data.u[(i - 1) * m..i * m];
-            self.prediction
-                .predict(model, &done[(i - 1) * n..], u, &mut next)?;
+            let g = self.learning.as_ref().map_or(&[][..], |l| &l.state().g[..]);
+            let x = &done[(i - 1) * n..i * n];
+            self.prediction.predict(model, (x, u, g), &mut next)?;
             rest[..n].copy_from_slice(&next);
         }
         let (lo, hi) = &self.inner;
@@ -778,7 +783,7 @@ impl MovingHorizon {
             Form::Filtering => {
                 let mut out = vec![0.0; n];
                 let u_t = &data.u[(data.nodes - 1) * m..data.nodes * m];
-                self.prediction.predict(model, last, u_t, &mut out)?;
+                self.prediction.predict(model, (last, u_t, &g), &mut out)?;
                 out
             }
         };
@@ -1046,6 +1051,63 @@ mod tests {
             }
             Ok(())
         }
+    }
+
+    /// `Scalar` plus a global variable g: x(t+1) = 0.9 x + u + g.
+    struct Shifted {
+        inner: Scalar,
+        g: f64,
+    }
+
+    impl StageModel for Shifted {
+        fn dim_x(&self) -> usize {
+            1
+        }
+        fn dim_u(&self) -> usize {
+            1
+        }
+        fn dim_y(&self) -> usize {
+            1
+        }
+        fn n_globals(&self) -> usize {
+            1
+        }
+        fn set_globals(&mut self, g: &[f64]) -> Result<()> {
+            check_len("globals", g, 1)?;
+            self.g = g[0];
+            Ok(())
+        }
+        fn evaluate(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
+            self.inner.evaluate(d, out)?;
+            out.mean_x.iter_mut().for_each(|v| *v += self.g);
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn the_last_prediction_is_reused_only_at_the_same_point_and_global_variables() {
+        let mut model = Shifted {
+            inner: Scalar {
+                calls: 0,
+                fail_at: usize::MAX,
+            },
+            g: 0.0,
+        };
+        let mut last = LastPrediction::default();
+        let mut out = [0.0];
+        let (x, u) = ([1.0], [0.5]);
+        last.predict(&mut model, (&x, &u, &[1.0]), &mut out)
+            .unwrap();
+        assert_eq!((out[0], model.inner.calls), (0.9 + 0.5 + 1.0, 1));
+        last.predict(&mut model, (&x, &u, &[1.0]), &mut out)
+            .unwrap();
+        assert_eq!(model.inner.calls, 1);
+        // The same (x, u) with other global variables is another prediction, made with them
+        // whatever the model held.
+        model.g = 7.0;
+        last.predict(&mut model, (&x, &u, &[2.0]), &mut out)
+            .unwrap();
+        assert_eq!((out[0], model.inner.calls), (0.9 + 0.5 + 2.0, 2));
     }
 
     fn estimator(form: Form) -> MovingHorizon {
