@@ -1,8 +1,9 @@
 //! Global variables of the window: n_g quantities of the model that are constant over the window
 //! and estimated with its states (a sparse GP's inducing outputs), after the nodes in z.
 //!
-//! * [`GlobalPrior`]: their joint arrival prior with x̄_0, the n + n_g rows a S ([x̄_0; g] −
-//!   [x̂; ĝ]) that replace the prior rows of the states;
+//! * [`GlobalPrior`]: their joint arrival prior with x̄_0, the n + n_g rows
+//!   S ([a (x̄_0 − x̂); √2 (g − ĝ)]) that replace the prior rows of the states, and their Gram
+//!   blocks, computed once per window;
 //! * the rows' ∂r/∂g: −(a/√s) ∂m/∂g for a variance-weighted row, −a L⁻¹ ∂m/∂g for a block whitened
 //!   with a full covariance (the variances do not depend on g);
 //! * the window's gradient 2Jᵀr and Gauss-Newton Hessian 2JᵀJ with respect to g: the border
@@ -195,10 +196,13 @@ impl WindowEval {
             };
             let hi = ng - jg.iter().rev().position(|&v| v != 0.0).unwrap_or(0);
             let jr = &jg[lo..hi];
+            // A zero factor changes nothing unless the other is not finite (0·inf is NaN), as
+            // in `gauss_newton_blocks_into`.
+            let finite = jr.iter().all(|v| v.is_finite());
             let i = self.node[k];
             let mut add = |node: usize, jx: &[f64]| {
                 for (l, &v) in jx.iter().enumerate() {
-                    if v != 0.0 {
+                    if v != 0.0 || !finite {
                         let row = (node * n + l) * ng;
                         let b = &mut border[row + lo..row + hi];
                         b.iter_mut().zip(jr).for_each(|(b, j)| *b += 2.0 * v * j);
@@ -210,7 +214,7 @@ impl WindowEval {
                 add(i + 1, &self.jb[k * n..(k + 1) * n]);
             }
             for (a, &va) in jr.iter().enumerate() {
-                if va != 0.0 {
+                if va != 0.0 || !finite {
                     let row = (lo + a) * ng;
                     let c = &mut corner[row + lo..row + hi];
                     c.iter_mut().zip(jr).for_each(|(c, j)| *c += 2.0 * va * j);

@@ -64,9 +64,11 @@ pub fn joint_sqrt(cov: &[f64], d: usize) -> Result<Vec<f64>> {
     let not_pd = || Error::numerical("the joint arrival covariance is not positive definite");
     let llt =
         Llt::new(MatRef::from_row_major_slice(cov, d, d), Side::Lower).map_err(|_| not_pd())?;
-    let mut s = Mat::<f64>::identity(d, d);
-    solve_lower_triangular_in_place(llt.L(), s.as_mut(), Par::Seq);
-    let out: Vec<f64> = (0..d * d).map(|k| s[(k / d, k % d)]).collect();
+    // L⁻¹ solved in place in a row-major identity: S is written where it is returned.
+    let mut out = vec![0.0; d * d];
+    out.iter_mut().step_by(d + 1).for_each(|v| *v = 1.0);
+    let s = MatMut::from_row_major_slice_mut(&mut out, d, d);
+    solve_lower_triangular_in_place(llt.L(), s, Par::Seq);
     match out.iter().all(|v| v.is_finite()) {
         true => Ok(out),
         false => Err(not_pd()),

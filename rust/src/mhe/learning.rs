@@ -127,14 +127,13 @@ impl LearningStageModel {
         if cov.nrows() != ng || cov.ncols() != ng {
             return Err(Error::invalid("cov", format!("must be {ng} x {ng}")));
         }
-        let mut f = self.f.clone();
+        let mut f = SparseMultiGp::clone(&self.fitted);
         for o in 0..self.n {
             let (a, b) = (self.offsets[o], self.offsets[o + 1]);
             let gp = f
                 .gp_mut(o)
                 .ok_or_else(|| Error::invalid("f", "missing output"))?;
             gp.set_inducing_posterior(&mean[a..b], cov.submatrix(a, a, b - a, b - a))?;
-            gp.set_conditional(false);
         }
         Ok(f)
     }

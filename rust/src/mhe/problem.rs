@@ -411,9 +411,6 @@ impl WindowProblem {
         }
         out.stage.resize(k, n, m, p);
         let ng = self.n_globals();
-        if ng > 0 {
-            out.stage.resize_globals(k, n, p, ng);
-        }
         if k > 0 {
             model.evaluate(&out.d, &mut out.stage)?;
             out.stage.check_sizes(k, n, m, p)?;

@@ -167,7 +167,8 @@ pub trait StageModel {
     }
 
     /// Sets g (n_globals values) for the evaluations that follow; with g, `evaluate` also
-    /// writes ∂mean/∂g (`StageEval::dmean_x_dg`, `dmean_y_dg`). Fails on a wrong length.
+    /// sizes and writes ∂mean/∂g (`StageEval::dmean_x_dg`, `dmean_y_dg`, e.g. with
+    /// `StageEval::resize_globals`). Fails on a wrong length.
     fn set_globals(&mut self, g: &[f64]) -> Result<()> {
         check_len("globals", g, self.n_globals())
     }

@@ -133,9 +133,10 @@ impl BorderedCholesky {
         if m == 0 {
             return None;
         }
-        let mut inv = Mat::<f64>::identity(m, m);
-        self.solve_schur(inv.as_mut());
-        let out: Vec<f64> = (0..m * m).map(|k| inv[(k / m, k % m)]).collect();
+        // S⁻¹ solved in place in an identity (symmetric: row- and column-major alike).
+        let mut out = vec![0.0; m * m];
+        out.iter_mut().step_by(m + 1).for_each(|v| *v = 1.0);
+        self.solve_schur(MatMut::from_column_major_slice_mut(&mut out, m, m));
         out.iter().all(|v| v.is_finite()).then_some(out)
     }
 

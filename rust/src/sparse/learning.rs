@@ -1,17 +1,18 @@
 //! A sparse GP whose posterior of the inducing outputs u = f(Z) is replaced: the model of a GP that
 //! keeps learning online (`crate::mhe::LearningStageModel`), which predicts with the variance
-//! given u, σ_f² − J (Kuu + δI) Jᵀ ([`SparseGp::set_conditional`]), and its snapshot. With N(μ_u, Σ_u) in place of the
-//! fitted posterior (`posterior.rs`), the mean at d is J μ_u with J = k(d, Z) (Kuu + δI)⁻¹, that is
+//! given u, σ_f² − J (Kuu + δI) Jᵀ ([`SparseGp::set_conditional`]), and its snapshot. With
+//! N(μ_u, Σ_u) in place of the fitted posterior (`posterior.rs`), the mean at d is J μ_u with
+//! J = k(d, Z) (Kuu + δI)⁻¹, that is
 //! t = (Kuu + δI)⁻¹ μ_u, and the latent variance σ_f² − J (Kuu + δI) Jᵀ + J Σ_u Jᵀ, that is
 //! L_B L_Bᵀ = B = Lᵀ Σ_u⁻¹ L (P = L B Lᵀ = K Σ_u⁻¹ K): the prediction code is unchanged. J is
 //! also the mean's derivative with respect to μ_u.
+
+use std::sync::Arc;
 
 use faer::linalg::solvers::Llt;
 use faer::linalg::triangular_solve::{
     solve_lower_triangular_in_place, solve_upper_triangular_in_place,
 };
-use std::sync::Arc;
-
 use faer::{Mat, MatMut, MatRef, Par, Side};
 
 use super::{SparseGp, SparseMultiGp};
@@ -44,7 +45,7 @@ impl SparseGp {
     /// L_B for the covariance Σ_u of the inducing outputs (`sigma` m × m, symmetric positive
     /// definite): what [`SparseGp::set_inducing_posterior`] installs. A `Numerical` error if Σ_u
     /// or B is not positive definite.
-    pub fn variance_factor(&self, sigma: MatRef<'_, f64>) -> Result<Mat<f64>> {
+    fn variance_factor(&self, sigma: MatRef<'_, f64>) -> Result<Mat<f64>> {
         let m = self.n_inducing();
         if sigma.nrows() != m || sigma.ncols() != m {
             return Err(Error::invalid("cov", format!("must be {m} x {m}")));
@@ -84,16 +85,6 @@ impl SparseGp {
     /// The posterior (mean, row-major covariance) that replaced the fit's, if any.
     pub fn replaced_posterior(&self) -> Option<&(Vec<f64>, Vec<f64>)> {
         self.replaced.as_deref()
-    }
-
-    /// Installs an L_B from [`SparseGp::variance_factor`] (of this GP; the size is checked).
-    pub fn set_variance_factor(&mut self, lb: Mat<f64>) -> Result<()> {
-        let m = self.n_inducing();
-        if lb.nrows() != m || lb.ncols() != m {
-            return Err(Error::invalid("lb", format!("must be {m} x {m}")));
-        }
-        self.lb = lb;
-        Ok(())
     }
 
     /// J = k(d, Z) (Kuu + δI)⁻¹ at k points `d` (k × n_d) into `out` (k × m, row-major): the
