@@ -203,9 +203,9 @@ impl BoxLsqSolver {
     /// damped matrix is not positive definite or the step is not finite.
     pub(super) fn reduced_step(&mut self, z: &[f64], lower: &[f64], upper: &[f64]) -> bool {
         let len = z.len();
-        let w = &mut self.work;
         let mut ok = false;
         for _pass in 0..4 {
+            let w = &mut self.work;
             for k in 0..len {
                 w.trial[k] = if w.fixed[k] && !self.fixed_bound[k] {
                     let b = if self.g[k] > 0.0 { lower[k] } else { upper[k] };
@@ -222,10 +222,11 @@ impl BoxLsqSolver {
                     -self.g[k] - w.hp[k]
                 };
             }
-            ok = self.chol.factor(&self.h, &w.shift, &w.fixed);
+            ok = self.factor_step();
             if !ok {
                 break;
             }
+            let w = &mut self.work;
             self.chol.solve_in_place(&mut w.step);
             let mut added = false;
             for k in 0..len {
@@ -243,7 +244,7 @@ impl BoxLsqSolver {
                 break;
             }
         }
-        ok && !w.step.iter().any(|s| !s.is_finite())
+        ok && !self.work.step.iter().any(|s| !s.is_finite())
     }
 
     /// The projected trial point P(z + step) into `work.trial` and the step actually taken into

@@ -270,8 +270,8 @@ impl BoxLsqSolver {
             self.work.shift[k] = sigma + lambda * self.scale(k, floor);
             self.work.step[k] = if self.work.fixed[k] { 0.0 } else { rhs };
         }
+        let ok = self.factor_step();
         let w = &mut self.work;
-        let ok = self.chol.factor(&self.h, &w.shift, &w.fixed);
         if ok {
             self.chol.solve_in_place(&mut w.step);
         }

@@ -40,6 +40,10 @@ pub struct BoxLsqSolver {
     /// The problem's cost and gradient noise at the point whose derivatives are in `g` and `h`.
     pub(super) noise_at_z: f64,
     pub(super) gnoise_at_z: f64,
+    /// Whether `chol` holds the factor of `h` itself (no shift, nothing held): the last step
+    /// was undamped and free, and `h` has not changed since, so a covariance needs no
+    /// factorisation of its own.
+    pub(super) chol_is_undamped: bool,
 }
 
 /// The linear system (H + diag(shift)) step = rhs with the `fixed` variables held, and the
@@ -148,6 +152,7 @@ impl BoxLsqSolver {
     }
 
     fn resize(&mut self, nodes: usize, n: usize, m: usize) {
+        self.chol_is_undamped = false;
         self.h.resize(nodes, n, m);
         let len = nodes * n + m;
         for v in [
@@ -175,6 +180,17 @@ impl BoxLsqSolver {
         self.gnoise_at_z = prob.gradient_noise();
         prob.gradient_into(&mut self.g);
         self.h.take(prob);
+        self.chol_is_undamped = false;
+    }
+
+    /// Factors H + diag(`work.shift`) with `work.fixed` held into `chol` (see
+    /// [`BorderedCholesky::factor`]) and records whether that is H itself.
+    pub(super) fn factor_step(&mut self) -> bool {
+        let w = &self.work;
+        let ok = self.chol.factor(&self.h, &w.shift, &w.fixed);
+        self.chol_is_undamped =
+            ok && w.shift.iter().all(|&s| s == 0.0) && !w.fixed.iter().any(|&f| f);
+        ok
     }
 
     /// Marquardt scaling: the diagonal of the Gauss-Newton Hessian, floored at
@@ -233,30 +249,26 @@ impl BoxLsqSolver {
         (window, global)
     }
 
-    /// Factors the undamped H with nothing held, in the solver's own factor and scratch.
+    /// Factors the undamped H with nothing held, in the solver's own factor and scratch,
+    /// unless the last step's factor is already that (the same call on the same H: the same
+    /// bits).
     fn factor_undamped(&mut self) -> bool {
         if self.h.nodes == 0 {
             return false;
         }
+        if self.chol_is_undamped {
+            return true;
+        }
         self.work.shift.fill(0.0);
         self.work.fixed.fill(false);
-        self.chol
-            .factor(&self.h, &self.work.shift, &self.work.fixed)
+        self.factor_step()
     }
 
     /// The `which` diagonal blocks of H⁻¹ (see `last_node_covariance`), factored in the
     /// solver's own factor with its own scratch (`shift`, `fixed`), so no per-update allocation
     /// of blocks.
     fn undamped_inverse_blocks(&mut self, which: InverseBlocks) -> Option<Vec<f64>> {
-        if self.h.nodes == 0 {
-            return None;
-        }
-        self.work.shift.fill(0.0);
-        self.work.fixed.fill(false);
-        if !self
-            .chol
-            .factor(&self.h, &self.work.shift, &self.work.fixed)
-        {
+        if !self.factor_undamped() {
             return None;
         }
         self.chol.inverse_blocks(which)
@@ -440,6 +452,37 @@ mod tests {
                 rep.cost
             );
         }
+    }
+
+    #[test]
+    fn covariance_reuses_the_last_undamped_factor_with_the_same_bits() {
+        // A decrement stop after an undamped, free step leaves H's own factor in the solver;
+        // the covariances from it equal those from a fresh factorisation bit for bit.
+        let mut reused = [0, 0];
+        for (seed, m) in (0..6u64).zip([0usize, 0, 0, 3, 3, 3]) {
+            let (nodes, n) = (6, 2);
+            let mut p = Synthetic::with_globals(nodes, n, m, 100 + seed);
+            let len = nodes * n + m;
+            let (lo, hi) = (vec![f64::NEG_INFINITY; len], vec![f64::INFINITY; len]);
+            let mut z = random_z(nodes, n, 200 + seed);
+            z.extend(random_z(1, m, 300 + seed));
+            let opts = SolverOptions {
+                dtol: 1e-3,
+                ..SolverOptions::default()
+            };
+            let mut s = BoxLsqSolver::new();
+            s.solve(&mut p, &mut z, &lo, &hi, &opts).unwrap();
+            reused[(m > 0) as usize] += s.chol_is_undamped as usize;
+            let (w, g) = s.window_and_global_covariance();
+            s.chol_is_undamped = false;
+            let (w_fresh, g_fresh) = s.window_and_global_covariance();
+            assert!(w.is_some() && w == w_fresh && g == g_fresh, "{seed}");
+            assert_eq!(s.window_covariance(), w_fresh);
+        }
+        assert!(
+            reused[0] > 0 && reused[1] > 0,
+            "the test must exercise the reuse: {reused:?}"
+        );
     }
 
     #[test]
