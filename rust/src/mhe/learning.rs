@@ -141,18 +141,20 @@ impl LearningStageModel {
     /// GP values at the k points `d` into `out` (sized for k points and n_g global variables).
     fn predict(&mut self, d: &[f64], out: &mut StageEval) -> Result<()> {
         let (n, nd) = (self.n, self.n + self.m);
-        self.f.predict_with_gradients_into(
+        self.f.predict_conditional_into(
             d,
-            &mut out.mean_x,
-            &mut out.var_x,
-            &mut out.dmean_x,
-            &mut out.dvar_x,
+            [
+                &mut out.mean_x,
+                &mut out.var_x,
+                &mut out.dmean_x,
+                &mut out.dvar_x,
+            ],
+            &mut self.jac,
             &mut self.ws,
         )?;
         if self.f_residual {
             add_state(d, n, nd, out);
         }
-        self.f.inducing_jacobians_into(d, &mut self.jac)?;
         let ng = self.n_globals();
         for (o, jo) in self.jac.iter().enumerate() {
             let (a, b) = (self.offsets[o], self.offsets[o + 1]);

@@ -109,16 +109,4 @@ impl SparseMultiGp {
     pub fn gp_mut(&mut self, o: usize) -> Option<&mut SparseGp> {
         self.gps.get_mut(o)
     }
-
-    /// The mean's derivatives with respect to every output's μ_u at k points `d`: `out[o]`
-    /// becomes output o's J (k × m_o, row-major).
-    pub fn inducing_jacobians_into(&self, d: &[f64], out: &mut Vec<Vec<f64>>) -> Result<()> {
-        let k = d.len() / self.dim();
-        out.resize(self.n_outputs(), Vec::new());
-        for (gp, jo) in self.gps.iter().zip(out.iter_mut()) {
-            jo.resize(k * gp.n_inducing(), 0.0);
-            gp.inducing_jacobian_into(d, jo)?;
-        }
-        Ok(())
-    }
 }

@@ -12,7 +12,7 @@ use faer::linalg::triangular_solve::{
 use faer::{MatMut, Par};
 
 use super::{SparseGp, SparseMultiGp};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::gp::kernel_column;
 
 /// Scratch memory for batch predictions (m × k buffers and one of n_d); it only grows, so once
@@ -33,6 +33,9 @@ struct Out<'a> {
     mean: &'a mut [f64],
     var: Option<&'a mut [f64]>,
     grads: Option<(&'a mut [f64], &'a mut [f64])>,
+    /// For a GP giving the variance given the inducing outputs: J (k × m, row-major), which is
+    /// then the β of the variance's gradient (`learning.rs`).
+    jac: Option<&'a mut [f64]>,
 }
 
 impl SparseGp {
@@ -69,6 +72,7 @@ impl SparseGp {
             mean,
             var,
             mut grads,
+            jac,
         } = out;
         ws.kstar.resize(m * k, 0.0);
         ws.g.resize(nd, 0.0);
@@ -114,6 +118,11 @@ impl SparseGp {
         }
         let v = MatMut::from_column_major_slice_mut(&mut ws.v[..], m, k);
         solve_upper_triangular_in_place(self.l.transpose(), v, Par::Seq);
+        if let Some(jac) = jac {
+            // β = L⁻ᵀ L⁻¹ k* = (Kuu + δI)⁻¹ k* = Jᵀ when w = 0.
+            debug_assert!(self.conditional);
+            jac[..m * k].copy_from_slice(&ws.v[..m * k]);
+        }
         for (j, dj) in d.chunks_exact(nd).enumerate() {
             let s = self.weighted(
                 &ws.kstar[j * m..(j + 1) * m],
@@ -144,6 +153,41 @@ impl SparseMultiGp {
         dvar: &mut [f64],
         ws: &mut SparseWorkspace,
     ) -> Result<()> {
+        self.predict_all(d, [mean, var, dmean, dvar], None, ws)
+    }
+
+    /// [`predict_with_gradients_into`](Self::predict_with_gradients_into) for GPs that give the
+    /// variance given the inducing outputs (`learning.rs`), with every output's J at the points
+    /// (`jac[o]`: k × m_o, row-major), which that variance's gradient computes anyway. An
+    /// `Invalid` error if a GP gives the posterior's variance.
+    pub fn predict_conditional_into(
+        &self,
+        d: &[f64],
+        [mean, var, dmean, dvar]: [&mut [f64]; 4],
+        jac: &mut Vec<Vec<f64>>,
+        ws: &mut SparseWorkspace,
+    ) -> Result<()> {
+        if self.gps.iter().any(|gp| !gp.conditional) {
+            return Err(Error::invalid(
+                "f",
+                "J comes with the variance given the inducing outputs only",
+            ));
+        }
+        let k = d.len() / self.dim();
+        jac.resize(self.n_outputs(), Vec::new());
+        for (gp, jo) in self.gps.iter().zip(jac.iter_mut()) {
+            jo.resize(k * gp.n_inducing(), 0.0);
+        }
+        self.predict_all(d, [mean, var, dmean, dvar], Some(jac), ws)
+    }
+
+    fn predict_all(
+        &self,
+        d: &[f64],
+        [mean, var, dmean, dvar]: [&mut [f64]; 4],
+        mut jac: Option<&mut Vec<Vec<f64>>>,
+        ws: &mut SparseWorkspace,
+    ) -> Result<()> {
         let (q, nd) = (self.n_outputs(), self.dim());
         self.check_io(
             d,
@@ -161,6 +205,7 @@ impl SparseMultiGp {
                 mean: &mut *mean,
                 var: Some(&mut *var),
                 grads: Some((&mut *dmean, &mut *dvar)),
+                jac: jac.as_mut().map(|j| &mut j[o][..]),
             };
             gp.predict_block(d, out, ws);
         }
@@ -188,6 +233,7 @@ impl SparseMultiGp {
                 mean: &mut *mean,
                 var: Some(&mut *var),
                 grads: None,
+                jac: None,
             };
             gp.predict_block(d, out, ws);
         }
@@ -213,6 +259,7 @@ impl SparseMultiGp {
                 mean: &mut *mean,
                 var: None,
                 grads: None,
+                jac: None,
             };
             gp.predict_block(d, out, ws);
         }

@@ -457,3 +457,53 @@ fn replaced_inducing_posterior_predicts_as_the_dense_formulas() {
     assert!(matches!(e, Error::Numerical(_)));
     assert_eq!(predict(&kept, &d).0, mean);
 }
+
+/// GPs giving the variance given the inducing outputs predict, with J, exactly what they predict
+/// without it, and J is k(d, Z) K⁻¹ as computed on its own; GPs giving the posterior's variance
+/// are refused.
+#[test]
+fn conditional_predictions_return_the_inducing_jacobians() {
+    let (nd, q, n, k) = (2, 2, 50, 4);
+    let (x, y0) = data(n, nd, 1);
+    let ymat: Vec<f64> = y0.iter().flat_map(|v| [*v, 2.0 * v + 1.0]).collect();
+    let (z0, _) = data(7, nd, 2);
+    let (z1, _) = data(5, nd, 3);
+    let thetas: Vec<f64> = [theta(nd), theta(nd).iter().map(|t| t + 0.2).collect()].concat();
+    let mut multi =
+        SparseMultiGp::new(&x, &ymat, &[&z0, &z1], &thetas, SparseMethod::Fitc).unwrap();
+    let (d, _) = data(k, nd, 9);
+    let mut ws = SparseWorkspace::default();
+    let mut outs = |multi: &SparseMultiGp, jac: Option<&mut Vec<Vec<f64>>>| {
+        let (mut m, mut v) = (vec![0.0; k * q], vec![0.0; k * q]);
+        let (mut dm, mut dv) = (vec![0.0; k * q * nd], vec![0.0; k * q * nd]);
+        let r = match jac {
+            Some(j) => {
+                multi.predict_conditional_into(&d, [&mut m, &mut v, &mut dm, &mut dv], j, &mut ws)
+            }
+            None => {
+                multi.predict_with_gradients_into(&d, &mut m, &mut v, &mut dm, &mut dv, &mut ws)
+            }
+        };
+        r.map(|_| (m, v, dm, dv))
+    };
+    let mut jac = Vec::new();
+    assert!(matches!(
+        outs(&multi, Some(&mut jac)),
+        Err(Error::InvalidInput { .. })
+    ));
+    for o in 0..q {
+        multi.gp_mut(o).unwrap().set_conditional(true);
+    }
+    let with = outs(&multi, Some(&mut jac)).unwrap();
+    assert_eq!(with, outs(&multi, None).unwrap());
+    for (o, mo) in [7usize, 5].into_iter().enumerate() {
+        let mut alone = vec![0.0; k * mo];
+        multi.gps()[o]
+            .inducing_jacobian_into(&d, &mut alone)
+            .unwrap();
+        assert_eq!(jac[o].len(), k * mo);
+        for (a, b) in jac[o].iter().zip(&alone) {
+            assert!((a - b).abs() <= 1e-12 * (1.0 + b.abs()), "{o}: {a} vs {b}");
+        }
+    }
+}
