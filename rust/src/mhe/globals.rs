@@ -213,12 +213,19 @@ impl WindowEval {
             if self.process[k] {
                 add(i + 1, &self.jb[k * n..(k + 1) * n]);
             }
+            // The corner's upper triangle: 2 J_a J_b rounds to the same number for (a, b) and
+            // (b, a) (doubling is exact), so the lower one is its mirror.
             for (a, &va) in jr.iter().enumerate() {
                 if va != 0.0 || !finite {
                     let row = (lo + a) * ng;
-                    let c = &mut corner[row + lo..row + hi];
-                    c.iter_mut().zip(jr).for_each(|(c, j)| *c += 2.0 * va * j);
+                    let c = &mut corner[row + lo + a..row + hi];
+                    c.iter_mut().zip(&jr[a..]).for_each(|(c, j)| *c += 2.0 * va * j);
                 }
+            }
+        }
+        for a in 0..ng {
+            for b in a + 1..ng {
+                corner[b * ng + a] = corner[a * ng + b];
             }
         }
     }

@@ -16,7 +16,7 @@
 
 use faer::linalg::matmul::matmul;
 use faer::linalg::solvers::Llt;
-use faer::linalg::triangular_inverse::invert_lower_triangular;
+use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
 use faer::{Accum, Mat, MatMut, MatRef, Par, Side};
 use nalgebra::{DMatrix, DVector};
 
@@ -64,14 +64,11 @@ pub fn joint_sqrt(cov: &[f64], d: usize) -> Result<Vec<f64>> {
     let not_pd = || Error::numerical("the joint arrival covariance is not positive definite");
     let llt =
         Llt::new(MatRef::from_row_major_slice(cov, d, d), Side::Lower).map_err(|_| not_pd())?;
-    // faer's triangular inverse writes L⁻¹'s lower triangle straight into S's row-major storage
-    // (its upper triangle stays 0).
+    // L⁻¹ solved in place in a row-major identity: S is written where it is returned.
     let mut out = vec![0.0; d * d];
-    invert_lower_triangular(
-        MatMut::from_row_major_slice_mut(&mut out, d, d),
-        llt.L(),
-        Par::Seq,
-    );
+    out.iter_mut().step_by(d + 1).for_each(|v| *v = 1.0);
+    let s = MatMut::from_row_major_slice_mut(&mut out, d, d);
+    solve_lower_triangular_in_place(llt.L(), s, Par::Seq);
     match out.iter().all(|v| v.is_finite()) {
         true => Ok(out),
         false => Err(not_pd()),

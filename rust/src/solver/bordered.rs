@@ -133,22 +133,10 @@ impl BorderedCholesky {
         if m == 0 {
             return None;
         }
-        // S⁻¹ = L⁻ᵀ L⁻¹ by faer (triangular inverse and a triangular product: a third of the
-        // work of solving S X = I); it writes the lower triangle, mirrored here.
+        // S⁻¹ solved in place in an identity (symmetric: row- and column-major alike).
         let mut out = vec![0.0; m * m];
-        let mut inv = MatMut::from_column_major_slice_mut(&mut out, m, m);
-        let mut mem = MemBuffer::new(llt::inverse::inverse_scratch::<f64>(m, Par::Seq));
-        llt::inverse::inverse(
-            inv.as_mut(),
-            self.schur_factor(),
-            Par::Seq,
-            MemStack::new(&mut mem),
-        );
-        for j in 0..m {
-            for i in j + 1..m {
-                inv[(j, i)] = inv[(i, j)];
-            }
-        }
+        out.iter_mut().step_by(m + 1).for_each(|v| *v = 1.0);
+        self.solve_schur(MatMut::from_column_major_slice_mut(&mut out, m, m));
         out.iter().all(|v| v.is_finite()).then_some(out)
     }
 
