@@ -390,7 +390,7 @@ for solver, opts in (("trust-constr", {"maxiter": 50}), ("least-squares", {"max_
     case(f"GPMHE[{solver}]", None, _ctor(GPMHE), {**MHE_KW, "solver": solver, "solver_options": opts},
          dict(solver_options=[{"bogus": 1}, {"max_iter": 3}, {"maxiter": -1}, {"max_nfev": "a"},
                               {"gtol": float("nan")}, {"dtol": -1.0}, {"method": "trf"},
-                              {"bounds": None}]),
+                              {"bounds": None}, {"loss": "huber"}, {"f_scale": 2.0}]),
          allow=dict(solver_options=[None, {}]), numeric=dict(solver_options=False))
 for mname, model in (("known", KNOWN), ("learned", LEARNED)):
     mk = (lambda model=model: make_mhe(model))

@@ -198,3 +198,17 @@ def test_the_loss_survives_copies_pickles_checkpoints_and_banks(tmp_path):
     again = pickle.loads(pickle.dumps(bank))
     assert (again.loss, again.loss_scale, again.arrival_mean) == ("huber", 1.1, "estimate")
     assert bank[0].loss == "huber"
+
+
+def test_scipys_own_loss_is_refused_by_the_least_squares_reference_solver():
+    # SciPy's loss would robustify the prior and process rows too: another cost than the
+    # window's, which GPMHE's loss= defines for every solver.
+    model = KnownModel(lambda x, u: x, lambda x, u: x, dim_x=1, dim_y=1)
+    for key, value in (("loss", "huber"), ("f_scale", 2.0)):
+        with pytest.raises(ValueError, match=f"solver_options: '{key}' is not accepted.*loss="):
+            GPMHE(model, [0.0], Q0=1.0, R0=1.0, solver="least-squares",
+                  solver_options={key: value})
+    est = GPMHE(model, [0.0], Q0=1.0, R0=1.0, solver="least-squares", loss="huber",
+                solver_options={"x_scale": "jac"})
+    est.update(None, [5.0])
+    assert est.success

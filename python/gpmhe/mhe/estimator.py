@@ -135,7 +135,8 @@ class GPMHE(SettingsView, Runs):
         "trust-constr" options of `scipy.optimize.minimize` (defaults gtol=1e-6, xtol=1e-8,
         maxiter=200, initial_barrier_parameter=0.1; SciPy's for the others). For
         "least-squares" the keywords of `scipy.optimize.least_squares` (defaults
-        ftol=xtol=gtol=1e-10, max_nfev=200).
+        ftol=xtol=gtol=1e-10, max_nfev=200) except its ``loss`` and ``f_scale``, which would
+        make it minimise another cost than the window's (give ``loss`` to GPMHE instead).
 
     P0 : float, array_like of shape (dim_x,) or (dim_x, dim_x), or None, default None
         The arrival covariance, the covariance form of ``P2`` (P2 = P0⁻¹, as filterpy's ``P``),

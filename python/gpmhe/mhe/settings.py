@@ -30,9 +30,9 @@ __all__ = ["MHESettings", "SOLVERS"]
 MAX_HORIZON = 1_000_000
 
 #: The window solvers and the options each accepts (see `gpmhe._validation.options`): gpmhe's own
-#: for the Rust solver; for SciPy's, the keywords of `scipy.optimize.least_squares` and of
-#: `minimize`'s "trust-constr" options except those gpmhe sets itself (the problem, its bounds
-#: and method), plus gpmhe's decrement stop ``dtol`` for "trust-constr".
+#: for the Rust solver; for SciPy's, the keywords of `scipy.optimize.least_squares` (but its loss:
+#: `REFUSED_OPTIONS`) and of `minimize`'s "trust-constr" options except those gpmhe sets itself
+#: (the problem, its bounds and method), plus gpmhe's decrement stop ``dtol`` for "trust-constr".
 SOLVERS = {
     "gauss-newton": dict(max_iter="count", gtol="tol", xtol="tol", ftol="tol", dtol="tol",
                          interior=("auto", "always", "never"), interior_zone="tol",
@@ -45,10 +45,20 @@ SOLVERS = {
                          factorization_method=None, disp=(True, False)),
     "least-squares": {
         **{k: None for k in inspect.signature(least_squares).parameters
-           if k not in ("fun", "x0", "jac", "bounds", "method", "args", "kwargs")},
-        **dict(ftol="tol", xtol="tol", gtol="tol", max_nfev="count?", verbose=(0, 1, 2),
-               f_scale="positive"),
+           if k not in ("fun", "x0", "jac", "bounds", "method", "args", "kwargs", "loss",
+                        "f_scale")},
+        **dict(ftol="tol", xtol="tol", gtol="tol", max_nfev="count?", verbose=(0, 1, 2)),
     },
+}
+
+#: Options of a SciPy solver that would make it minimise another cost than the window's (the
+#: reference solvers solve the same problem as the Rust one), with what to use instead.
+REFUSED_OPTIONS = {
+    "least-squares": {
+        key: ("SciPy's robust loss would apply to every residual (prior and process rows too) and "
+              "make the solver minimise another cost than the window's; give GPMHE's loss= and "
+              "loss_scale= (the output rows' penalty, the same for every solver) instead")
+        for key in ("loss", "f_scale")},
 }
 
 #: The output penalties and their default scales k (in standard deviations of the whitened
@@ -145,7 +155,7 @@ class MHESettings:
             eta=_eta(eta), P2=_frozen(P2), Q0=_frozen(covariance("Q0", Q0, n)),
             R0=_frozen(covariance("R0", R0, p)), x_bounds=(_frozen(lb), _frozen(ub)),
             form=one_of("form", form, ("prediction", "filtering")), solver=solver,
-            solver_options=dict(options("solver_options", solver_options, SOLVERS[solver])),
+            solver_options=cls._solver_options(solver, solver_options),
             arrival_mean=one_of("arrival_mean", arrival_mean, ("estimate", "smoothed", "filtered")),
             arrival_weight=one_of("arrival_weight", arrival_weight, ("constant", "ekf")),
             **cls._loss(loss, loss_scale), **cls._parameters(k, p0, P_p0, p_bounds, p_drift),
@@ -165,6 +175,17 @@ class MHESettings:
         if learning and k:
             raise ValueError("learning: not with a model's parameters (dim_p > 0)")
         return dict(learning=learning, learning_drift=float(opts.get("drift", 0.0)))
+
+    @staticmethod
+    def _solver_options(solver, solver_options):
+        """``solver_options`` validated for ``solver``; options that would change the cost the
+        solver minimises are refused (`REFUSED_OPTIONS`)."""
+        if isinstance(solver_options, dict):
+            for key, why in REFUSED_OPTIONS.get(solver, {}).items():
+                if key in solver_options:
+                    raise ValueError(f"solver_options: {key!r} is not accepted for {solver!r}: "
+                                     f"{why}")
+        return dict(options("solver_options", solver_options, SOLVERS[solver]))
 
     @staticmethod
     def _loss(loss, loss_scale):
