@@ -109,7 +109,32 @@ def test_copies_pickles_and_checkpoints_continue_bit_for_bit(sparse_model, run, 
             assert np.array_equal(o.update(None, y[t]), a)
             assert np.array_equal(o._core.learning[0], est._core.learning[0])
             assert np.array_equal(o.P, est.P)
+            assert np.array_equal(o.S, est.S) and np.array_equal(o.innovation, est.innovation)
     assert all(o.learning_options == {"drift": 1e-7} for o in others)
+
+
+def test_a_file_without_the_joint_posterior_before_reports_nan_until_it_is_known(
+        sparse_model, run, tmp_path):
+    # Format 8 kept g and its covariance but not their cross covariance with the newest state
+    # nor the posterior before the last update: the filtering form's innovation needs both.
+    _, y = run
+    est = learner(sparse_model, form="filtering")
+    for t in range(10):
+        est.update(None, y[t])
+    path = tmp_path / "old.npz"
+    est.save(path)
+    entries = {k: v for k, v in np.load(path).items()
+               if k not in ("core_learning_xg_cov", "core_learning_g_before",
+                            "core_learning_g_cov_before", "core_learning_xg_cov_before")}
+    entries["format_version"] = np.array(8)
+    np.savez(path, **entries)
+    old = GPMHE.load(path, sparse_model)
+    assert np.all(np.isnan(old.innovation)) and np.all(np.isnan(old.S))
+    np.testing.assert_array_equal(old.update(None, y[10]), est.update(None, y[10]))
+    assert np.all(np.isnan(old.S)) and np.all(np.isfinite(est.S))  # the cross one was missing
+    np.testing.assert_array_equal(old.update(None, y[11]), est.update(None, y[11]))
+    np.testing.assert_array_equal(old.S, est.S)
+    np.testing.assert_array_equal(old.innovation, est.innovation)
 
 
 def test_bad_input_and_reset_leave_the_learning_state_as_documented(sparse_model, run):
@@ -151,3 +176,38 @@ def test_the_learned_model_is_a_fixed_model_that_saves_and_certifies(sparse_mode
     from gpmhe.theory import weight_bounds
     wb = weight_bounds(learned, 1e-3, 1e-2)
     assert np.all(np.isfinite(wb.Q_min_inv))
+
+
+@pytest.mark.parametrize("form", ["prediction", "filtering"])
+def test_the_innovation_is_predicted_from_the_state_before_the_output(sparse_model, run, form):
+    # ŷ = y − ν and S are made before y(t) is seen: two estimators given different y(t) agree on
+    # them bit for bit (the model's g after the update, which learned from y(t), must not enter).
+    _, y = run
+    est = learner(sparse_model, form=form)
+    for t in range(12):
+        est.update(None, y[t])
+    other = copy.deepcopy(est)
+    est.update(None, y[12])
+    other.update(None, y[12] + 0.5)
+    assert not np.array_equal(est.x, other.x)
+    np.testing.assert_array_equal(y[12] - est.innovation, y[12] + 0.5 - other.innovation)
+    np.testing.assert_array_equal(est.S, other.S)
+
+
+def test_filtering_innovation_covariance_counts_the_uncertainty_of_g(sparse_model, run):
+    # x̂(t − 1) and g are jointly uncertain: the predicted output covariance is larger than the
+    # one of a fixed model at the same estimate with the same variances given g, by the
+    # (positive semidefinite) contribution of g's covariance through ∂m_x/∂g.
+    _, y = run
+    est = learner(sparse_model, form="filtering")
+    for t in range(12):
+        est.update(None, y[t])
+    state = est._core.__getstate__()
+    assert state["learning_xg_cov"].shape == (2, est._core.learning[0].size)
+    np.testing.assert_array_equal(state["learning_g_before"], state["learning_g_before"])
+    est.update(None, y[12])
+    after = est._core.__getstate__()
+    np.testing.assert_array_equal(after["learning_g_before"], state["learning_g"])
+    np.testing.assert_array_equal(after["learning_g_cov_before"], state["learning_g_cov"])
+    np.testing.assert_array_equal(after["learning_xg_cov_before"], state["learning_xg_cov"])
+    assert np.all(np.isfinite(est.S)) and est.S[0, 0] > 0

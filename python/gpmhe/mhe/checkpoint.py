@@ -19,8 +19,10 @@ __all__ = ["FORMAT_VERSION", "save", "load"]
 # core_r); 6: a model with a time step keeps each sample's interval as the last column of core_u;
 # 7: the estimate and covariance before the last update and the window's covariances
 # (core_outcome_x_before, core_outcome_P_before, core_outcome_P_window); 8: an estimator that
-# learns (learning, learning_drift and its core state core_learning_*; no evaluation cache).
-FORMAT_VERSION = 8
+# learns (learning, learning_drift and its core state core_learning_*; no evaluation cache); 9: the
+# learning state's cross covariance of the newest state and g and its posterior of g before the
+# last update (core_learning_xg_cov, core_learning_*_before).
+FORMAT_VERSION = 9
 
 _CACHE_PARTS = ("d", "mean_x", "var_x", "dmean_x", "dvar_x", "mean_y", "var_y", "dmean_y",
                 "dvar_y")
@@ -43,6 +45,8 @@ def load(cls, path, model):
                              "projected_gradient", "core_outcome_cost",
                              "core_outcome_projected_gradient", "core_outcome_x_before",
                              "core_outcome_P_before", "core_outcome_P_window",
+                             "core_learning_xg_cov", "core_learning_g_before",
+                             "core_learning_g_cov_before", "core_learning_xg_cov_before",
                              "core_y")  # NaN: channels not measured (the core refuses inf)
         kind = f.string("model_kind")
         if kind not in ("LearnedModel", "KnownModel"):
@@ -93,6 +97,12 @@ def _core_state(f, na, m, p, kind, dt, learning):
                      learning_arrival_cov=f.floats("core_learning_arrival_cov", (na + ng, na + ng)),
                      learning_g=f.floats("core_learning_g", (ng,)),
                      learning_g_cov=f.floats("core_learning_g_cov", (ng, ng)))
+        if f.version >= 9:  # format 8: not known (NaN) until the next update
+            n = na
+            state.update(learning_xg_cov=f.floats("core_learning_xg_cov", (n, ng)),
+                         learning_g_before=f.floats("core_learning_g_before", (ng,)),
+                         learning_g_cov_before=f.floats("core_learning_g_cov_before", (ng, ng)),
+                         learning_xg_cov_before=f.floats("core_learning_xg_cov_before", (n, ng)))
     elif kind == "LearnedModel":
         for key in _CACHE_PARTS:
             state["cache_" + key] = f.floats("core_cache_" + key, (None,))

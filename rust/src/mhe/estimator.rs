@@ -22,7 +22,7 @@ use super::problem::{Form, WindowEval, WindowProblem};
 use super::stage::StageModel;
 use super::weights::Covariance;
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::solver::{BoxLsqSolver, SolveReport, SolverOptions};
+use crate::solver::{BoxLsqSolver, Covariances, SolveReport, SolverOptions};
 
 /// Relative margin by which the warm start is kept inside the box (1e-6 of its width, of 1 where
 /// the width is infinite), so the solver's barrier phase does not start on a bound.
@@ -482,27 +482,30 @@ impl MovingHorizon {
             self.solver
                 .solve(&mut lsq, &mut z, &self.lower, &self.upper, &self.opts)
         };
-        let (solve, cost, blocks, g_cov) = match solve {
+        let (solve, cost, cov) = match solve {
             Ok(report) => {
                 self.evaluated_at.extend_from_slice(&z);
-                let (blocks, g_cov) = match self.learning {
+                let cov = match self.learning {
                     Some(_) => self.solver.window_and_global_covariance(),
-                    None => (self.solver.window_covariance(), None),
+                    None => Covariances {
+                        window: self.solver.window_covariance(),
+                        ..Covariances::default()
+                    },
                 };
-                (Ok(report.clone()), report.cost, blocks, g_cov)
+                (Ok(report.clone()), report.cost, cov)
             }
             // A numerical failure keeps the warm start; anything else is an error.
             Err(e @ Error::Numerical(_)) => {
                 z = z0;
                 let cost = self.evaluate(model, &z, false)?.cost();
-                (Err(e), cost, None, None)
+                (Err(e), cost, Covariances::default())
             }
             Err(e) => return Err(e),
         };
         let n = self.problem.dim_x();
-        let covariance = blocks.as_deref().map(|b| last_block(b, n * n));
+        let covariance = cov.window.as_deref().map(|b| last_block(b, n * n));
         let solved = Solved::Rust(solve.clone());
-        let pending = self.finish_with(model, z, blocks, g_cov, cost, &solved)?;
+        let pending = self.finish_with(model, z, cov, cost, &solved)?;
         let report = UpdateReport {
             x_window: pending.x_window.clone(),
             x_prior: pending.data.x_prior.clone(),
@@ -742,7 +745,11 @@ impl MovingHorizon {
                 "an estimator that learns is solved by the core's solver only",
             ));
         }
-        let pending = self.finish_with(model, z, window_covariance, None, cost, solved)?;
+        let cov = Covariances {
+            window: window_covariance,
+            ..Covariances::default()
+        };
+        let pending = self.finish_with(model, z, cov, cost, solved)?;
         let out = (pending.x_window.clone(), pending.data.x_prior.clone());
         self.apply(pending);
         Ok(out)
@@ -750,17 +757,21 @@ impl MovingHorizon {
 
     /// Everything [`MovingHorizon::commit`] computes (its fallible part, the model's
     /// evaluations), as a [`Pending`] record; the history is unchanged and the staged window
-    /// is taken. With learning, z ends with g and `g_cov` is its covariance (None: keep the
-    /// last).
+    /// is taken. With learning, z ends with g and `cov` has g's covariance and its cross
+    /// covariance with the newest node (None: keep the last).
     fn finish_with(
         &mut self,
         model: &mut dyn StageModel,
         mut z: Vec<f64>,
-        window_covariance: Option<Vec<f64>>,
-        g_cov: Option<Vec<f64>>,
+        cov: Covariances,
         cost: f64,
         solved: &Solved,
     ) -> Result<Pending> {
+        let Covariances {
+            window: window_covariance,
+            global: g_cov,
+            cross: xg_cov,
+        } = cov;
         let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         let data = self
             .staged
@@ -798,7 +809,12 @@ impl MovingHorizon {
                 false => (None, None),
             };
             mean = x_mean.filter(|_| filtered_mean);
-            learning = Some(LearningUpdate { arrival, g, g_cov });
+            learning = Some(LearningUpdate {
+                arrival,
+                g,
+                g_cov,
+                xg_cov,
+            });
         } else if slides && (ekf_weight || filtered_mean) {
             let p = self.problem.dim_y();
             let y0 = data.present[0].then(|| &data.y[..p]);
@@ -925,10 +941,14 @@ impl MovingHorizon {
 
     /// The innovation of the newest sample (`innovation.rs`).
     pub fn innovation(&self, model: &mut dyn StageModel) -> Result<Innovation> {
-        if let Some(l) = &self.learning {
-            model.set_globals(&l.state().g)?;
-        }
-        innovation(&self.problem, &self.history, model)
+        let Some(l) = &self.learning else {
+            return innovation(&self.problem, &self.history, model, None);
+        };
+        model.set_globals(&l.state().g)?;
+        let out = innovation(&self.problem, &self.history, model, Some(&l.state().before));
+        // The model back at the posterior mean whatever happened (the next update sets it too).
+        model.set_globals(&l.state().g)?;
+        out
     }
 
     /// Drops the staged window, if any (its solve was abandoned); the history is unchanged.

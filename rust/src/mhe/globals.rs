@@ -219,7 +219,9 @@ impl WindowEval {
                 if va != 0.0 || !finite {
                     let row = (lo + a) * ng;
                     let c = &mut corner[row + lo + a..row + hi];
-                    c.iter_mut().zip(&jr[a..]).for_each(|(c, j)| *c += 2.0 * va * j);
+                    c.iter_mut()
+                        .zip(&jr[a..])
+                        .for_each(|(c, j)| *c += 2.0 * va * j);
                 }
             }
         }

@@ -5,7 +5,10 @@
 //! The prediction starts from what the estimator reported before the update (the outcome's
 //! `x_before`, `covariance_before`): in the prediction form that is x̂(t) and its covariance
 //! already; in the filtering form x̂(t − 1), carried over the stage with u(t − 1) as in an EKF,
-//! x̂⁻ = m_x, P⁻ = A P Aᵀ + Q0 + diag σ²_x. Then ŷ = m_y(x̂⁻, u(t)) and
+//! x̂⁻ = m_x, P⁻ = A P Aᵀ + Q0 + diag σ²_x. With a model whose global variables g are estimated
+//! (a GP that keeps learning) the stage is that of the posterior of g before the update, jointly
+//! uncertain with x̂(t − 1) ([`GlobalsBefore`]): m_x at its mean, P⁻ = [A B] Σ [A B]ᵀ + Q0 +
+//! diag σ²_x with Σ the joint covariance and B = ∂m_x/∂g. Then ŷ = m_y(x̂⁻, u(t)) and
 //! S = C P⁻ Cᵀ + R(t) + diag σ²_y (R(t): the covariance given with the sample, or R0), A and C
 //! the model's Jacobians there. On a linear-Gaussian model with the Kalman-filter settings these
 //! are the Kalman filter's. Computed when asked for, from the history: nothing is added to an
@@ -15,6 +18,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::arrival::evaluate_at;
 use super::history::History;
+use super::learning_state::GlobalsBefore;
 use super::problem::{Form, WindowProblem};
 use super::stage::StageModel;
 use crate::error::{Error, Result};
@@ -47,11 +51,14 @@ impl Innovation {
     }
 }
 
-/// The innovation of the newest sample in `history` (see the module documentation).
+/// The innovation of the newest sample in `history` (see the module documentation); `globals`
+/// the posterior of the model's global variables before the update, if it has any (the model's
+/// global variables are then left at its mean).
 pub fn innovation(
     problem: &WindowProblem,
     history: &History,
     model: &mut dyn StageModel,
+    globals: Option<&GlobalsBefore>,
 ) -> Result<Innovation> {
     let (n, p) = (problem.dim_x(), problem.dim_y());
     let outcome = history.outcome();
@@ -65,11 +72,21 @@ pub fn innovation(
     let mut x = DVector::from_column_slice(x);
     let mut cov = DMatrix::from_row_slice(n, n, cov);
     if let (Form::Filtering, Some(u_before)) = (problem.form(), sample.u_before) {
+        if let Some(b) = globals {
+            if !b.is_known() {
+                return Ok(Innovation::unknown(p));
+            }
+            model.set_globals(&b.g)?;
+        }
         let st = evaluate_at(model, x.as_slice(), u_before)?;
         let nd = n + problem.dim_u();
         let a = DMatrix::from_fn(n, n, |i, j| st.dmean_x[i * nd + j]);
         let all: Vec<usize> = (0..n).collect();
-        cov = &a * cov * a.transpose() + problem.q0_cov().with_variances(&all, &st.var_x[..n]);
+        let q = problem.q0_cov().with_variances(&all, &st.var_x[..n]);
+        cov = match globals {
+            None => &a * cov * a.transpose() + q,
+            Some(b) => joint_prediction(&a, &cov, b, &st.dmean_x_dg) + q,
+        };
         x = DVector::from_column_slice(&st.mean_x[..n]);
     }
     let st = evaluate_at(model, x.as_slice(), sample.u)?;
@@ -109,4 +126,20 @@ pub fn innovation(
         log_likelihood,
         measured: measured.len(),
     })
+}
+
+/// [A B] Σ [A B]ᵀ with Σ = [P Σ_xg; Σ_xgᵀ Σ_g] the joint covariance of x̂(t − 1) (P) and g
+/// (`b`), B = ∂m_x/∂g (the first n rows of `dmean_x_dg`, row-major n × n_g).
+fn joint_prediction(
+    a: &DMatrix<f64>,
+    p: &DMatrix<f64>,
+    b: &GlobalsBefore,
+    dmean_x_dg: &[f64],
+) -> DMatrix<f64> {
+    let (n, ng) = (a.nrows(), b.g.len());
+    let bm = DMatrix::from_row_slice(n, ng, &dmean_x_dg[..n * ng]);
+    let xg = DMatrix::from_row_slice(n, ng, &b.xg_cov);
+    let gg = DMatrix::from_row_slice(ng, ng, &b.g_cov);
+    let cross = a * &xg * bm.transpose();
+    a * p * a.transpose() + &cross + cross.transpose() + &bm * gg * bm.transpose()
 }

@@ -25,13 +25,46 @@ pub struct Learning {
 }
 
 /// The learning state an update changes (for checkpoints): the joint arrival prior of the
-/// window's first node, and the posterior of g after the last update (mean, n_g × n_g
-/// covariance, row-major).
+/// window's first node, the posterior of g after the last update (mean, n_g × n_g covariance
+/// and its cross covariance with the newest node, n × n_g, row-major), and that posterior as it
+/// was before the last update ([`GlobalsBefore`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct LearningState {
     pub arrival: JointArrival,
     pub g: Vec<f64>,
     pub g_cov: Vec<f64>,
+    pub xg_cov: Vec<f64>,
+    pub before: GlobalsBefore,
+}
+
+/// The posterior of g before the last update: what the innovation of the filtering form
+/// predicts the newest state with (`innovation.rs`): x̂(t − 1) and g are jointly uncertain.
+/// NaN when not known (a checkpoint of an older format, until the next update).
+#[derive(Debug, Clone, PartialEq)]
+pub struct GlobalsBefore {
+    pub g: Vec<f64>,
+    pub g_cov: Vec<f64>,
+    pub xg_cov: Vec<f64>,
+}
+
+impl GlobalsBefore {
+    /// NaN-filled, for n states and n_g global variables.
+    pub fn unknown(n: usize, ng: usize) -> Self {
+        Self {
+            g: vec![f64::NAN; ng],
+            g_cov: vec![f64::NAN; ng * ng],
+            xg_cov: vec![f64::NAN; n * ng],
+        }
+    }
+
+    /// Whether every value is known (finite).
+    pub fn is_known(&self) -> bool {
+        self.g
+            .iter()
+            .chain(&self.g_cov)
+            .chain(&self.xg_cov)
+            .all(|v| v.is_finite())
+    }
 }
 
 impl Learning {
@@ -51,15 +84,12 @@ impl Learning {
         // Positive definite (with the states' block, checked by the joint factor).
         let arrival = initial_arrival(g0, sigma0, x_cov)?;
         joint_sqrt(&arrival.cov, arrival.cov.len().isqrt())?;
+        let n = x_cov.len().isqrt();
         Ok(Self {
             drift,
             g0: g0.to_vec(),
             sigma0: sigma0.to_vec(),
-            state: LearningState {
-                arrival,
-                g: g0.to_vec(),
-                g_cov: sigma0.to_vec(),
-            },
+            state: initial_state(arrival, g0, sigma0, n),
         })
     }
 
@@ -84,11 +114,7 @@ impl Learning {
     /// Back to the prior N(g0, sigma0), the states' covariance being `x_cov`.
     pub fn reset(&mut self, x_cov: &[f64]) -> Result<()> {
         let arrival = initial_arrival(&self.g0, &self.sigma0, x_cov)?;
-        self.state = LearningState {
-            arrival,
-            g: self.g0.clone(),
-            g_cov: self.sigma0.clone(),
-        };
+        self.state = initial_state(arrival, &self.g0, &self.sigma0, x_cov.len().isqrt());
         Ok(())
     }
 
@@ -110,7 +136,8 @@ impl Learning {
     }
 
     /// Replaces the state (from [`Learning::state`] of an estimator with the same dimensions);
-    /// lengths and finiteness are checked and nothing changes on error.
+    /// lengths and finiteness are checked (the cross covariance and the posterior before may be
+    /// NaN: not known) and nothing changes on error.
     pub fn set_state(&mut self, n: usize, s: LearningState) -> Result<()> {
         let ng = self.dim();
         let arrival = JointArrival::new(n, s.arrival.g, s.arrival.cov)?;
@@ -124,11 +151,23 @@ impl Learning {
         check_len("g_cov", &s.g_cov, ng * ng)?;
         check_finite("g", &s.g)?;
         check_finite("g_cov", &s.g_cov)?;
-        self.state = LearningState {
-            arrival,
-            g: s.g,
-            g_cov: s.g_cov,
-        };
+        check_len("xg_cov", &s.xg_cov, n * ng)?;
+        let b = &s.before;
+        check_len("g_before", &b.g, ng)?;
+        check_len("g_cov_before", &b.g_cov, ng * ng)?;
+        check_len("xg_cov_before", &b.xg_cov, n * ng)?;
+        let infinite = |v: &[f64]| v.iter().any(|x| x.is_infinite());
+        for (name, v) in [
+            ("xg_cov", &s.xg_cov),
+            ("g_before", &b.g),
+            ("g_cov_before", &b.g_cov),
+            ("xg_cov_before", &b.xg_cov),
+        ] {
+            if infinite(v) {
+                return Err(Error::invalid(name, "contains inf"));
+            }
+        }
+        self.state = LearningState { arrival, ..s };
         Ok(())
     }
 
@@ -140,26 +179,52 @@ impl Learning {
         problem.set_global_prior(&s.arrival.g, &joint_sqrt(&s.arrival.cov, d)?)
     }
 
-    /// Records an update: the next arrival prior when the window slid, the posterior of g.
+    /// Records an update: the next arrival prior when the window slid, the posterior of g (the
+    /// last one becomes the posterior before).
     pub fn apply(&mut self, update: LearningUpdate) {
+        let s = &mut self.state;
         if let Some(arrival) = update.arrival {
-            self.state.arrival = arrival;
+            s.arrival = arrival;
         }
-        self.state.g = update.g;
+        s.before = GlobalsBefore {
+            g: std::mem::replace(&mut s.g, update.g),
+            g_cov: s.g_cov.clone(),
+            xg_cov: s.xg_cov.clone(),
+        };
         if let Some(cov) = update.g_cov {
-            self.state.g_cov = cov;
+            s.g_cov = cov;
+        }
+        if let Some(cov) = update.xg_cov {
+            s.xg_cov = cov;
         }
     }
 }
 
 /// What one update changes in [`Learning`]: the next arrival prior (None: the window did not
-/// slide, or its update failed numerically), g of the solution and its covariance (None: not
-/// computable, the last one is kept).
+/// slide, or its update failed numerically), g of the solution, its covariance and its cross
+/// covariance with the newest node (None: not computable, the last ones are kept).
 #[derive(Debug, Clone)]
 pub struct LearningUpdate {
     pub arrival: Option<JointArrival>,
     pub g: Vec<f64>,
     pub g_cov: Option<Vec<f64>>,
+    pub xg_cov: Option<Vec<f64>>,
+}
+
+/// The state at t = 0: g at its prior, uncorrelated with the states; the same before.
+fn initial_state(arrival: JointArrival, g0: &[f64], sigma0: &[f64], n: usize) -> LearningState {
+    let before = GlobalsBefore {
+        g: g0.to_vec(),
+        g_cov: sigma0.to_vec(),
+        xg_cov: vec![0.0; n * g0.len()],
+    };
+    LearningState {
+        arrival,
+        g: before.g.clone(),
+        g_cov: before.g_cov.clone(),
+        xg_cov: before.xg_cov.clone(),
+        before,
+    }
 }
 
 /// N([x̂; g0], diag(x_cov, sigma0)) with x̂ kept by the estimator: the joint prior at t = 0.

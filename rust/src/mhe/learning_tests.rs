@@ -125,6 +125,42 @@ fn with_the_states_measured_the_posterior_is_the_recursive_gps() {
     }
 }
 
+#[test]
+fn with_the_states_measured_the_innovation_is_the_recursive_gps_prediction() {
+    // The filtering form predicts y(t) = x(t) from x̂(t − 1) = x(t − 1) with g before the update,
+    // jointly uncertain: ŷ and S − Q − R0 are the recursive GP's predictive mean and variance
+    // at (x(t − 1), u(t − 1)) before it learns that transition.
+    let f = sparse_f();
+    let model = LearningStageModel::new(f.clone(), None, 1, false).unwrap();
+    let r0 = 1e-12;
+    for horizon in [1, 4] {
+        let mut rgp = Rgp::from_sparse(&f, 0, 0.0, 0.0).unwrap();
+        let mut m = MeasuredStates(model.clone());
+        let mut est = estimator(&model, horizon, r0, 0.0);
+        let (mut x, mut worst) = (0.5, (0.0f64, 0.0f64));
+        let mut predicted: Option<(f64, f64)> = None;
+        for t in 0..25 {
+            let u = ((t * 5) % 7) as f64 / 3.0 - 1.0;
+            est.update(&mut m, Some(&[u]), Some(&[x])).unwrap();
+            let inn = est.innovation(&mut m).unwrap();
+            if let Some((mu, var)) = predicted {
+                let (y_hat, s): (f64, f64) = (x - inn.nu[0], inn.s[0] - Q - r0);
+                worst.0 = worst.0.max((y_hat - mu).abs());
+                worst.1 = worst.1.max((s - var).abs() / var);
+            }
+            let (mu, var) = rgp.predict(&[x, u]).unwrap();
+            predicted = Some((mu[0], var[0]));
+            let next = plant(x, u);
+            rgp.update(&[x, u], next, Q).unwrap();
+            x = next;
+        }
+        assert!(
+            worst.0 <= 1e-9 && worst.1 <= 1e-8,
+            "M = {horizon}: {worst:?}"
+        );
+    }
+}
+
 /// The g-block of the joint arrival covariance (n = 1).
 fn arrival_g_cov(est: &MovingHorizon) -> Vec<f64> {
     let a = &est.learning().unwrap().state().arrival;

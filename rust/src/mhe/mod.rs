@@ -46,7 +46,7 @@ pub use history::{History, HistoryState, Sample, WindowData};
 pub use innovation::Innovation;
 pub use joint_arrival::JointArrival;
 pub use learning::LearningStageModel;
-pub use learning_state::{Learning, LearningState, LearningUpdate};
+pub use learning_state::{GlobalsBefore, Learning, LearningState, LearningUpdate};
 pub use loss::Loss;
 pub use lsq::WindowLsq;
 pub use outcome::{Outcome, Solved};

@@ -140,6 +140,22 @@ impl BorderedCholesky {
         out.iter().all(|v| v.is_finite()).then_some(out)
     }
 
+    /// The block of H⁻¹ of the last node (rows) with the global variables (columns), −Z_last S⁻¹
+    /// (n × m, row-major), from `s_inverse` = S⁻¹ ([`global_block_of_inverse`]
+    /// (Self::global_block_of_inverse)); None without global variables or if not finite.
+    pub fn last_node_global_block(&self, s_inverse: &[f64]) -> Option<Vec<f64>> {
+        let (nx, m, n) = (self.nx, self.m, self.tri.block_dim());
+        if m == 0 || nx < n || s_inverse.len() != m * m {
+            return None;
+        }
+        let z_last = MatRef::from_row_major_slice(&self.z[(nx - n) * m..nx * m], n, m);
+        let mut out = vec![0.0; n * m];
+        let o = MatMut::from_row_major_slice_mut(&mut out, n, m);
+        let s_inv = MatRef::from_row_major_slice(s_inverse, m, m);
+        matmul(o, Accum::Replace, z_last, s_inv, -1.0, Par::Seq);
+        out.iter().all(|v| v.is_finite()).then_some(out)
+    }
+
     /// The `which` diagonal blocks over the nodes of H⁻¹ (row-major, stacked), after a
     /// successful [`factor`](Self::factor): T⁻¹'s plus Z_i S⁻¹ Z_iᵀ = W_i W_iᵀ with W = Z L⁻ᵀ.
     /// None if one is not finite.

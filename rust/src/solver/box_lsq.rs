@@ -46,6 +46,16 @@ pub struct BoxLsqSolver {
     pub(super) chol_is_undamped: bool,
 }
 
+/// The Laplace covariances of a solved window ([`BoxLsqSolver::window_and_global_covariance`]):
+/// every node's block (nodes × n × n), the global variables' (m × m) and the last node's with
+/// the global variables (n × m), row-major.
+#[derive(Debug, Default, Clone)]
+pub struct Covariances {
+    pub window: Option<Vec<f64>>,
+    pub global: Option<Vec<f64>>,
+    pub cross: Option<Vec<f64>>,
+}
+
 /// The linear system (H + diag(shift)) step = rhs with the `fixed` variables held, and the
 /// point it leads to; used by both phases.
 #[derive(Debug, Default, Clone)]
@@ -226,12 +236,13 @@ impl BoxLsqSolver {
         )
     }
 
-    /// [`window_covariance`](Self::window_covariance) and 4·sym of the global variables' block
-    /// of H⁻¹ (m × m: their Laplace covariance; None without global variables) from one
-    /// factorisation; (None, None) before any solve or if H is singular.
-    pub fn window_and_global_covariance(&mut self) -> (Option<Vec<f64>>, Option<Vec<f64>>) {
+    /// [`window_covariance`](Self::window_covariance), 4·sym of the global variables' block of
+    /// H⁻¹ (m × m: their Laplace covariance) and 4× the block of the last node with them
+    /// (n × m: the cross covariance), from one factorisation; all None before any solve or if H
+    /// is singular, the global ones without global variables.
+    pub fn window_and_global_covariance(&mut self) -> Covariances {
         if !self.factor_undamped() {
-            return (None, None);
+            return Covariances::default();
         }
         let n = self.h.n;
         let window = self.chol.inverse_blocks(InverseBlocks::All).map(|b| {
@@ -239,14 +250,16 @@ impl BoxLsqSolver {
                 .flat_map(|block| symmetrised(block, n))
                 .collect()
         });
-        let global = match self.h.m {
-            0 => None,
-            m => self
-                .chol
-                .global_block_of_inverse()
-                .map(|b| symmetrised(&b, m)),
-        };
-        (window, global)
+        let (m, inverse) = (self.h.m, self.chol.global_block_of_inverse());
+        let cross = inverse.as_deref().and_then(|b| {
+            let c = self.chol.last_node_global_block(b)?;
+            Some(c.iter().map(|v| 4.0 * v).collect())
+        });
+        Covariances {
+            window,
+            global: inverse.map(|b| symmetrised(&b, m)),
+            cross,
+        }
     }
 
     /// Factors the undamped H with nothing held, in the solver's own factor and scratch,
@@ -473,11 +486,12 @@ mod tests {
             let mut s = BoxLsqSolver::new();
             s.solve(&mut p, &mut z, &lo, &hi, &opts).unwrap();
             reused[(m > 0) as usize] += s.chol_is_undamped as usize;
-            let (w, g) = s.window_and_global_covariance();
+            let c = s.window_and_global_covariance();
             s.chol_is_undamped = false;
-            let (w_fresh, g_fresh) = s.window_and_global_covariance();
-            assert!(w.is_some() && w == w_fresh && g == g_fresh, "{seed}");
-            assert_eq!(s.window_covariance(), w_fresh);
+            let fresh = s.window_and_global_covariance();
+            assert!(c.window.is_some() && c.window == fresh.window, "{seed}");
+            assert!(c.global == fresh.global && c.cross == fresh.cross, "{seed}");
+            assert_eq!(s.window_covariance(), fresh.window);
         }
         assert!(
             reused[0] > 0 && reused[1] > 0,

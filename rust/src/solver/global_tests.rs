@@ -121,13 +121,17 @@ fn window_covariance_with_globals_is_the_dense_inverse() {
             }
         }
         assert_eq!(last[..], cov[(nodes - 1) * n * n..]);
-        let (both, global) = s.window_and_global_covariance();
-        assert_eq!(both.unwrap(), cov);
-        let global = global.unwrap();
+        let both = s.window_and_global_covariance();
+        assert_eq!(both.window.unwrap(), cov);
+        let (global, cross) = (both.global.unwrap(), both.cross.unwrap());
         for a in 0..m {
             for b in 0..m {
                 let want = inv[(nodes * n + a, nodes * n + b)];
                 assert!((global[a * m + b] - want).abs() <= 1e-8 * (1.0 + want.abs()));
+            }
+            for r in 0..n {
+                let want = inv[((nodes - 1) * n + r, nodes * n + a)];
+                assert!((cross[r * m + a] - want).abs() <= 1e-8 * (1.0 + want.abs()));
             }
         }
     }

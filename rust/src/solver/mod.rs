@@ -54,7 +54,7 @@ pub(crate) mod test_problem;
 pub use block_tridiag::{
     block_tridiag_matvec, gauss_newton_last_block_inverse, BlockTridiagCholesky,
 };
-pub use box_lsq::BoxLsqSolver;
+pub use box_lsq::{BoxLsqSolver, Covariances};
 pub use options::{InteriorMode, SolveReport, SolverOptions, Status};
 
 use crate::error::Result;

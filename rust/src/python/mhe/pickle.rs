@@ -9,8 +9,8 @@ use pyo3::types::PyDict;
 
 use super::stage_model::Model;
 use crate::mhe::{
-    Covariance, GpStageModel, HistoryState, JointArrival, Learning, LearningState, MovingHorizon,
-    Outcome, GP_CACHE_PARTS,
+    Covariance, GlobalsBefore, GpStageModel, HistoryState, JointArrival, Learning, LearningState,
+    MovingHorizon, Outcome, GP_CACHE_PARTS,
 };
 use crate::python::convert::array2;
 
@@ -28,6 +28,15 @@ fn state_rows(state: &Bound<'_, PyDict>, key: &str, cols: usize) -> PyResult<Vec
         )));
     }
     Ok(a.readonly().as_array().iter().copied().collect())
+}
+
+/// `state[key]` as [`state_rows`] with `cols` columns, or `len` NaN when the entry is missing
+/// (a state saved before it existed: not known until the next update).
+fn optional(state: &Bound<'_, PyDict>, key: &str, cols: usize, len: usize) -> PyResult<Vec<f64>> {
+    match state.contains(key)? {
+        true => state_rows(state, key, cols),
+        false => Ok(vec![f64::NAN; len]),
+    }
 }
 
 /// The 1-D float64 array `state[key]` as a vector; a ValueError naming the entry otherwise.
@@ -105,7 +114,9 @@ pub(super) fn get_state<'py>(
 
 /// Writes the learning part: its prior `learning_g0` (n_g,), `learning_sigma0` (n_g, n_g),
 /// `learning_drift`, and its state `learning_arrival_g` (n_g,), `learning_arrival_cov` (n + n_g,
-/// n + n_g), `learning_g` (n_g,), `learning_g_cov` (n_g, n_g).
+/// n + n_g), `learning_g` (n_g,), `learning_g_cov` (n_g, n_g), `learning_xg_cov` (n, n_g) and
+/// the last three before the last update (`learning_g_before`, `learning_g_cov_before`,
+/// `learning_xg_cov_before`).
 fn learning_items(py: Python<'_>, d: &Bound<'_, PyDict>, l: &Learning, n: usize) -> PyResult<()> {
     let (g0, sigma0) = l.prior();
     let (ng, s) = (l.dim(), l.state().clone());
@@ -119,6 +130,11 @@ fn learning_items(py: Python<'_>, d: &Bound<'_, PyDict>, l: &Learning, n: usize)
     )?;
     d.set_item("learning_g", PyArray1::from_vec(py, s.g))?;
     d.set_item("learning_g_cov", array2(py, s.g_cov, ng, ng)?)?;
+    d.set_item("learning_xg_cov", array2(py, s.xg_cov, n, ng)?)?;
+    let b = s.before;
+    d.set_item("learning_g_before", PyArray1::from_vec(py, b.g))?;
+    d.set_item("learning_g_cov_before", array2(py, b.g_cov, ng, ng)?)?;
+    d.set_item("learning_xg_cov_before", array2(py, b.xg_cov, n, ng)?)?;
     Ok(())
 }
 
@@ -140,6 +156,15 @@ fn read_learning(state: &Bound<'_, PyDict>, core: &MovingHorizon) -> PyResult<Op
         },
         g: state_rows_1d(state, "learning_g")?,
         g_cov: state_rows(state, "learning_g_cov", ng)?,
+        xg_cov: optional(state, "learning_xg_cov", ng, n * ng)?,
+        before: GlobalsBefore {
+            g: match state.contains("learning_g_before")? {
+                true => state_rows_1d(state, "learning_g_before")?,
+                false => vec![f64::NAN; ng],
+            },
+            g_cov: optional(state, "learning_g_cov_before", ng, ng * ng)?,
+            xg_cov: optional(state, "learning_xg_cov_before", ng, n * ng)?,
+        },
     };
     let sigma0 = state_rows(state, "learning_sigma0", ng)?;
     Ok(Some(core.restored_learning(
