@@ -653,7 +653,10 @@ class GPMHE(SettingsView, Runs):
             return u
         if u is None:
             return None if self.dim_u else np.array([self._dt])
-        return np.append(u, self._dt)
+        out = np.empty(u.shape[0] + 1)  # (np.append costs a few µs per update)
+        out[:-1] = u
+        out[-1] = self._dt
+        return out
 
     def _output_uses_input(self, u):
         """Whether the model's output mean h depends on u: probed once, at the current estimate
