@@ -211,3 +211,47 @@ def test_filtering_innovation_covariance_counts_the_uncertainty_of_g(sparse_mode
     np.testing.assert_array_equal(after["learning_g_cov_before"], state["learning_g_cov"])
     np.testing.assert_array_equal(after["learning_xg_cov_before"], state["learning_xg_cov"])
     assert np.all(np.isfinite(est.S)) and est.S[0, 0] > 0
+
+
+def test_the_prior_mean_of_g_goes_with_the_arrival_mean_of_x(sparse_model, run):
+    # "smoothed": the next window's prior of g is centred on this window's g, as its prior of x
+    # on this window's x̄_1; "filtered": both are the EKF step's.
+    _, y = run
+    for mean in ("smoothed", "filtered"):
+        est = learner(sparse_model, arrival_mean=mean, drift=1e-7)
+        for t in range(12):
+            est.update(None, y[t])
+        state = est._core.__getstate__()
+        same = np.array_equal(state["learning_arrival_g"], state["learning_g"])
+        assert same == (mean == "smoothed"), mean
+
+
+def test_a_drifting_model_stays_consistent_with_the_data_when_the_states_are_measured():
+    # Both concentrations measured, k1 falling by 40 %: with a drift the windows' cost stays of
+    # the order of their number of residuals (a smoothed x̄ next to the filter's ĝ in the prior
+    # made it ten times that) and the error stays near the fixed model's.
+    states, _ = br.training_data(5, rng=0)
+    rng = np.random.default_rng(7)
+    model = LearnedModel.from_trajectories(
+        states, [s + 0.05 * rng.standard_normal(s.shape) for s in states], n_inducing=20)
+    x = np.empty((161, 2))
+    x[0] = br.X_TRUE0
+    for t in range(160):
+        k1 = br.K1 * (1.0 - 0.4 * min(t / 80.0, 1.0))
+        x1, x2 = x[t]
+        x[t + 1] = x[t] + br.T * np.array([-2 * k1 * x1 ** 2 + 2 * br.K2 * x2,
+                                           k1 * x1 ** 2 - br.K2 * x2]) \
+            + br.SIGMA_W * rng.standard_normal(2)
+    y = x + 0.05 * rng.standard_normal(x.shape)
+    kw = dict(horizon=15, eta=1.0, P0=np.eye(2), Q0=br.SIGMA_W ** 2, R0=0.05 ** 2,
+              x_bounds=br.X_BOUNDS, form="filtering")
+    fixed = GPMHE(model, x0=[3.0, 1.0], **kw)
+    drifting = GPMHE(model, x0=[3.0, 1.0], **kw, learning=True, learning_options={"drift": 1e-7})
+    costs, errors = {"fixed": [], "drift": []}, {"fixed": [], "drift": []}
+    for t in range(160):
+        for name, est in (("fixed", fixed), ("drift", drifting)):
+            errors[name].append(est.update(None, y[t]) - x[t])
+            costs[name].append(est.cost)
+    rmse = {k: np.sqrt(np.mean(np.array(e[80:]) ** 2)) for k, e in errors.items()}
+    assert np.median(costs["drift"][80:]) < 2 * np.median(costs["fixed"][80:]), costs
+    assert rmse["drift"] < 1.5 * rmse["fixed"], rmse

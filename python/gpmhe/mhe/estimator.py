@@ -177,7 +177,9 @@ class GPMHE(SettingsView, Runs):
         `LearnedModel` with `SparseMultiOutputGP` f-GPs and no nominal model) are estimated by
         every window together with the states, from the fit's posterior of u as the prior; see
         the user guide, *Learning while estimating*. The arrival weight is then the joint
-        prior's, whatever ``arrival_weight`` says. Needs ``solver="gauss-newton"``.
+        prior's, whatever ``arrival_weight`` says; the prior mean of u follows
+        ``arrival_mean`` (the last window's u when smoothed, the Kalman step's when filtered).
+        Needs ``solver="gauss-newton"``.
     learning_options : dict or None, default None
         With ``learning``: ``drift``, the variance per step of a random walk of u (in the units
         of f squared; default 0: the plant does not change, what is learned is kept).

@@ -804,11 +804,16 @@ impl MovingHorizon {
         let (mut weight, mut mean) = (None, None);
         let mut learning = None;
         if let Some(l) = &self.learning {
-            let (x_mean, arrival) = match slides {
+            let (x_mean, mut arrival) = match slides {
                 true => self.joint_arrival_step(model, l, data, &z, &g)?,
                 false => (None, None),
             };
             mean = x_mean.filter(|_| filtered_mean);
+            // The prior mean of g goes with that of x: with the smoothed x̄_1 of this window, its
+            // g (the filter's g next to the smoother's x made the prior contradict the data).
+            if let (ArrivalMean::Smoothed, Some(a)) = (self.arrival.mean, arrival.as_mut()) {
+                a.g.clone_from(&g);
+            }
             learning = Some(LearningUpdate {
                 arrival,
                 g,
