@@ -97,7 +97,7 @@ def _core_state(f, na, m, p, kind, dt, learning):
                      learning_arrival_cov=f.floats("core_learning_arrival_cov", (na + ng, na + ng)),
                      learning_g=f.floats("core_learning_g", (ng,)),
                      learning_g_cov=f.floats("core_learning_g_cov", (ng, ng)))
-        if f.version >= 9:  # format 8: not known (NaN) until the next update
+        if f.version >= 9:  # format 8: not known (NaN) until the second update after loading
             n = na
             state.update(learning_xg_cov=f.floats("core_learning_xg_cov", (n, ng)),
                          learning_g_before=f.floats("core_learning_g_before", (ng,)),

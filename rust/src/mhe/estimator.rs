@@ -949,9 +949,9 @@ impl MovingHorizon {
         let Some(l) = &self.learning else {
             return innovation(&self.problem, &self.history, model, None);
         };
-        model.set_globals(&l.state().g)?;
         let out = innovation(&self.problem, &self.history, model, Some(&l.state().before));
-        // The model back at the posterior mean whatever happened (the next update sets it too).
+        // The model back at the posterior mean whatever happened (the filtering form's
+        // prediction sets it to the posterior before; the output map does not depend on it).
         model.set_globals(&l.state().g)?;
         out
     }

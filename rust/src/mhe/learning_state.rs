@@ -39,7 +39,8 @@ pub struct LearningState {
 
 /// The posterior of g before the last update: what the innovation of the filtering form
 /// predicts the newest state with (`innovation.rs`): x̂(t − 1) and g are jointly uncertain.
-/// NaN when not known (a checkpoint of an older format, until the next update).
+/// NaN when not known: from a checkpoint of format 8, which kept neither it nor the cross
+/// covariance, until the second update after loading.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GlobalsBefore {
     pub g: Vec<f64>,
@@ -186,17 +187,16 @@ impl Learning {
         if let Some(arrival) = update.arrival {
             s.arrival = arrival;
         }
+        // The last posterior moves to `before` (copied only where it is kept).
+        let replace = |now: &mut Vec<f64>, new: Option<Vec<f64>>| match new {
+            Some(v) => std::mem::replace(now, v),
+            None => now.clone(),
+        };
         s.before = GlobalsBefore {
             g: std::mem::replace(&mut s.g, update.g),
-            g_cov: s.g_cov.clone(),
-            xg_cov: s.xg_cov.clone(),
+            g_cov: replace(&mut s.g_cov, update.g_cov),
+            xg_cov: replace(&mut s.xg_cov, update.xg_cov),
         };
-        if let Some(cov) = update.g_cov {
-            s.g_cov = cov;
-        }
-        if let Some(cov) = update.xg_cov {
-            s.xg_cov = cov;
-        }
     }
 }
 

@@ -30,15 +30,6 @@ fn state_rows(state: &Bound<'_, PyDict>, key: &str, cols: usize) -> PyResult<Vec
     Ok(a.readonly().as_array().iter().copied().collect())
 }
 
-/// `state[key]` as [`state_rows`] with `cols` columns, or `len` NaN when the entry is missing
-/// (a state saved before it existed: not known until the next update).
-fn optional(state: &Bound<'_, PyDict>, key: &str, cols: usize, len: usize) -> PyResult<Vec<f64>> {
-    match state.contains(key)? {
-        true => state_rows(state, key, cols),
-        false => Ok(vec![f64::NAN; len]),
-    }
-}
-
 /// The 1-D float64 array `state[key]` as a vector; a ValueError naming the entry otherwise.
 fn state_rows_1d(state: &Bound<'_, PyDict>, key: &str) -> PyResult<Vec<f64>> {
     let a = state_item(state, key)?;
@@ -156,14 +147,18 @@ fn read_learning(state: &Bound<'_, PyDict>, core: &MovingHorizon) -> PyResult<Op
         },
         g: state_rows_1d(state, "learning_g")?,
         g_cov: state_rows(state, "learning_g_cov", ng)?,
-        xg_cov: optional(state, "learning_xg_cov", ng, n * ng)?,
-        before: GlobalsBefore {
-            g: match state.contains("learning_g_before")? {
-                true => state_rows_1d(state, "learning_g_before")?,
-                false => vec![f64::NAN; ng],
+        xg_cov: match state.contains("learning_xg_cov")? {
+            true => state_rows(state, "learning_xg_cov", ng)?,
+            false => vec![f64::NAN; n * ng],
+        },
+        before: match state.contains("learning_g_before")? {
+            true => GlobalsBefore {
+                g: state_rows_1d(state, "learning_g_before")?,
+                g_cov: state_rows(state, "learning_g_cov_before", ng)?,
+                xg_cov: state_rows(state, "learning_xg_cov_before", ng)?,
             },
-            g_cov: optional(state, "learning_g_cov_before", ng, ng * ng)?,
-            xg_cov: optional(state, "learning_xg_cov_before", ng, n * ng)?,
+            // A state saved before these were kept: not known until the updates fill them in.
+            false => GlobalsBefore::unknown(n, ng),
         },
     };
     let sigma0 = state_rows(state, "learning_sigma0", ng)?;
