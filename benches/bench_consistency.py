@@ -18,8 +18,8 @@ Plants:
 
 (a) linear-Gaussian, x(t+1) = A x + w, y = C x + v (2 states, position measured), x(0) ~ N(0, I),
     prior 0 with P0 = I; rows: GPMHE with the Kalman-filter settings (``arrival_mean="estimate",
-    arrival_weight="ekf"``, η = 1), GPMHE with gpmhe's default arrival cost (η = 1) at M = 5 and
-    M = 15, filterpy's KalmanFilter;
+    arrival_weight="ekf"``, η = 1), GPMHE with gpmhe's default arrival cost (η = 1 and the
+    default η = 0.91) at M = 5 and M = 15, filterpy's KalmanFilter;
 (b) the batch reactor with its exact model (σ_w = 0.01, σ_v = 0.1), x(0) = [3, 1] + N(0, 0.1² I),
     prior [3, 1], P0 = 0.1² I, M = 15, the state box; rows as in (a) with filterpy's EKF;
 (c) the same plant with GP-MHE on the GPs of the demo (5 training trajectories, 3 restarts):
@@ -150,13 +150,13 @@ def main():
     ap.add_argument("--runs", type=int, default=100)
     ap.add_argument("--steps", type=int, default=100)
     args = ap.parse_args()
-    lin = mhe_rows(LINEAR, [0.0, 0.0], np.eye(2), Q_LIN, R_LIN, 5)
-    lin += mhe_rows(LINEAR, [0.0, 0.0], np.eye(2), Q_LIN, R_LIN, 15)[1:]
+    lin = mhe_rows(LINEAR, [0.0, 0.0], np.eye(2), Q_LIN, R_LIN, 5, etas=(1.0, 0.91))
+    lin += mhe_rows(LINEAR, [0.0, 0.0], np.eye(2), Q_LIN, R_LIN, 15, etas=(1.0, 0.91))[1:]
     lin.append(filterpy_row("filterpy KalmanFilter", kalman))
     print_table("(a) linear-Gaussian plant (n = 2, p = 1)",
                 evaluate(lin, linear_run, 0, args.runs, args.steps))
     Q, R, P0 = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1), 0.01 * np.eye(2)
-    react = mhe_rows(REACTOR, br.X_TRUE0, P0, Q, R, 15, br.X_BOUNDS)
+    react = mhe_rows(REACTOR, br.X_TRUE0, P0, Q, R, 15, br.X_BOUNDS, etas=(1.0, 0.91))
     react.append(filterpy_row("filterpy EKF, exact model", lambda: ExactEKF(
         br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_TRUE0, P0, Q, R)))
     print_table("(b) batch reactor, exact model",

@@ -7,6 +7,7 @@ import pytest
 
 from gpmhe import GPMHE, KnownModel, _core
 from gpmhe.systems import batch_reactor as br
+from gpmhe.mhe import solvers
 
 from conftest import check_window_derivatives, f3, h3, synthetic_learned_model
 
@@ -214,6 +215,11 @@ def test_update_is_prepare_then_solve_then_commit():
             w1.update(u, y)
             z0, LB, UB = w2.prepare(u, y)
             ref = _core.WindowSolver().solve(w2, z0, LB, UB)
+            # The solver's P is the last block of 4H⁻¹; with η = 0.9 the update reports the
+            # discounted estimate's covariance 4H⁻¹GH⁻¹ (tests/test_uncertainty.py).
+            H = w2.gn_hessian(ref[0])
+            np.testing.assert_allclose(ref[8], 4 * np.linalg.inv(H)[-2:, -2:], rtol=1e-10)
+            sandwich = solvers.window_covariance(w2, ref[0], 2)[-4:].reshape(2, 2)
             x_window, x_prior = w2.commit(ref[0])
             np.testing.assert_array_equal(w1.x_window, x_window)
             np.testing.assert_array_equal(w1.x_prior, x_prior)
@@ -222,7 +228,7 @@ def test_update_is_prepare_then_solve_then_commit():
                 cost, success, nit, nfev, pg)
             assert w1.message == (f"{status} (projected gradient {pg:.2e}, {interior} interior "
                                   "its)")
-            np.testing.assert_array_equal(w1.covariance, ref[8])
+            np.testing.assert_allclose(w1.covariance, sandwich, rtol=1e-10, atol=1e-15)
             # The prior of the first node, time s0: x̂(s0) from update s0 − 1 (prediction
             # form), or m_x(x̂(s0 − 1), u(s0 − 1)) from update s0 − 1 (filtering form).
             s0 = max(0, t - 3) if filtering else max(0, t - 2)

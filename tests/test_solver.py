@@ -312,13 +312,40 @@ def test_estimator_reports_solver_details(reactor_gp):
 
 def test_covariance_from_the_block_factorisation_matches_the_dense_one(reactor_gp):
     x, y = br.simulate(br.X_TRUE0, 6, np.random.default_rng(4))
-    est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
+    est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS, **{**br.MHE_SETTINGS, "eta": 1.0})
     for t in range(6):
         est.update(None, y[t])
     z = est.x_window.reshape(-1)
     H = est._core.gn_hessian(z)
     dense = 4.0 * np.linalg.inv(H)[-2:, -2:]
     assert np.allclose(est.P, dense, rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.parametrize("solver", ["gauss-newton", "least-squares"])
+def test_discounted_covariance_is_the_dense_sandwich(reactor_gp, solver):
+    """With η < 1, P_window's blocks are those of 4H⁻¹GH⁻¹, G = 2JᵀWJ, W the rows' discounts:
+    η^M for the prior's n rows, then per node i its output row and (i < M) its n process rows,
+    η^{M−1−i} (1 for the newest node), built here from that layout."""
+    eta, M = 0.91, 15
+    x, y = br.simulate(br.X_TRUE0, 30, np.random.default_rng(4))
+    est = GPMHE(reactor_gp, br.X_PRIOR0, x_bounds=br.X_BOUNDS,
+                **{**br.MHE_SETTINGS, "eta": eta, "horizon": M, "form": "filtering"},
+                solver=solver)
+    for t in range(30):
+        est.update(None, y[t])
+    z = est.x_window.reshape(-1)
+    w = [eta ** M] * 2
+    for i in range(M + 1):
+        w += [eta ** max(M - 1 - i, 0)] * (1 + (2 if i < M else 0))
+    np.testing.assert_allclose(est._core.row_discounts(z), w, rtol=1e-14)
+    J = est._core.jacobian(z)
+    Hinv = np.linalg.inv(2 * J.T @ J)
+    S = 4 * Hinv @ (2 * J.T @ (np.array(w)[:, None] * J)) @ Hinv
+    blocks = np.array([S[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(M + 1)])
+    np.testing.assert_allclose(est.P_window, blocks, rtol=1e-8, atol=1e-14)
+    np.testing.assert_array_equal(est.P, est.P_window[-1])
+    # Smaller than the Laplace covariance 4H⁻¹ of the discounted cost.
+    assert np.linalg.eigvalsh(4 * Hinv[-2:, -2:] - est.P).min() > 0
 
 
 # ----------------------------------------------------------------------------- rounding noise

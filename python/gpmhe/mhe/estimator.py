@@ -190,9 +190,11 @@ class GPMHE(SettingsView, Runs):
         Current estimate: x̂(t+1) (prediction form) or x̂(t) (filtering form).
     P : ndarray of shape (dim_x, dim_x)
         Covariance estimate of ``x``: the last block of 4 H⁻¹ with H the Gauss-Newton Hessian of
-        J (J is 4× a negative log-likelihood). A rough indication, exact only for linear-Gaussian
-        models and η = 1. Before the first update it is P2⁻¹; if H is singular it keeps its
-        previous value.
+        J (J is 4× a negative log-likelihood); with η < 1 (without learning) the covariance of
+        the discounted estimate, the sandwich 4 H⁻¹GH⁻¹ with G the Gauss-Newton Hessian of the
+        rows with their discounts applied twice. A linearisation, exact for linear-Gaussian
+        models with the Kalman-filter settings and η = 1. Before the first update it is P2⁻¹;
+        if H is singular it keeps its previous value.
     x_arrival : ndarray of shape (dim_x,)
         Arrival prior x̂(t−M_t) used in the last window: the mean the window's first node is
         tied to (not filterpy's ``x_prior``, the one-step prediction, which is ``x`` in the
@@ -201,9 +203,10 @@ class GPMHE(SettingsView, Runs):
     x_window : ndarray of shape (M_t + 1, dim_x)
         Optimal window trajectory z of the last update, oldest first (``x`` is its last row).
     P_window : ndarray of shape (M_t + 1, dim_x, dim_x)
-        The covariance of every node of ``x_window``: the diagonal blocks of 4 H⁻¹ (the last one
-        is ``P``; on a linear-Gaussian model with the Kalman-filter settings, the RTS smoother's
-        over the window). NaN where H was singular. Before the first update: [P2⁻¹].
+        The covariance of every node of ``x_window``: the diagonal blocks of the matrix whose last
+        block is ``P`` (4 H⁻¹ or the sandwich; on a linear-Gaussian model with the Kalman-filter
+        settings, the RTS smoother's over the window). NaN where H was singular. Before the first
+        update: [P2⁻¹].
     innovation : ndarray of shape (dim_y,)
         y(t) − ŷ for the last update's output, ŷ = m_y(x̂⁻, u(t)) the output predicted before
         y(t) was seen (x̂⁻: the previous ``x``, carried over the stage with u(t − 1) in the

@@ -129,7 +129,8 @@ class Runs:
         -----
         On a linear-Gaussian model with η = 1 and no active bounds the result is the
         Rauch-Tung-Striebel smoother's (the arrival cost enters only at the first sample, as
-        its prior). With η < 1 the older samples weigh less, as in every window. The window
+        its prior). With η < 1 the older samples weigh less, as in every window, and ``Ps`` are
+        the discounted estimates' covariances (``P_window``). The window
         grows to T nodes: every update solves the whole run so far, so the time grows with T².
 
         Examples

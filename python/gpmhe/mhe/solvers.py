@@ -112,13 +112,18 @@ def solve(solver, options, window, z0, lb, ub):
 
 
 def window_covariance(window, z, n):
-    """Every diagonal n×n block of 4 H⁻¹ at z, stacked (nodes·n·n,) (the Rust solve returns the
-    same blocks from its block-tridiagonal factorisation); None if H is singular."""
+    """Every diagonal n×n block of 4 H⁻¹ at z, stacked (nodes·n·n,), or with discounted rows
+    (η < 1) of the sandwich 4 H⁻¹GH⁻¹, G = 2JᵀWJ with W the rows' discounts (the Rust solve
+    returns the same blocks from its block-tridiagonal factorisation); None if H is singular."""
     H = window.gn_hessian(z)
     try:
         Hinv = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return None
+    discounts = window.row_discounts(z)
+    if np.any(discounts != 1.0):
+        jac = window.jacobian(z)
+        Hinv = Hinv @ (2.0 * jac.T @ (discounts[:, None] * jac)) @ Hinv
     nodes = len(z) // n
     blocks = np.array([Hinv[i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(nodes)])
     blocks = 2.0 * (blocks + blocks.transpose(0, 2, 1))

@@ -488,7 +488,7 @@ impl MovingHorizon {
                 let cov = match self.learning {
                     Some(_) => self.solver.window_and_global_covariance(),
                     None => Covariances {
-                        window: self.solver.window_covariance(),
+                        window: self.window_covariance(),
                         ..Covariances::default()
                     },
                 };
@@ -514,6 +514,24 @@ impl MovingHorizon {
             cost,
         };
         Ok((pending, report))
+    }
+
+    /// The covariance of the nodes of the window just solved (without learning; nodes × n × n):
+    /// 4H⁻¹'s diagonal blocks when η = 1; with η < 1 the discounted rows weigh the data by less
+    /// than their information, so the covariance of the estimate is the sandwich 4H⁻¹GH⁻¹, G the
+    /// Gauss-Newton Hessian with every row's discount applied twice (docs/user_guide/
+    /// uncertainty.rst). None as for [`BoxLsqSolver::window_covariance`].
+    fn window_covariance(&mut self) -> Option<Vec<f64>> {
+        if self.problem.eta() == 1.0 {
+            return self.solver.window_covariance();
+        }
+        let (nodes, n) = (self.problem.n_nodes(), self.problem.dim_x());
+        let discounts = self.problem.row_discounts(&self.eval);
+        let mut diag = vec![0.0; nodes * n * n];
+        let mut off = vec![0.0; nodes.saturating_sub(1) * n * n];
+        self.eval
+            .discounted_gauss_newton_blocks_into(&discounts, &mut diag, &mut off);
+        self.solver.sandwich_window_covariance(&diag, &off)
     }
 
     /// Stages the window of the next update with (u(t), y(t)) and returns its warm start z0:
@@ -721,6 +739,13 @@ impl MovingHorizon {
             self.evaluated_at.extend_from_slice(z);
         }
         Ok(&self.eval)
+    }
+
+    /// The discount of every residual row of the staged window evaluated at z
+    /// ([`WindowProblem::row_discounts`]).
+    pub fn row_discounts(&mut self, model: &mut dyn StageModel, z: &[f64]) -> Result<Vec<f64>> {
+        self.evaluate(model, z, false)?;
+        Ok(self.problem.row_discounts(&self.eval))
     }
 
     /// Records the staged window's solution z (nodes × n) with how it was solved (its cost,

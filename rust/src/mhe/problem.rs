@@ -328,8 +328,29 @@ impl WindowProblem {
 
     /// Weight √(2η^{M_t−1−i}) of the stage at node i (√2 for node M_t).
     fn stage_weight(&self, i: usize) -> f64 {
-        let power = self.m_t.saturating_sub(i + 1) as i32;
-        (2.0 * self.eta.powi(power)).sqrt()
+        (2.0 * self.discount(i)).sqrt()
+    }
+
+    /// The discount η^{M_t−1−i} of the stage at node i (1 for node M_t).
+    fn discount(&self, i: usize) -> f64 {
+        self.eta.powi(self.m_t.saturating_sub(i + 1) as i32)
+    }
+
+    /// The discount of every residual row of `eval` (an evaluation of this window, in its row
+    /// order): η^{M_t} for the arrival prior's rows, [`discount`](Self::discount) of its node
+    /// for a stage's rows. All 1 when η = 1.
+    pub fn row_discounts(&self, eval: &WindowEval) -> Vec<f64> {
+        let prior_rows = self.n + self.n_globals();
+        let prior = self.eta.powi(self.m_t as i32);
+        (0..eval.r.len())
+            .map(|k| {
+                if k < prior_rows {
+                    prior
+                } else {
+                    self.discount(eval.node[k])
+                }
+            })
+            .collect()
     }
 
     /// Residuals (and, if `want_jacobian`, the Jacobian blocks) at z ((M_t+1)·n values), in the
@@ -886,6 +907,27 @@ impl WindowEval {
     /// 2JᵀJ as block-tridiagonal: `diag` (n_nodes·n·n, block i row-major at i·n·n) and `off`
     /// ((n_nodes−1)·n·n, block (i, i+1) row-major). Needs an evaluation with the Jacobian.
     pub fn gauss_newton_blocks_into(&self, diag: &mut [f64], off: &mut [f64]) {
+        self.weighted_gauss_newton_blocks_into(|_| 2.0, diag, off);
+    }
+
+    /// 2JᵀWJ (W = diag(`weights`), one per residual row) in the blocks of
+    /// [`gauss_newton_blocks_into`](Self::gauss_newton_blocks_into).
+    pub fn discounted_gauss_newton_blocks_into(
+        &self,
+        weights: &[f64],
+        diag: &mut [f64],
+        off: &mut [f64],
+    ) {
+        self.weighted_gauss_newton_blocks_into(|k| 2.0 * weights[k], diag, off);
+    }
+
+    /// Σ_k c(k) J_kᵀJ_k in blocks (c(k) = 2 for 2JᵀJ: the same bits as doubling each product).
+    fn weighted_gauss_newton_blocks_into(
+        &self,
+        c: impl Fn(usize) -> f64,
+        diag: &mut [f64],
+        off: &mut [f64],
+    ) {
         let n = self.n;
         let nn = n * n;
         diag.iter_mut().for_each(|v| *v = 0.0);
@@ -898,9 +940,9 @@ impl WindowEval {
         // from +0 that cancels is +0), so such block rows are skipped when the row's other
         // factors are finite (0·inf would be NaN): rows of parameters and sparse Jacobians cost
         // O(n) instead of O(n²).
-        fn upper_outer(block: &mut [f64], v: &[f64], n: usize, finite: bool) {
+        fn upper_outer(block: &mut [f64], v: &[f64], n: usize, finite: bool, c: f64) {
             for (a, row) in block.chunks_exact_mut(n).enumerate() {
-                let va = 2.0 * v[a];
+                let va = c * v[a];
                 if va == 0.0 && finite {
                     continue;
                 }
@@ -911,14 +953,14 @@ impl WindowEval {
         }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         for (k, &i) in self.node.iter().enumerate().take(self.r.len()) {
-            let ja = &self.ja[k * n..(k + 1) * n];
-            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, n, finite(ja));
+            let (ja, ck) = (&self.ja[k * n..(k + 1) * n], c(k));
+            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, n, finite(ja), ck);
             if self.process[k] {
                 let jb = &self.jb[k * n..(k + 1) * n];
                 let jb_finite = finite(jb);
-                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, n, jb_finite);
+                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, n, jb_finite, ck);
                 for (row, &a) in off[i * nn..(i + 1) * nn].chunks_exact_mut(n).zip(ja) {
-                    let va = 2.0 * a;
+                    let va = ck * a;
                     if va == 0.0 && jb_finite {
                         continue;
                     }

@@ -9,6 +9,7 @@
 use super::block_tridiag::InverseBlocks;
 use super::bordered::BorderedCholesky;
 use super::hessian::GnHessian;
+use super::sandwich::sandwich_diagonal_blocks;
 use super::{
     projected_gradient_norm, BlockLsqProblem, InteriorMode, SolveReport, SolverOptions, Status,
 };
@@ -229,6 +230,24 @@ impl BoxLsqSolver {
     pub fn window_covariance(&mut self) -> Option<Vec<f64>> {
         let n = self.h.n;
         let b = self.undamped_inverse_blocks(InverseBlocks::All)?;
+        Some(
+            b.chunks(n * n)
+                .flat_map(|block| symmetrised(block, n))
+                .collect(),
+        )
+    }
+
+    /// 4·sym of every diagonal n×n block of H⁻¹GH⁻¹ (nodes × n × n), H the Gauss-Newton Hessian
+    /// at the point the last successful `solve` returned and G = (`g_diag`, `g_off`) in its
+    /// block-tridiagonal storage: the covariance of the nodes when the residuals are weighted
+    /// by other than their inverse covariances (`sandwich.rs`). None with global variables, before
+    /// any solve, or if H is singular or a block is not finite.
+    pub fn sandwich_window_covariance(&self, g_diag: &[f64], g_off: &[f64]) -> Option<Vec<f64>> {
+        let (nodes, n) = (self.h.nodes, self.h.n);
+        if nodes == 0 || self.h.m > 0 {
+            return None;
+        }
+        let b = sandwich_diagonal_blocks(nodes, n, (&self.h.diag, &self.h.off), (g_diag, g_off))?;
         Some(
             b.chunks(n * n)
                 .flat_map(|block| symmetrised(block, n))

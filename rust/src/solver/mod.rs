@@ -33,7 +33,8 @@
 //! ([`BoxLsqSolver`]: buffers, the driver `solve` and what both phases share), `barrier.rs` (the
 //! interior phase), `active_set.rs` (the active-set phase), `damping.rs` (its damping),
 //! `correction.rs` (its correction of steps along stiff valleys), `stiff_tests.rs` (tests on
-//! stiff windows), `global_tests.rs` (tests on windows with global variables).
+//! stiff windows), `global_tests.rs` (tests on windows with global variables), `sandwich.rs` (the covariance
+//! H⁻¹GH⁻¹ of a discounted window).
 
 mod active_set;
 mod barrier;
@@ -46,6 +47,7 @@ mod damping;
 mod global_tests;
 mod hessian;
 mod options;
+mod sandwich;
 #[cfg(test)]
 mod stiff_tests;
 #[cfg(test)]
@@ -56,6 +58,7 @@ pub use block_tridiag::{
 };
 pub use box_lsq::{BoxLsqSolver, Covariances};
 pub use options::{InteriorMode, SolveReport, SolverOptions, Status};
+pub use sandwich::sandwich_diagonal_blocks;
 
 use crate::error::Result;
 

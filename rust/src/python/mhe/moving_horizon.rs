@@ -595,6 +595,18 @@ impl PyMovingHorizon {
         Ok(PyArray1::from_vec(py, r))
     }
 
+    /// The discount of every residual row at z (η^{M_t} for the arrival prior's rows,
+    /// η^{M_t−1−i} for the rows of the stage at node i, 1 for the newest node).
+    fn row_discounts<'py>(
+        &mut self,
+        py: Python<'py>,
+        z: PyReadonlyArray1<'py, f64>,
+    ) -> PyResult<Bound<'py, PyArray1<f64>>> {
+        let z = slice1("z", &z)?;
+        let w = self.run(py, |core, model| core.row_discounts(model, z))?;
+        Ok(PyArray1::from_vec(py, w))
+    }
+
     /// The dense Jacobian ∂r/∂z (n_residuals × n_nodes·n).
     fn jacobian<'py>(
         &mut self,
