@@ -255,3 +255,20 @@ def test_a_drifting_model_stays_consistent_with_the_data_when_the_states_are_mea
     rmse = {k: np.sqrt(np.mean(np.array(e[80:]) ** 2)) for k, e in errors.items()}
     assert np.median(costs["drift"][80:]) < 2 * np.median(costs["fixed"][80:]), costs
     assert rmse["drift"] < 1.5 * rmse["fixed"], rmse
+
+
+def test_the_window_hessian_of_a_learner_covers_its_global_variables(sparse_model, run):
+    """The window's dense Gauss-Newton Hessian has a row and column per inducing output too
+    (2JᵀJ over [x̄; g]), and P is the nodes' last block of its 4H⁻¹ for every η."""
+    x, y = run
+    for eta in (1.0, 0.91):
+        est = learner(sparse_model, eta=eta)
+        for t in range(20):
+            est.update(None, y[t])
+        z = np.concatenate([est.x_window.ravel(), est._core.learning[0]])
+        H, J = est._core.gn_hessian(z), est._core.jacobian(z)
+        assert H.shape == (z.size, z.size) == (J.shape[1], J.shape[1])
+        np.testing.assert_allclose(H, 2 * J.T @ J, rtol=1e-10, atol=1e-12 * np.abs(H).max())
+        nx = est.x_window.size
+        np.testing.assert_allclose(est.P, 4 * np.linalg.inv(H)[nx - 2:nx, nx - 2:nx],
+                                   rtol=1e-7, atol=1e-14)

@@ -82,10 +82,6 @@ impl PyMovingHorizon {
             }
         }
     }
-
-    fn n_vars(&self) -> usize {
-        self.core.problem().n_nodes() * self.core.problem().dim_x()
-    }
 }
 
 #[pymethods]
@@ -568,17 +564,18 @@ impl PyMovingHorizon {
         Ok((cost, PyArray1::from_vec(py, g)))
     }
 
-    /// The Gauss-Newton Hessian 2JᵀJ at z as a dense (n_nodes·n)² array.
+    /// The Gauss-Newton Hessian 2JᵀJ at z as a dense (n_nodes·n + n_g)² array (n_g: the global
+    /// variables of an estimator that learns).
     fn gn_hessian<'py>(
         &mut self,
         py: Python<'py>,
         z: PyReadonlyArray1<'py, f64>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let z = slice1("z", &z)?;
-        let h = self.run(py, |core, model| {
-            Ok(core.evaluate(model, z, true)?.dense_gauss_newton())
+        let (h, nv) = self.run(py, |core, model| {
+            let ev = core.evaluate(model, z, true)?;
+            Ok((ev.dense_gauss_newton(), ev.n_vars()))
         })?;
-        let nv = self.n_vars();
         array2(py, h, nv, nv)
     }
 
