@@ -9,22 +9,29 @@
 //! S_i = A_ii − U_{i−1} A_{i−1,i} with U_i = A_{i,i+1}ᵀ S_i⁻¹, then the selected inversion
 //! Σ_N = S_N⁻¹, Σ_i = S_i⁻¹ + U_iᵀ Σ_{i+1} U_i, with the dual inverse
 //! (a + εb)⁻¹ = a⁻¹ − ε a⁻¹ b a⁻¹ (a = the real part of S_i, positive definite with H). About
-//! three times the real recursion's products, all in place in n×n buffers.
+//! three times the real recursion's products, in place in n×n buffers (on the stack for n ≤ 6).
 
-use nalgebra::DMatrix;
+use nalgebra::allocator::Allocator;
+use nalgebra::{Const, DefaultAllocator, Dim, Dyn, OMatrix};
 
-/// A matrix of dual numbers: `re + ε du`.
+/// A matrix of dual numbers: `re + ε du` (n × n, dimension type D: stack matrices for small n).
 #[derive(Debug, Clone)]
-struct Dual {
-    re: DMatrix<f64>,
-    du: DMatrix<f64>,
+struct Dual<D: Dim>
+where
+    DefaultAllocator: Allocator<D, D>,
+{
+    re: OMatrix<f64, D, D>,
+    du: OMatrix<f64, D, D>,
 }
 
-impl Dual {
-    fn zeros(n: usize) -> Dual {
+impl<D: Dim> Dual<D>
+where
+    DefaultAllocator: Allocator<D, D>,
+{
+    fn zeros(d: D) -> Self {
         Dual {
-            re: DMatrix::zeros(n, n),
-            du: DMatrix::zeros(n, n),
+            re: OMatrix::zeros_generic(d, d),
+            du: OMatrix::zeros_generic(d, d),
         }
     }
 
@@ -43,15 +50,15 @@ impl Dual {
         }
     }
 
-    /// self ← a b + β self (a, b dual), in place.
-    fn gemm(&mut self, alpha: f64, a: &Dual, b: &Dual, beta: f64) {
+    /// self ← α a b + β self (a, b dual), in place.
+    fn gemm(&mut self, alpha: f64, a: &Self, b: &Self, beta: f64) {
         self.re.gemm(alpha, &a.re, &b.re, beta);
         self.du.gemm(alpha, &a.re, &b.du, beta);
         self.du.gemm(alpha, &a.du, &b.re, 1.0);
     }
 
     /// self ← aᵀ b (a, b dual), in place.
-    fn tr_product(&mut self, a: &Dual, b: &Dual) {
+    fn tr_product(&mut self, a: &Self, b: &Self) {
         self.re.gemm_tr(1.0, &a.re, &b.re, 0.0);
         self.du.gemm_tr(1.0, &a.re, &b.du, 0.0);
         self.du.gemm_tr(1.0, &a.du, &b.re, 1.0);
@@ -59,9 +66,9 @@ impl Dual {
 
     /// The inverse, by the Cholesky factor of the real part (`scratch`: an n×n buffer); None if
     /// that is not positive definite.
-    fn inverse(&self, scratch: &mut DMatrix<f64>) -> Option<Dual> {
+    fn inverse(&self, scratch: &mut OMatrix<f64, D, D>) -> Option<Self> {
         let re = self.re.clone().cholesky()?.inverse();
-        let mut du = DMatrix::zeros(re.nrows(), re.ncols());
+        let mut du = re.clone();
         scratch.gemm(1.0, &re, &self.du, 0.0);
         du.gemm(-1.0, scratch, &re, 0.0);
         Some(Dual { re, du })
@@ -87,11 +94,35 @@ pub fn sandwich_diagonal_blocks(
     {
         return None;
     }
-    let mut scratch = DMatrix::zeros(n, n);
-    let (mut s, mut b) = (Dual::zeros(n), Dual::zeros(n));
+    // Stack matrices up to the sizes of the shipped systems; the same recursion either way.
+    let out = match n {
+        1 => recursion(Const::<1>, nodes, h, g),
+        2 => recursion(Const::<2>, nodes, h, g),
+        3 => recursion(Const::<3>, nodes, h, g),
+        4 => recursion(Const::<4>, nodes, h, g),
+        5 => recursion(Const::<5>, nodes, h, g),
+        6 => recursion(Const::<6>, nodes, h, g),
+        _ => recursion(Dyn(n), nodes, h, g),
+    }?;
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}
+
+/// The recursion of the module documentation on n×n blocks of dimension type D.
+fn recursion<D: Dim>(
+    d: D,
+    nodes: usize,
+    h: (&[f64], &[f64]),
+    g: (&[f64], &[f64]),
+) -> Option<Vec<f64>>
+where
+    DefaultAllocator: Allocator<D, D>,
+{
+    let nn = d.value() * d.value();
+    let mut scratch = OMatrix::zeros_generic(d, d);
+    let (mut s, mut b) = (Dual::zeros(d), Dual::zeros(d));
     // Forward: S_i⁻¹ and U_i = A_{i,i+1}ᵀ S_i⁻¹ (U_i also serves the backward pass).
-    let mut s_inv: Vec<Dual> = Vec::with_capacity(nodes);
-    let mut u: Vec<Dual> = Vec::with_capacity(nodes.saturating_sub(1));
+    let mut s_inv: Vec<Dual<D>> = Vec::with_capacity(nodes);
+    let mut u: Vec<Dual<D>> = Vec::with_capacity(nodes.saturating_sub(1));
     for i in 0..nodes {
         s.block_of(h.0, g.0, i);
         if i > 0 {
@@ -100,7 +131,7 @@ pub fn sandwich_diagonal_blocks(
         s_inv.push(s.inverse(&mut scratch)?);
         if i + 1 < nodes {
             b.block_of(h.1, g.1, i);
-            let mut ui = Dual::zeros(n);
+            let mut ui = Dual::zeros(d);
             ui.tr_product(&b, &s_inv[i]);
             u.push(ui);
         }
@@ -109,7 +140,7 @@ pub fn sandwich_diagonal_blocks(
     let mut out = vec![0.0; nodes * nn];
     let mut next = s_inv[nodes - 1].clone();
     write_block(&next.du, &mut out[(nodes - 1) * nn..]);
-    let (mut w, mut sigma) = (Dual::zeros(n), Dual::zeros(n));
+    let (mut w, mut sigma) = (Dual::zeros(d), Dual::zeros(d));
     for i in (0..nodes - 1).rev() {
         w.gemm(1.0, &next, &u[i], 0.0);
         sigma.tr_product(&u[i], &w);
@@ -118,11 +149,14 @@ pub fn sandwich_diagonal_blocks(
         write_block(&sigma.du, &mut out[i * nn..]);
         std::mem::swap(&mut next, &mut sigma);
     }
-    out.iter().all(|v| v.is_finite()).then_some(out)
+    Some(out)
 }
 
 /// The n×n matrix `m` row-major into the first n² entries of `out`.
-fn write_block(m: &DMatrix<f64>, out: &mut [f64]) {
+fn write_block<D: Dim>(m: &OMatrix<f64, D, D>, out: &mut [f64])
+where
+    DefaultAllocator: Allocator<D, D>,
+{
     let n = m.nrows();
     for r in 0..n {
         for c in 0..n {
@@ -135,6 +169,7 @@ fn write_block(m: &DMatrix<f64>, out: &mut [f64]) {
 mod tests {
     use super::*;
     use crate::solver::test_problem::Lcg;
+    use nalgebra::DMatrix;
 
     /// A random symmetric block-tridiagonal matrix J_wᵀJ_w (blocks and dense) from random rows
     /// that each touch two neighbouring nodes, row k weighted by `weight(k)`.
@@ -172,7 +207,17 @@ mod tests {
     #[test]
     fn sandwich_blocks_match_the_dense_product() {
         let mut rng = Lcg(7);
-        for &(nodes, n) in &[(1, 1), (1, 3), (2, 2), (6, 3), (16, 2), (11, 4)] {
+        for &(nodes, n) in &[
+            (1, 1),
+            (1, 3),
+            (2, 2),
+            (6, 3),
+            (16, 2),
+            (11, 4),
+            (4, 5),
+            (5, 6),
+            (7, 8),
+        ] {
             // Rows over nodes (i, i+1) (the last node's rows touch it alone): dense enough that
             // H is positive definite.
             let mut rows = Vec::new();
