@@ -840,7 +840,9 @@ impl WindowEval {
     /// rounding δr carried through the Jacobian, √Σ_k (2 J_kj δr_k)². Needs an evaluation with
     /// the Jacobian (0 otherwise).
     pub fn gradient_noise(&self) -> f64 {
-        if !self.has_jacobian {
+        // A model computed to full precision rounds nothing (each term is 0, a non-finite one
+        // NaN, which the maximum below ignores).
+        if !self.has_jacobian || self.dr.iter().all(|&d| d == 0.0) {
             return 0.0;
         }
         let (n, ng, nx) = (self.n, self.ng, self.nodes * self.n);

@@ -13,7 +13,7 @@ use crate::gp_model::{GpModel, ModelWorkspace};
 /// Means, variances and their input gradients of a stage model at k points d = [x; u].
 /// All row-major: `mean_x` k×n, `var_x` k×n, `dmean_x` and `dvar_x` k×n×nd, `mean_y` k×p,
 /// `var_y` k×p, `dmean_y` and `dvar_y` k×p×nd, with nd = n + m.
-#[derive(Debug, Default, Clone)]
+#[derive(Debug, Default)]
 pub struct StageEval {
     pub mean_x: Vec<f64>,
     pub var_x: Vec<f64>,
@@ -34,6 +34,33 @@ pub struct StageEval {
     /// and ∂mean_y/∂g (k×p×n_g), row-major; empty otherwise. The variances do not depend on g.
     pub dmean_x_dg: Vec<f64>,
     pub dmean_y_dg: Vec<f64>,
+}
+
+/// `clone_from` reuses the buffers (a model that keeps its last evaluation copies one per window
+/// evaluation; the derived one would allocate all fourteen).
+impl Clone for StageEval {
+    fn clone(&self) -> Self {
+        let mut out = Self::default();
+        out.clone_from(self);
+        out
+    }
+
+    fn clone_from(&mut self, o: &Self) {
+        self.mean_x.clone_from(&o.mean_x);
+        self.var_x.clone_from(&o.var_x);
+        self.dmean_x.clone_from(&o.dmean_x);
+        self.dvar_x.clone_from(&o.dvar_x);
+        self.mean_y.clone_from(&o.mean_y);
+        self.var_y.clone_from(&o.var_y);
+        self.dmean_y.clone_from(&o.dmean_y);
+        self.dvar_y.clone_from(&o.dvar_y);
+        self.mean_x_rounding.clone_from(&o.mean_x_rounding);
+        self.var_x_rounding.clone_from(&o.var_x_rounding);
+        self.mean_y_rounding.clone_from(&o.mean_y_rounding);
+        self.var_y_rounding.clone_from(&o.var_y_rounding);
+        self.dmean_x_dg.clone_from(&o.dmean_x_dg);
+        self.dmean_y_dg.clone_from(&o.dmean_y_dg);
+    }
 }
 
 impl StageEval {

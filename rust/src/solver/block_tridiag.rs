@@ -7,7 +7,10 @@
 // better than zipped iterator chains.
 #![allow(clippy::needless_range_loop)]
 
-use nalgebra::{Cholesky, DMatrix, DVectorView, DVectorViewMut};
+use nalgebra::allocator::Allocator;
+use nalgebra::{
+    Cholesky, Const, DMatrix, DefaultAllocator, Dim, Dyn, MatrixView, MatrixViewMut, OMatrix, U1,
+};
 
 /// Block-tridiagonal Cholesky factorisation A = LLᵀ of a symmetric positive-definite matrix with
 /// n×n blocks: L has diagonal blocks L_i and sub-diagonal blocks X_iᵀ with X_i = L_i⁻¹ A_{i,i+1};
@@ -39,9 +42,32 @@ impl BlockTridiagCholesky {
                 .map(|_| DMatrix::zeros(n, n))
                 .collect();
         }
+        let a = (diag, off, shift, fixed);
+        match n {
+            1 => self.factor_in(Const::<1>, a),
+            2 => self.factor_in(Const::<2>, a),
+            3 => self.factor_in(Const::<3>, a),
+            4 => self.factor_in(Const::<4>, a),
+            5 => self.factor_in(Const::<5>, a),
+            6 => self.factor_in(Const::<6>, a),
+            _ => self.factor_in(Dyn(n), a),
+        }
+    }
+
+    /// [`factor`](Self::factor) with n×n blocks of dimension type D (stack matrices for small
+    /// n; the same operations in the same order for every D).
+    fn factor_in<D: Dim>(
+        &mut self,
+        d: D,
+        (diag, off, shift, fixed): (&[f64], &[f64], &[f64], &[bool]),
+    ) -> bool
+    where
+        DefaultAllocator: Allocator<D, D>,
+    {
+        let (n, nodes) = (d.value(), self.l.len());
         let nn = n * n;
         for i in 0..nodes {
-            let mut a = std::mem::replace(&mut self.l[i], DMatrix::zeros(0, 0));
+            let mut a = OMatrix::<f64, D, D>::zeros_generic(d, d);
             for r in 0..n {
                 for c in 0..=r {
                     let (kr, kc) = (i * n + r, i * n + c);
@@ -59,7 +85,7 @@ impl BlockTridiagCholesky {
                 }
             }
             if i > 0 {
-                let xp = &self.x[i - 1];
+                let xp = block(&self.x[i - 1], d);
                 // Lower triangle of a − XᵀX (the upper part of `a` is never read).
                 for r in 0..n {
                     for c in 0..=r {
@@ -67,14 +93,12 @@ impl BlockTridiagCholesky {
                     }
                 }
             }
-            match Cholesky::new(a) {
-                Some(ch) => self.l[i] = ch.unpack_dirty(),
-                None => {
-                    self.l[i] = DMatrix::zeros(n, n);
-                    return false;
-                }
-            }
-            let li = &self.l[i];
+            let Some(ch) = Cholesky::new(a) else {
+                self.l[i].fill(0.0);
+                return false;
+            };
+            let li = ch.unpack_dirty();
+            self.l[i].as_mut_slice().copy_from_slice(li.as_slice());
             if (0..n).any(|k| !(li[(k, k)].is_finite() && li[(k, k)] > 0.0)) {
                 return false;
             }
@@ -89,7 +113,7 @@ impl BlockTridiagCholesky {
                         };
                     }
                 }
-                self.l[i].solve_lower_triangular_unchecked_mut(x);
+                li.solve_lower_triangular_unchecked_mut(&mut block_mut(x, d));
             }
         }
         true
@@ -102,27 +126,53 @@ impl BlockTridiagCholesky {
 
     /// Solves A x = b in place (after a successful [`factor`](Self::factor)).
     pub fn solve_in_place(&self, b: &mut [f64]) {
-        let n = self.n;
+        match self.n {
+            1 => self.solve_in(Const::<1>, b),
+            2 => self.solve_in(Const::<2>, b),
+            3 => self.solve_in(Const::<3>, b),
+            4 => self.solve_in(Const::<4>, b),
+            5 => self.solve_in(Const::<5>, b),
+            6 => self.solve_in(Const::<6>, b),
+            n => self.solve_in(Dyn(n), b),
+        }
+    }
+
+    /// [`solve_in_place`](Self::solve_in_place) with blocks of dimension type D.
+    fn solve_in<D: Dim>(&self, d: D, b: &mut [f64])
+    where
+        DefaultAllocator: Allocator<D, D>,
+    {
+        let n = d.value();
         let nodes = self.l.len();
         for i in 0..nodes {
             let (prev, cur) = b.split_at_mut(i * n);
-            let mut cur = DVectorViewMut::from_slice(&mut cur[..n], n);
+            let mut cur = MatrixViewMut::from_slice_generic(&mut cur[..n], d, U1);
             if i > 0 {
-                let yp = DVectorView::from_slice(&prev[(i - 1) * n..], n);
-                cur.gemv_tr(-1.0, &self.x[i - 1], &yp, 1.0);
+                let yp = MatrixView::from_slice_generic(&prev[(i - 1) * n..i * n], d, U1);
+                cur.gemv_tr(-1.0, &block(&self.x[i - 1], d), &yp, 1.0);
             }
-            self.l[i].solve_lower_triangular_unchecked_mut(&mut cur);
+            block(&self.l[i], d).solve_lower_triangular_unchecked_mut(&mut cur);
         }
         for i in (0..nodes).rev() {
             let (cur, next) = b.split_at_mut((i + 1) * n);
-            let mut cur = DVectorViewMut::from_slice(&mut cur[i * n..], n);
+            let mut cur = MatrixViewMut::from_slice_generic(&mut cur[i * n..], d, U1);
             if i + 1 < nodes {
-                let xn = DVectorView::from_slice(&next[..n], n);
-                cur.gemv(-1.0, &self.x[i], &xn, 1.0);
+                let xn = MatrixView::from_slice_generic(&next[..n], d, U1);
+                cur.gemv(-1.0, &block(&self.x[i], d), &xn, 1.0);
             }
-            self.l[i].tr_solve_lower_triangular_unchecked_mut(&mut cur);
+            block(&self.l[i], d).tr_solve_lower_triangular_unchecked_mut(&mut cur);
         }
     }
+}
+
+/// An n × n block as a view of dimension type D (d.value() = n).
+fn block<D: Dim>(m: &DMatrix<f64>, d: D) -> MatrixView<'_, f64, D, D> {
+    MatrixView::from_slice_generic(m.as_slice(), d, d)
+}
+
+/// [`block`], mutable.
+fn block_mut<D: Dim>(m: &mut DMatrix<f64>, d: D) -> MatrixViewMut<'_, f64, D, D> {
+    MatrixViewMut::from_slice_generic(m.as_mut_slice(), d, d)
 }
 
 /// An n × n nalgebra matrix as a faer view.
