@@ -243,3 +243,72 @@ def test_smooth_is_the_rts_smoother_of_the_whole_run_and_changes_nothing():
         est.update(us[0], ys[0])
         with pytest.raises(ValueError, match="^smooth: the estimator has been updated"):
             est.smooth(ys, us)
+
+
+def _fresh(est):
+    """The innovation quantities computed anew: a checkpoint does not keep them."""
+    buf = io.BytesIO()
+    est.save(buf)
+    buf.seek(0)
+    twin = GPMHE.load(buf, est.model)
+    return twin.innovation, twin.S, twin.nis, twin.log_likelihood
+
+
+def _same(est):
+    kept = (est.innovation, est.S, est.nis, est.log_likelihood)
+    for a, b in zip(kept, _fresh(est)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_innovation_is_kept_until_something_it_reads_changes():
+    """Read once, kept for the other reads; after every change of the history, the weights or
+    the last input the next read is the new state's (compared with a fresh computation)."""
+    calls = []
+
+    def f(x, u):
+        calls.append(1)
+        return A @ x + B @ u
+
+    def h(x, u):
+        calls.append(1)
+        return C @ x
+
+    from gpmhe import KnownModel
+    model = KnownModel(f, h, 2, 2, dim_u=1, f_jacobian=lambda x, u: A,
+                       h_jacobian=lambda x, u: C)
+    _, us, ys = data(12)
+    est = GPMHE(model, x0=[0.0, 0.0], horizon=4, P0=np.eye(2), Q0=Q, R0=R, form="filtering")
+    for t in range(6):
+        est.update(us[t], ys[t])
+    calls.clear()
+    first = est.innovation.copy()
+    n_first = len(calls)
+    assert n_first > 0
+    _ = est.S, est.nis, est.log_likelihood, est.innovation
+    assert len(calls) == n_first  # kept
+    _same(est)
+    changes = [
+        lambda e: e.update(us[6], ys[6]),
+        lambda e: setattr(e, "R0", 2 * R),
+        lambda e: setattr(e, "Q0", 3 * Q),
+        lambda e: e.update(us[7], ys[7], R=0.5 * R),
+        lambda e: e.update(None, [ys[8][0], np.nan]),  # u(8) not known yet ...
+        lambda e: e.set_input(us[8]),                   # ... given
+        lambda e: e.update(us[9], ys[9]),
+        lambda e: e.add_delayed([np.nan, 0.3], age=1),  # the newest sample is unchanged
+        lambda e: e.update(us[10], None),               # no output: NaN innovation
+        lambda e: e.reset([0.5, 0.5]),
+        lambda e: e.update(us[11], ys[11]),
+    ]
+    for change in changes:
+        _ = est.innovation  # kept before the change
+        change(est)
+        _same(est)
+    assert not np.array_equal(first, est.innovation)
+    # A state loaded into the same object replaces what was kept.
+    other = GPMHE(model, x0=[0.0, 0.0], horizon=4, P0=np.eye(2), Q0=Q, R0=R, form="filtering")
+    other.update(us[0], ys[0])
+    _ = est.innovation
+    est._core.__setstate__(other._core.__getstate__())
+    _same(est)
+    np.testing.assert_array_equal(est.innovation, other.innovation)

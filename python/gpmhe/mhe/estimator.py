@@ -210,13 +210,14 @@ class GPMHE(SettingsView, Runs):
     innovation : ndarray of shape (dim_y,)
         y(t) − ŷ for the last update's output, ŷ = m_y(x̂⁻, u(t)) the output predicted before
         y(t) was seen (x̂⁻: the previous ``x``, carried over the stage with u(t − 1) in the
-        filtering form); NaN for channels not measured. Computed when read (one or two model
-        evaluations), from the estimator's state: NaN before the first update.
+        filtering form); NaN for channels not measured. Computed at the first read after a
+        change (one or two model evaluations), from the estimator's state, then kept: NaN
+        before the first update.
     S : ndarray of shape (dim_y, dim_y)
         Its covariance C P⁻ Cᵀ + R(t) + diag σ²_y(x̂⁻, u(t)), P⁻ the previous ``P`` (carried
         over the stage, + Q0 + diag σ²_x, in the filtering form), R(t) the sample's covariance
-        or ``R0`` (Q0 and R0 as they are when read: after setting them, S is the one they would
-        have given). With the Kalman-filter settings on a linear-Gaussian model: the Kalman
+        or ``R0`` (Q0 and R0 as they are: after setting them, S is the one they would have
+        given). With the Kalman-filter settings on a linear-Gaussian model: the Kalman
         filter's innovation and S.
     nis : float
         νᵀS⁻¹ν over the measured channels (NaN when none is measured): χ² with as many degrees

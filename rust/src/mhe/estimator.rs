@@ -102,6 +102,9 @@ pub struct MovingHorizon {
     weights_version: u64,
     /// The model's global variables estimated with the states (`learning_state.rs`), if any.
     learning: Option<Learning>,
+    /// The innovation of the newest sample once computed ([`MovingHorizon::innovation`]);
+    /// every method that changes what it reads forgets it.
+    innovation_memo: Option<Innovation>,
 }
 
 /// A one-step prediction m_x(x, u) with the model's global variables g (none without learning)
@@ -196,6 +199,7 @@ impl MovingHorizon {
             prediction: LastPrediction::default(),
             weights_version: 0,
             learning: None,
+            innovation_memo: None,
         })
     }
 
@@ -205,6 +209,7 @@ impl MovingHorizon {
     /// EKF of the first state and g (`joint_arrival.rs`), whatever the arrival weight setting.
     /// Only before the first update; on error nothing changes.
     pub fn enable_learning(&mut self, g0: &[f64], sigma0: &[f64], drift: f64) -> Result<()> {
+        self.innovation_memo = None;
         if self.history.t() != 0 {
             return Err(Error::invalid(
                 "learning",
@@ -243,6 +248,7 @@ impl MovingHorizon {
 
     /// Installs (or removes) the learning part; drops any staged window.
     pub fn set_learning(&mut self, learning: Option<Learning>) {
+        self.innovation_memo = None;
         self.learning = learning;
         self.staged = None;
         self.has_window = false;
@@ -252,6 +258,7 @@ impl MovingHorizon {
     /// Replaces the learning state (checkpoints; see [`Learning::set_state`]); an error if the
     /// estimator does not learn. Drops any staged window; nothing changes on error.
     pub fn set_learning_state(&mut self, state: LearningState) -> Result<()> {
+        self.innovation_memo = None;
         let n = self.problem.dim_x();
         let l = self
             .learning
@@ -277,6 +284,7 @@ impl MovingHorizon {
     /// Sets the arrival cost; takes effect from the next window (the EKF weight recursion
     /// starts from the current arrival weight).
     pub fn set_arrival(&mut self, arrival: Arrival) {
+        self.innovation_memo = None;
         self.arrival = arrival;
     }
 
@@ -292,6 +300,7 @@ impl MovingHorizon {
         r0: Option<&[f64]>,
         p2_sqrt: Option<&[f64]>,
     ) -> Result<()> {
+        self.innovation_memo = None;
         let p = &self.problem;
         let (q0_now, r0_now, p2_now) = (p.q0().to_vec(), p.r0().to_vec(), p.p2_sqrt().to_vec());
         // With learning, a new P2 restarts the states' block of the joint arrival prior.
@@ -326,6 +335,7 @@ impl MovingHorizon {
     /// newest arrival prior m_x(x̂(t−1), u(t−1)) is recomputed with it. On error nothing
     /// changes.
     pub fn set_last_input(&mut self, model: &mut dyn StageModel, u: &[f64]) -> Result<()> {
+        self.innovation_memo = None;
         let (n, m) = (self.problem.dim_x(), self.problem.dim_u());
         check_len("u", u, m)?;
         check_finite("u", u)?;
@@ -357,6 +367,7 @@ impl MovingHorizon {
 
     /// Forgets every step: t = 0, x̂(0) = x0 with covariance P2⁻¹, arrival weight P2.
     pub fn reset(&mut self, x0: &[f64]) -> Result<()> {
+        self.innovation_memo = None;
         let x_cov = initial_covariance(&self.problem)?;
         if let Some(l) = self.learning.as_mut() {
             let mut fresh = l.clone();
@@ -410,6 +421,7 @@ impl MovingHorizon {
     /// Replaces the history's state (validated, see [`History::set_state`]) and drops any staged
     /// window; on error nothing changes.
     pub fn set_history_state(&mut self, state: HistoryState) -> Result<()> {
+        self.innovation_memo = None;
         self.history.set_state(state)?;
         self.staged = None;
         self.has_window = false;
@@ -651,6 +663,7 @@ impl MovingHorizon {
     /// (None: R0), for the windows from the next update on ([`History::add_delayed`]). Drops any
     /// staged window; on error nothing changes.
     pub fn add_delayed(&mut self, y: &[f64], age: usize, r: Option<&[f64]>) -> Result<()> {
+        self.innovation_memo = None;
         let r = self.sample_covariance(Some(y), r)?;
         self.history.add_delayed(y, age, r, self.problem.r0_cov())?;
         self.staged = None;
@@ -947,6 +960,7 @@ impl MovingHorizon {
     /// solution, the next arrival prior, the outcome, and the next window's arrival mean and
     /// weight when the window slides. Cannot fail.
     pub fn apply(&mut self, pending: Pending) {
+        self.innovation_memo = None;
         let Pending {
             data,
             x_window,
@@ -969,16 +983,31 @@ impl MovingHorizon {
         }
     }
 
-    /// The innovation of the newest sample (`innovation.rs`).
-    pub fn innovation(&self, model: &mut dyn StageModel) -> Result<Innovation> {
-        let Some(l) = &self.learning else {
-            return innovation(&self.problem, &self.history, model, None);
+    /// The innovation of the newest sample (`innovation.rs`), computed at the first call after
+    /// a change of what it reads (the history, the weights, the learning state) and kept.
+    pub fn innovation(&mut self, model: &mut dyn StageModel) -> Result<Innovation> {
+        if let Some(memo) = &self.innovation_memo {
+            return Ok(memo.clone());
+        }
+        let out = match &self.learning {
+            None => innovation(&self.problem, &self.history, model, None)?,
+            Some(l) => {
+                let out = innovation(&self.problem, &self.history, model, Some(&l.state().before));
+                // The model back at the posterior mean whatever happened (the filtering form's
+                // prediction sets it to the posterior before; the output map does not depend
+                // on it).
+                model.set_globals(&l.state().g)?;
+                out?
+            }
         };
-        let out = innovation(&self.problem, &self.history, model, Some(&l.state().before));
-        // The model back at the posterior mean whatever happened (the filtering form's
-        // prediction sets it to the posterior before; the output map does not depend on it).
-        model.set_globals(&l.state().g)?;
-        out
+        self.innovation_memo = Some(out.clone());
+        Ok(out)
+    }
+
+    /// The innovation kept by the last [`MovingHorizon::innovation`], if nothing it reads has
+    /// changed since.
+    pub fn kept_innovation(&self) -> Option<&Innovation> {
+        self.innovation_memo.as_ref()
     }
 
     /// Drops the staged window, if any (its solve was abandoned); the history is unchanged.
@@ -996,6 +1025,7 @@ impl MovingHorizon {
         present: &[bool],
         x_prior: &[f64],
     ) -> Result<()> {
+        self.innovation_memo = None;
         self.problem.set_data(u, y, present, x_prior)?;
         self.evaluated_at.clear();
         self.staged = None;

@@ -452,25 +452,31 @@ impl PyMovingHorizon {
         PyArray1::from_slice(py, &self.core.history().outcome().window_covariance)
     }
 
-    /// The newest sample's innovation, computed now with the model (see `innovation.rs` in the
-    /// core): (ν (p,), S (p, p), NIS, log-likelihood, measured channels).
+    /// The newest sample's innovation, computed with the model at the first read after a change
+    /// (see `innovation.rs` in the core), then kept: (ν (p,), S (p, p), NIS, log-likelihood,
+    /// measured channels).
     #[allow(clippy::type_complexity)]
     fn innovation<'py>(
         &mut self,
         py: Python<'py>,
     ) -> PyResult<(Arr1<'py>, Arr2<'py>, f64, f64, usize)> {
         let p = self.core.problem().dim_y();
-        // A read: the learned model's evaluation cache stays as it was (it decides which values
-        // later updates reuse).
-        let saved = match &self.model {
-            Model::Gp(gp) => Some(gp.cache()),
-            _ => None,
+        let inn = match self.core.kept_innovation() {
+            Some(inn) => inn.clone(),
+            None => {
+                // A read: the learned model's evaluation cache stays as it was (it decides
+                // which values later updates reuse).
+                let saved = match &self.model {
+                    Model::Gp(gp) => Some(gp.cache()),
+                    _ => None,
+                };
+                let inn = self.run(py, |core, model| core.innovation(model));
+                if let (Some(saved), Model::Gp(gp)) = (saved, &mut self.model) {
+                    let _ = gp.set_cache(saved); // the model's own cache always fits it
+                }
+                inn?
+            }
         };
-        let inn = self.run(py, |core, model| core.innovation(model));
-        if let (Some(saved), Model::Gp(gp)) = (saved, &mut self.model) {
-            let _ = gp.set_cache(saved); // the model's own cache always fits it
-        }
-        let inn = inn?;
         Ok((
             PyArray1::from_vec(py, inn.nu),
             array2(py, inn.s, p, p)?,
