@@ -98,11 +98,10 @@ def _core_state(f, na, m, p, kind, dt, learning):
                      learning_g=f.floats("core_learning_g", (ng,)),
                      learning_g_cov=f.floats("core_learning_g_cov", (ng, ng)))
         if f.version >= 9:  # format 8: not known (NaN) until the second update after loading
-            n = na
-            state.update(learning_xg_cov=f.floats("core_learning_xg_cov", (n, ng)),
+            state.update(learning_xg_cov=f.floats("core_learning_xg_cov", (na, ng)),
                          learning_g_before=f.floats("core_learning_g_before", (ng,)),
                          learning_g_cov_before=f.floats("core_learning_g_cov_before", (ng, ng)),
-                         learning_xg_cov_before=f.floats("core_learning_xg_cov_before", (n, ng)))
+                         learning_xg_cov_before=f.floats("core_learning_xg_cov_before", (na, ng)))
     elif kind == "LearnedModel":
         for key in _CACHE_PARTS:
             state["cache_" + key] = f.floats("core_cache_" + key, (None,))

@@ -11,8 +11,9 @@
 //! diag σ²_x with Σ the joint covariance and B = ∂m_x/∂g. Then ŷ = m_y(x̂⁻, u(t)) and
 //! S = C P⁻ Cᵀ + R(t) + diag σ²_y (R(t): the covariance given with the sample, or R0), A and C
 //! the model's Jacobians there. On a linear-Gaussian model with the Kalman-filter settings these
-//! are the Kalman filter's. Computed when asked for, from the history: nothing is added to an
-//! update.
+//! are the Kalman filter's. Computed when asked for, from the history (and kept by
+//! [`MovingHorizon::innovation`](super::MovingHorizon::innovation) until that changes): nothing
+//! is added to an update.
 
 use nalgebra::{DMatrix, DVector};
 

@@ -8,9 +8,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use nalgebra::allocator::Allocator;
-use nalgebra::{
-    Cholesky, Const, DMatrix, DefaultAllocator, Dim, Dyn, MatrixView, MatrixViewMut, OMatrix, U1,
-};
+use nalgebra::{Cholesky, DMatrix, DefaultAllocator, Dim, MatrixView, MatrixViewMut, OMatrix, U1};
 
 /// Block-tridiagonal Cholesky factorisation A = LLᵀ of a symmetric positive-definite matrix with
 /// n×n blocks: L has diagonal blocks L_i and sub-diagonal blocks X_iᵀ with X_i = L_i⁻¹ A_{i,i+1};
@@ -43,15 +41,7 @@ impl BlockTridiagCholesky {
                 .collect();
         }
         let a = (diag, off, shift, fixed);
-        match n {
-            1 => self.factor_in(Const::<1>, a),
-            2 => self.factor_in(Const::<2>, a),
-            3 => self.factor_in(Const::<3>, a),
-            4 => self.factor_in(Const::<4>, a),
-            5 => self.factor_in(Const::<5>, a),
-            6 => self.factor_in(Const::<6>, a),
-            _ => self.factor_in(Dyn(n), a),
-        }
+        with_block_dim!(n, d => self.factor_in(d, a))
     }
 
     /// [`factor`](Self::factor) with n×n blocks of dimension type D (stack matrices for small
@@ -126,15 +116,7 @@ impl BlockTridiagCholesky {
 
     /// Solves A x = b in place (after a successful [`factor`](Self::factor)).
     pub fn solve_in_place(&self, b: &mut [f64]) {
-        match self.n {
-            1 => self.solve_in(Const::<1>, b),
-            2 => self.solve_in(Const::<2>, b),
-            3 => self.solve_in(Const::<3>, b),
-            4 => self.solve_in(Const::<4>, b),
-            5 => self.solve_in(Const::<5>, b),
-            6 => self.solve_in(Const::<6>, b),
-            n => self.solve_in(Dyn(n), b),
-        }
+        with_block_dim!(self.n, d => self.solve_in(d, b))
     }
 
     /// [`solve_in_place`](Self::solve_in_place) with blocks of dimension type D.

@@ -33,8 +33,45 @@
 //! ([`BoxLsqSolver`]: buffers, the driver `solve` and what both phases share), `barrier.rs` (the
 //! interior phase), `active_set.rs` (the active-set phase), `damping.rs` (its damping),
 //! `correction.rs` (its correction of steps along stiff valleys), `stiff_tests.rs` (tests on
-//! stiff windows), `global_tests.rs` (tests on windows with global variables), `sandwich.rs` (the covariance
-//! H⁻¹GH⁻¹ of a discounted window).
+//! stiff windows), `global_tests.rs` (tests on windows with global variables), `sandwich.rs`
+//! (the covariance H⁻¹GH⁻¹ of a discounted window).
+
+/// `$body` with `$d` the nalgebra dimension of n×n blocks: `Const` (stack matrices) for
+/// n ≤ 6, the sizes of the shipped systems, `Dyn` beyond; the same generic code either way.
+macro_rules! with_block_dim {
+    ($n:expr, $d:ident => $body:expr) => {
+        match $n {
+            1 => {
+                let $d = nalgebra::Const::<1>;
+                $body
+            }
+            2 => {
+                let $d = nalgebra::Const::<2>;
+                $body
+            }
+            3 => {
+                let $d = nalgebra::Const::<3>;
+                $body
+            }
+            4 => {
+                let $d = nalgebra::Const::<4>;
+                $body
+            }
+            5 => {
+                let $d = nalgebra::Const::<5>;
+                $body
+            }
+            6 => {
+                let $d = nalgebra::Const::<6>;
+                $body
+            }
+            n => {
+                let $d = nalgebra::Dyn(n);
+                $body
+            }
+        }
+    };
+}
 
 mod active_set;
 mod barrier;
@@ -58,7 +95,6 @@ pub use block_tridiag::{
 };
 pub use box_lsq::{BoxLsqSolver, Covariances};
 pub use options::{InteriorMode, SolveReport, SolverOptions, Status};
-pub use sandwich::sandwich_diagonal_blocks;
 
 use crate::error::Result;
 

@@ -12,7 +12,7 @@
 //! three times the real recursion's products, in place in n×n buffers (on the stack for n ≤ 6).
 
 use nalgebra::allocator::Allocator;
-use nalgebra::{Const, DefaultAllocator, Dim, Dyn, OMatrix};
+use nalgebra::{DefaultAllocator, Dim, OMatrix};
 
 /// A matrix of dual numbers: `re + ε du` (n × n, dimension type D: stack matrices for small n).
 #[derive(Debug, Clone)]
@@ -94,16 +94,7 @@ pub fn sandwich_diagonal_blocks(
     {
         return None;
     }
-    // Stack matrices up to the sizes of the shipped systems; the same recursion either way.
-    let out = match n {
-        1 => recursion(Const::<1>, nodes, h, g),
-        2 => recursion(Const::<2>, nodes, h, g),
-        3 => recursion(Const::<3>, nodes, h, g),
-        4 => recursion(Const::<4>, nodes, h, g),
-        5 => recursion(Const::<5>, nodes, h, g),
-        6 => recursion(Const::<6>, nodes, h, g),
-        _ => recursion(Dyn(n), nodes, h, g),
-    }?;
+    let out = with_block_dim!(n, d => recursion(d, nodes, h, g))?;
     out.iter().all(|v| v.is_finite()).then_some(out)
 }
 

@@ -1,11 +1,12 @@
 //! The moving-horizon estimator's Python classes, one file each: `StageModel`
-//! (`stage_model.rs`), `MovingHorizon` (`moving_horizon.rs`, its copies and pickles in
-//! `pickle.rs`), `WindowSolver` (`window_solver.rs`) and the arrival cost's settings
+//! (`stage_model.rs`), `MovingHorizon` (`moving_horizon.rs`, how it reaches the core in
+//! `run.rs`, its copies and pickles in `pickle.rs`), `WindowSolver` (`window_solver.rs`) and the arrival cost's settings
 //! `ArrivalMean`, `ArrivalWeight` (`arrival.rs`).
 
 mod arrival;
 mod moving_horizon;
 mod pickle;
+mod run;
 mod stage_model;
 mod window_solver;
 

@@ -1,7 +1,8 @@
 //! The moving-horizon estimator (`crate::mhe::MovingHorizon`) as `MovingHorizon`: a method
 //! converts its arguments, runs the core with the model (`Model`, `stage_model.rs`) and maps the
 //! error. An exception other than a numerical one stops the update (the estimator stays as it
-//! was) and is re-raised. Copies and pickles: `pickle.rs`.
+//! was) and is re-raised. How a method reaches the core with the model: `run.rs`; copies and
+//! pickles: `pickle.rs`.
 
 use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::prelude::*;
@@ -9,12 +10,11 @@ use pyo3::types::{PyDict, PyTuple};
 
 use super::arrival::{PyArrivalMean, PyArrivalWeight};
 use super::pickle;
-use super::stage_model::{CallbackModel, Model, PyStageModel};
+use super::stage_model::{Model, PyStageModel};
 use super::window_solver::PyWindowSolver;
 use crate::error::{check_finite, check_len};
-use crate::mhe::{Arrival, Form, Loss, MovingHorizon, Solved, StageModel, Step, WindowProblem};
+use crate::mhe::{Arrival, Form, Loss, MovingHorizon, Solved, Step, WindowProblem};
 use crate::python::convert::{array2, slice1, slice2};
-use crate::python::error::{detach_interruptible, interruptible, model_domain_error};
 use crate::solver::{BoxLsqSolver, SolverOptions};
 
 type Arr1<'py> = Bound<'py, PyArray1<f64>>;
@@ -28,60 +28,6 @@ pub(crate) struct PyMovingHorizon {
     pub(crate) model: Model,
     /// The learned model's evaluation cache before `prepare` staged a window (for `abandon`).
     pub(crate) staged_cache: Option<[Vec<f64>; 9]>,
-}
-
-impl PyMovingHorizon {
-    /// Runs `f` on the core with the model: the learned model without the GIL, a callback with
-    /// it (a Python exception it raised is re-raised when `f` fails).
-    pub(crate) fn run<T: Send>(
-        &mut self,
-        py: Python<'_>,
-        f: impl FnOnce(&mut MovingHorizon, &mut dyn StageModel) -> crate::Result<T> + Send,
-    ) -> PyResult<T> {
-        let core = &mut self.core;
-        match &mut self.model {
-            Model::Gp(model) => {
-                // An error (an interrupt among them) leaves the evaluation cache as it was: the
-                // cache decides which values later updates reuse, bit for bit.
-                model.mark();
-                let r = detach_interruptible(py, || f(core, &mut **model));
-                if r.is_err() {
-                    model.rollback();
-                }
-                r
-            }
-            // Its state is set by the estimator before every use: nothing to undo.
-            Model::Learning(model) => detach_interruptible(py, || f(core, &mut **model)),
-            Model::Compiled { model, .. } => {
-                let m = &mut **model;
-                match py.detach(|| interruptible(|| f(core, &mut *m))) {
-                    (Ok(v), _) => Ok(v),
-                    (Err(_), Some(raised)) => Err(raised),
-                    (Err(e), None) if m.is_domain_error(&e) => Err(model_domain_error(py, e)),
-                    (Err(e), None) => Err(e.into()),
-                }
-            }
-            Model::Callback {
-                stage_eval,
-                predict,
-                dims,
-            } => {
-                let mut cb = CallbackModel {
-                    func: stage_eval.bind(py),
-                    predict: predict.as_ref().map(|f| f.bind(py)),
-                    dims: *dims,
-                    err: None,
-                };
-                // The model's exceptions reach Python anyway (a signal's handler runs inside the
-                // callback); the check covers the core's own work between callbacks.
-                match interruptible(|| f(core, &mut cb)) {
-                    (Ok(v), _) => Ok(v),
-                    (Err(_), Some(raised)) => Err(raised),
-                    (Err(e), None) => Err(cb.err.take().unwrap_or_else(|| e.into())),
-                }
-            }
-        }
-    }
 }
 
 #[pymethods]
@@ -463,19 +409,7 @@ impl PyMovingHorizon {
         let p = self.core.problem().dim_y();
         let inn = match self.core.kept_innovation() {
             Some(inn) => inn.clone(),
-            None => {
-                // A read: the learned model's evaluation cache stays as it was (it decides
-                // which values later updates reuse).
-                let saved = match &self.model {
-                    Model::Gp(gp) => Some(gp.cache()),
-                    _ => None,
-                };
-                let inn = self.run(py, |core, model| core.innovation(model));
-                if let (Some(saved), Model::Gp(gp)) = (saved, &mut self.model) {
-                    let _ = gp.set_cache(saved); // the model's own cache always fits it
-                }
-                inn?
-            }
+            None => self.read(py, |core, model| core.innovation(model))?,
         };
         Ok((
             PyArray1::from_vec(py, inn.nu),
