@@ -31,6 +31,8 @@ use super::loss::Loss;
 use super::stage::{StageEval, StageModel};
 use super::weights::{whiten, Block, Covariance};
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::solver::with_block_dim;
+use nalgebra::Dim;
 
 /// Which outputs the window uses (docs/user_guide/window.rst): the paper's prediction form (y up to t−1, the
 /// estimate is x̂(t) = x̄_t before seeing y_t) or the filtering form (adds y_t).
@@ -888,19 +890,27 @@ impl WindowEval {
 
     /// 2Jᵀr into `g` (length n_nodes·n + n_g). Needs an evaluation with the Jacobian.
     pub fn gradient_into(&self, g: &mut [f64]) {
-        let n = self.n;
         g.iter_mut().for_each(|v| *v = 0.0);
         if self.ng > 0 {
-            self.global_gradient_into(&mut g[self.nodes * n..]);
+            self.global_gradient_into(&mut g[self.nodes * self.n..]);
         }
+        with_block_dim!(self.n, d => self.gradient_in(d, g))
+    }
+
+    /// The node part of [`gradient_into`](Self::gradient_into) with n = `d` (a constant for
+    /// small n: the loops unroll; the same sums in the same order).
+    fn gradient_in<D: Dim>(&self, d: D, g: &mut [f64]) {
+        let n = d.value();
         for (k, &rk) in self.r.iter().enumerate() {
             let i = self.node[k];
-            for l in 0..n {
-                g[i * n + l] += 2.0 * self.ja[k * n + l] * rk;
+            let ja = &self.ja[k * n..(k + 1) * n];
+            for (gl, a) in g[i * n..(i + 1) * n].iter_mut().zip(ja) {
+                *gl += 2.0 * a * rk;
             }
             if self.process[k] {
-                for l in 0..n {
-                    g[(i + 1) * n + l] += 2.0 * self.jb[k * n + l] * rk;
+                let jb = &self.jb[k * n..(k + 1) * n];
+                for (gl, b) in g[(i + 1) * n..(i + 2) * n].iter_mut().zip(jb) {
+                    *gl += 2.0 * b * rk;
                 }
             }
         }
@@ -930,44 +940,57 @@ impl WindowEval {
         diag: &mut [f64],
         off: &mut [f64],
     ) {
-        let n = self.n;
-        let nn = n * n;
         diag.iter_mut().for_each(|v| *v = 0.0);
         off.iter_mut().for_each(|v| *v = 0.0);
-        // The diagonal blocks' upper triangles, mirrored at the end: 2·a·b and 2·b·a are the
-        // same number (doubling is exact), so the blocks are what the full sums give.
-        // Each entry is the same sum over the rows in the same order as term by term; the blocks
-        // are sliced once per row so the inner loops run without index arithmetic. A zero factor
-        // adds ±0 to every entry of its block row, which changes no entry (none is −0: a sum
-        // from +0 that cancels is +0), so such block rows are skipped when the row's other
-        // factors are finite (0·inf would be NaN): rows of parameters and sparse Jacobians cost
-        // O(n) instead of O(n²).
-        fn upper_outer(block: &mut [f64], v: &[f64], n: usize, finite: bool, c: f64) {
-            for (a, row) in block.chunks_exact_mut(n).enumerate() {
+        with_block_dim!(self.n, d => self.weighted_blocks_in(d, c, diag, off))
+    }
+
+    /// [`weighted_gauss_newton_blocks_into`](Self::weighted_gauss_newton_blocks_into) on zeroed
+    /// blocks with n = `d` (a constant for small n, so the short loops unroll).
+    ///
+    /// The diagonal blocks' upper triangles are summed and mirrored at the end: 2·a·b and 2·b·a
+    /// are the same number (doubling is exact), so the blocks are what the full sums give.
+    /// Each entry is the same sum over the rows in the same order as term by term. A zero factor
+    /// adds ±0 to every entry of its block row, which changes no entry (none is −0: a sum from +0
+    /// that cancels is +0), so such block rows are skipped when the row's other factors are
+    /// finite (0·inf would be NaN): rows of parameters and sparse Jacobians cost O(n) instead of
+    /// O(n²).
+    fn weighted_blocks_in<D: Dim>(
+        &self,
+        d: D,
+        c: impl Fn(usize) -> f64,
+        diag: &mut [f64],
+        off: &mut [f64],
+    ) {
+        let n = d.value();
+        let nn = n * n;
+        let upper_outer = |block: &mut [f64], v: &[f64], finite: bool, c: f64| {
+            for a in 0..n {
                 let va = c * v[a];
                 if va == 0.0 && finite {
                     continue;
                 }
-                for (d, vb) in row[a..].iter_mut().zip(&v[a..]) {
-                    *d += va * vb;
+                for b in a..n {
+                    block[a * n + b] += va * v[b];
                 }
             }
-        }
+        };
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         for (k, &i) in self.node.iter().enumerate().take(self.r.len()) {
             let (ja, ck) = (&self.ja[k * n..(k + 1) * n], c(k));
-            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, n, finite(ja), ck);
+            upper_outer(&mut diag[i * nn..(i + 1) * nn], ja, finite(ja), ck);
             if self.process[k] {
                 let jb = &self.jb[k * n..(k + 1) * n];
                 let jb_finite = finite(jb);
-                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, n, jb_finite, ck);
-                for (row, &a) in off[i * nn..(i + 1) * nn].chunks_exact_mut(n).zip(ja) {
-                    let va = ck * a;
+                upper_outer(&mut diag[(i + 1) * nn..(i + 2) * nn], jb, jb_finite, ck);
+                let block = &mut off[i * nn..(i + 1) * nn];
+                for a in 0..n {
+                    let va = ck * ja[a];
                     if va == 0.0 && jb_finite {
                         continue;
                     }
-                    for (o, b) in row.iter_mut().zip(jb) {
-                        *o += va * b;
+                    for b in 0..n {
+                        block[a * n + b] += va * jb[b];
                     }
                 }
             }

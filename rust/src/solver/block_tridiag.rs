@@ -312,18 +312,30 @@ pub fn block_tridiag_matvec(
     x: &[f64],
     y: &mut [f64],
 ) {
+    with_block_dim!(n, d => matvec_in(d, nodes, diag, off, x, y))
+}
+
+/// [`block_tridiag_matvec`] with the block size n = `d` (a constant for small blocks, so the
+/// inner loops unroll; the same sums in the same order either way).
+fn matvec_in<D: Dim>(d: D, nodes: usize, diag: &[f64], off: &[f64], x: &[f64], y: &mut [f64]) {
+    let n = d.value();
     let nn = n * n;
     for i in 0..nodes {
+        let xi = &x[i * n..(i + 1) * n];
+        let di = &diag[i * nn..(i + 1) * nn];
+        let below =
+            (i + 1 < nodes).then(|| (&off[i * nn..(i + 1) * nn], &x[(i + 1) * n..(i + 2) * n]));
+        let above = (i > 0).then(|| (&off[(i - 1) * nn..i * nn], &x[(i - 1) * n..i * n]));
         for r in 0..n {
             let mut s = 0.0;
             for c in 0..n {
-                s += diag[i * nn + r * n + c] * x[i * n + c];
-                if i + 1 < nodes {
-                    s += off[i * nn + r * n + c] * x[(i + 1) * n + c];
+                s += di[r * n + c] * xi[c];
+                if let Some((o, xn)) = below {
+                    s += o[r * n + c] * xn[c];
                 }
-                if i > 0 {
+                if let Some((o, xp)) = above {
                     // block (i, i−1) = off_{i−1}ᵀ
-                    s += off[(i - 1) * nn + c * n + r] * x[(i - 1) * n + c];
+                    s += o[c * n + r] * xp[c];
                 }
             }
             y[i * n + r] = s;

@@ -72,6 +72,7 @@ macro_rules! with_block_dim {
         }
     };
 }
+pub(crate) use with_block_dim;
 
 mod active_set;
 mod barrier;
