@@ -118,7 +118,7 @@ impl StageModel for CompiledModel {
         }
         for (i, di) in d.chunks_exact(nd).enumerate() {
             if let Some(j) = self.find_last(di, i + 1) {
-                out.copy_point(i, &self.last, j, n, p, nd);
+                out.copy_means_of_point(i, &self.last, j, (n, p, nd));
                 continue;
             }
             let mut res: [&mut [f64]; 4] = [
@@ -137,7 +137,7 @@ impl StageModel for CompiledModel {
         }
         self.last_d.clear();
         self.last_d.extend_from_slice(d);
-        self.last.clone_from(out);
+        self.last.copy_means_from(out); // (the variances are zero)
         Ok(())
     }
 

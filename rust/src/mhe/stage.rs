@@ -100,6 +100,32 @@ impl StageEval {
         }
     }
 
+    /// The means and their gradients of `src` (all its points), for a model whose variances are
+    /// zero: what [`copy_means_of_point`](Self::copy_means_of_point) reads back.
+    pub(crate) fn copy_means_from(&mut self, src: &StageEval) {
+        self.mean_x.clone_from(&src.mean_x);
+        self.dmean_x.clone_from(&src.dmean_x);
+        self.mean_y.clone_from(&src.mean_y);
+        self.dmean_y.clone_from(&src.dmean_y);
+    }
+
+    /// [`copy_point`](Self::copy_point) without the variances (left as they are in `self`).
+    pub(crate) fn copy_means_of_point(
+        &mut self,
+        j: usize,
+        src: &StageEval,
+        i: usize,
+        (n, p, nd): (usize, usize, usize),
+    ) {
+        fn row(dst: &mut [f64], src: &[f64], j: usize, i: usize, w: usize) {
+            dst[j * w..(j + 1) * w].copy_from_slice(&src[i * w..(i + 1) * w]);
+        }
+        row(&mut self.mean_x, &src.mean_x, j, i, n);
+        row(&mut self.dmean_x, &src.dmean_x, j, i, n * nd);
+        row(&mut self.mean_y, &src.mean_y, j, i, p);
+        row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
+    }
+
     /// Copies point `i` of `src` into point `j` of `self` (both sized for dimensions n, p, nd).
     pub(crate) fn copy_point(
         &mut self,
