@@ -109,7 +109,8 @@ class _TimedCore:
 
 def time_split(model, kw, y, steps):
     """Where a default update's time goes: the Rust call vs the Python around it, and the cost of
-    one full window evaluation (all M+1 points new: the window states moved by 1e-9)."""
+    one full window evaluation (all M+1 points new: the window states moved by 1e-9), timed
+    interleaved with filterpy's EKF step (predict + update) on the same outputs."""
     est = GPMHE(model, br.X_PRIOR0, **kw)
     est.update(None, y[0])
     timed = _TimedCore(est._core)
@@ -122,18 +123,25 @@ def time_split(model, kw, y, steps):
         evals.append(est.nfev)
     total, rust = np.array(total), np.array(timed.times)
     win, z = timed.core, est.x_window.reshape(-1).copy()
-    ev = []
-    for i in range(200):
+    Q, R = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1)
+    ekf = ekf_step(ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_PRIOR0, np.eye(2), Q, R))
+    ev, ekf_times = [], []
+    for i in range(400):
         z += 1e-9 if i % 2 else -1e-9  # every stage point changes: no reuse of GP values
         t0 = time.perf_counter()
         win.cost_grad(z)
-        ev.append(time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        ekf(y[i % len(y)])
+        ekf_times.append(time.perf_counter() - t1)
+        ev.append(t1 - t0)
+    full, ekf_med = np.median(ev), np.median(ekf_times)
     print(f"Time split of the default Rust solver (same GPs, {steps - 1} updates): median update "
           f"{np.median(total) * 1e3:.3f} ms, of which the one Rust call (MovingHorizon.update) "
           f"{np.median(rust) * 1e3:.3f} ms and Python {np.median(total - rust) * 1e6:.0f} µs; "
           f"median {np.median(evals):.0f} window evaluations (the first, of the warm start, "
           f"recomputes one point); one full window evaluation ({len(z) // 2} nodes, i.e. "
-          f"{len(z) // 2 - 1} stage points x 3 GPs, with derivatives) {np.median(ev) * 1e3:.3f} ms")
+          f"{len(z) // 2 - 1} stage points x 3 GPs, with derivatives) {full * 1e3:.3f} ms, "
+          f"{full / ekf_med:.1f}× filterpy's EKF step timed with it ({ekf_med * 1e3:.3f} ms)")
 
 
 def gps_with_n_points(model, n_points, rng):
