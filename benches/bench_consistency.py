@@ -24,7 +24,11 @@ Plants:
     prior [3, 1], P0 = 0.1² I, M = 15, the state box; rows as in (a) with filterpy's EKF;
 (c) the same plant with GP-MHE on the GPs of the demo (5 training trajectories, 3 restarts):
     the default arrival cost, η = 1 and the paper's η = 0.91; then sparse GPs (30 inducing
-    points) fixed (η = 1) and learning (``learning=True``, η = 1 and 0.91).
+    points) fixed (η = 1) and learning (``learning=True``, η = 1 and 0.91);
+(d) the reactor of (c) whose first rate constant falls by 40 % over the first 100 steps and
+    stays there (as in ``bench_learning.py``), runs of 2 × ``--steps`` steps, the sparse GPs of
+    (c) trained on the nominal plant: fixed, and learning (η = 0.91) with no drift and with the
+    drifts q = 1e-7 and 1e-6 per step.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from gpmhe import GPMHE, KnownModel, LearnedModel
 from gpmhe.baselines import ExactEKF
 from gpmhe.consistency import chi2_test, nees
 from gpmhe.systems import batch_reactor as br
+from bench_learning import f_k1
 
 TRANSIENT = 20
 A = np.array([[1.0, 0.1], [-0.05, 0.95]])
@@ -70,6 +75,16 @@ def reactor_run(rng, steps):
     x0 = br.X_TRUE0 + 0.1 * rng.standard_normal(2)
     x, y = br.simulate(x0, steps - 1, rng)
     return x, y
+
+
+def drifting_reactor_run(rng, steps):
+    """The reactor with k1 falling by 40 % over the first 100 steps (constant after)."""
+    x = np.empty((steps, 2))
+    x[0] = br.X_TRUE0 + 0.1 * rng.standard_normal(2)
+    for t in range(1, steps):
+        k1 = br.K1 * (1.0 - 0.4 * min((t - 1) / 100.0, 1.0))
+        x[t] = f_k1(x[t - 1], k1) + br.SIGMA_W * rng.standard_normal(2)
+    return x, x.sum(axis=1, keepdims=True) + br.SIGMA_V * rng.standard_normal((steps, 1))
 
 
 def mhe_rows(model, x0, P0, Q, R, horizon, bounds=None, etas=(1.0,), rows=None):
@@ -175,6 +190,13 @@ def main():
          dict(horizon=15, eta=0.91, learning=True))])
     print_table("(c) batch reactor, GP model (5 training trajectories)",
                 evaluate(learned, reactor_run, 1, args.runs, args.steps))
+    drifting = mhe_rows(sparse, br.X_TRUE0, P0, Q, R, 15, br.X_BOUNDS, rows=[
+        ("GPMHE, sparse GPs (m = 30), η = 1", dict(horizon=15, eta=1.0))] + [
+        (f"GPMHE, sparse GPs (m = 30) learning, η = 0.91, q = {q:g}",
+         dict(horizon=15, eta=0.91, learning=True, learning_options={"drift": q}))
+        for q in (0.0, 1e-7, 1e-6)])
+    print_table("(d) batch reactor, k1 −40 % over steps 0-100, GPs of (c) on the nominal plant",
+                evaluate(drifting, drifting_reactor_run, 2, args.runs, 2 * args.steps))
     print("\n↑: above the band (over-confident), ↓: below (under-confident)")
 
 

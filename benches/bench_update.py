@@ -16,7 +16,8 @@
    runs twice: with the per-point KnownModel (one Python call per window point and callable) and
    with the vectorised one (`vectorized=True`, one call per window evaluation and callable).
    Then a time split of the default Rust solver: the one Rust call per update against the
-   Python around it, and the time of one full window evaluation.
+   Python around it, and the time of one full window evaluation (every point new), timed
+   interleaved with filterpy's EKF step: the floor of an update that moves the window.
 2. Scaling in the horizon M (Rust solver, same GPs): times after the window is full (t ≥ M),
    window evaluations per update and the time per evaluation and window node (total time over
    total evaluations: the per-iteration cost, which should not grow with M).
