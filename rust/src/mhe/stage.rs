@@ -63,6 +63,11 @@ impl Clone for StageEval {
     }
 }
 
+/// Row `j` (of width `w`) of `dst` ← row `i` of `src`.
+fn copy_row(dst: &mut [f64], src: &[f64], j: usize, i: usize, w: usize) {
+    dst[j * w..(j + 1) * w].copy_from_slice(&src[i * w..(i + 1) * w]);
+}
+
 impl StageEval {
     /// Sizes every buffer for k points (reuses capacity; contents unspecified).
     pub fn resize(&mut self, k: usize, n: usize, m: usize, p: usize) {
@@ -109,7 +114,8 @@ impl StageEval {
         self.dmean_y.clone_from(&src.dmean_y);
     }
 
-    /// [`copy_point`](Self::copy_point) without the variances (left as they are in `self`).
+    /// Copies the means and their gradients of point `i` of `src` into point `j` of `self` (both
+    /// sized for dimensions n, p, nd); the variances are left as they are.
     pub(crate) fn copy_means_of_point(
         &mut self,
         j: usize,
@@ -117,13 +123,10 @@ impl StageEval {
         i: usize,
         (n, p, nd): (usize, usize, usize),
     ) {
-        fn row(dst: &mut [f64], src: &[f64], j: usize, i: usize, w: usize) {
-            dst[j * w..(j + 1) * w].copy_from_slice(&src[i * w..(i + 1) * w]);
-        }
-        row(&mut self.mean_x, &src.mean_x, j, i, n);
-        row(&mut self.dmean_x, &src.dmean_x, j, i, n * nd);
-        row(&mut self.mean_y, &src.mean_y, j, i, p);
-        row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
+        copy_row(&mut self.mean_x, &src.mean_x, j, i, n);
+        copy_row(&mut self.dmean_x, &src.dmean_x, j, i, n * nd);
+        copy_row(&mut self.mean_y, &src.mean_y, j, i, p);
+        copy_row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
     }
 
     /// Copies point `i` of `src` into point `j` of `self` (both sized for dimensions n, p, nd).
@@ -136,17 +139,11 @@ impl StageEval {
         p: usize,
         nd: usize,
     ) {
-        fn row(dst: &mut [f64], src: &[f64], j: usize, i: usize, w: usize) {
-            dst[j * w..(j + 1) * w].copy_from_slice(&src[i * w..(i + 1) * w]);
-        }
-        row(&mut self.mean_x, &src.mean_x, j, i, n);
-        row(&mut self.var_x, &src.var_x, j, i, n);
-        row(&mut self.dmean_x, &src.dmean_x, j, i, n * nd);
-        row(&mut self.dvar_x, &src.dvar_x, j, i, n * nd);
-        row(&mut self.mean_y, &src.mean_y, j, i, p);
-        row(&mut self.var_y, &src.var_y, j, i, p);
-        row(&mut self.dmean_y, &src.dmean_y, j, i, p * nd);
-        row(&mut self.dvar_y, &src.dvar_y, j, i, p * nd);
+        self.copy_means_of_point(j, src, i, (n, p, nd));
+        copy_row(&mut self.var_x, &src.var_x, j, i, n);
+        copy_row(&mut self.dvar_x, &src.dvar_x, j, i, n * nd);
+        copy_row(&mut self.var_y, &src.var_y, j, i, p);
+        copy_row(&mut self.dvar_y, &src.dvar_y, j, i, p * nd);
     }
 
     /// Fails unless the Jacobians with respect to n_g global variables have the size for k
