@@ -151,12 +151,13 @@ def evaluate(rows, simulate, plant, runs, steps):
 
 def print_table(title, results):
     print(f"\n{title}")
-    print(f"| {'estimator':<46} | {'NEES':>6} | {'95 % band':>14} | {'NIS':>6} | "
+    width = max(46, *(len(name) for name in results))
+    print(f"| {'estimator':<{width}} | {'NEES':>6} | {'95 % band':>14} | {'NIS':>6} | "
           f"{'95 % band':>14} | {'RMSE':>7} |")
-    print(f"|{'-' * 48}|{'-' * 8}|{'-' * 16}|{'-' * 8}|{'-' * 16}|{'-' * 9}|")
+    print(f"|{'-' * (width + 2)}|{'-' * 8}|{'-' * 16}|{'-' * 8}|{'-' * 16}|{'-' * 9}|")
     for name, (ne, ni, rmse) in results.items():
         mark = lambda r: "" if r.consistent else ("↑" if r.mean > r.upper else "↓")  # noqa: E731
-        print(f"| {name:<46} | {ne.mean:5.2f}{mark(ne):1} | [{ne.lower:5.2f}, {ne.upper:5.2f}] | "
+        print(f"| {name:<{width}} | {ne.mean:5.2f}{mark(ne):1} | [{ne.lower:5.2f}, {ne.upper:5.2f}] | "
               f"{ni.mean:5.2f}{mark(ni):1} | [{ni.lower:5.2f}, {ni.upper:5.2f}] | {rmse:7.4f} |")
 
 
