@@ -174,9 +174,17 @@ impl BorderedCholesky {
             InverseBlocks::Last => nx / n - 1,
             InverseBlocks::All => 0,
         };
+        let mut block = Mat::<f64>::zeros(n, n);
         for (b, i) in (first..nx / n).enumerate() {
             let w = wt.as_ref().subcols(i * n, n);
-            let block = w.transpose() * w;
+            matmul(
+                block.as_mut(),
+                Accum::Replace,
+                w.transpose(),
+                w,
+                1.0,
+                Par::Seq,
+            );
             for r in 0..n {
                 for c in 0..n {
                     out[b * n * n + r * n + c] += block[(r, c)];

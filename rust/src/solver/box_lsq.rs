@@ -221,7 +221,7 @@ impl BoxLsqSolver {
     /// solve, or if H is singular or the block is not finite.
     pub fn last_node_covariance(&mut self) -> Option<Vec<f64>> {
         let b = self.undamped_inverse_blocks(InverseBlocks::Last)?;
-        Some(symmetrised(&b, self.h.n))
+        Some(symmetrised_blocks(b, self.h.n))
     }
 
     /// 4·sym of every diagonal n×n block of H⁻¹ (nodes × n × n; see `last_node_covariance`,
@@ -230,11 +230,7 @@ impl BoxLsqSolver {
     pub fn window_covariance(&mut self) -> Option<Vec<f64>> {
         let n = self.h.n;
         let b = self.undamped_inverse_blocks(InverseBlocks::All)?;
-        Some(
-            b.chunks(n * n)
-                .flat_map(|block| symmetrised(block, n))
-                .collect(),
-        )
+        Some(symmetrised_blocks(b, n))
     }
 
     /// 4·sym of every diagonal n×n block of H⁻¹GH⁻¹ (nodes × n × n), H the Gauss-Newton Hessian
@@ -248,11 +244,7 @@ impl BoxLsqSolver {
             return None;
         }
         let b = sandwich_diagonal_blocks(nodes, n, (&self.h.diag, &self.h.off), (g_diag, g_off))?;
-        Some(
-            b.chunks(n * n)
-                .flat_map(|block| symmetrised(block, n))
-                .collect(),
-        )
+        Some(symmetrised_blocks(b, n))
     }
 
     /// [`window_covariance`](Self::window_covariance), 4·sym of the global variables' block of
@@ -264,11 +256,10 @@ impl BoxLsqSolver {
             return Covariances::default();
         }
         let n = self.h.n;
-        let window = self.chol.inverse_blocks(InverseBlocks::All).map(|b| {
-            b.chunks(n * n)
-                .flat_map(|block| symmetrised(block, n))
-                .collect()
-        });
+        let window = self
+            .chol
+            .inverse_blocks(InverseBlocks::All)
+            .map(|b| symmetrised_blocks(b, n));
         let (m, inverse) = (self.h.m, self.chol.global_block_of_inverse());
         let cross = inverse.as_deref().and_then(|b| {
             let c = self.chol.last_node_global_block(b)?;
@@ -276,7 +267,7 @@ impl BoxLsqSolver {
         });
         Covariances {
             window,
-            global: inverse.map(|b| symmetrised(&b, m)),
+            global: inverse.map(|b| symmetrised_blocks(b, m)),
             cross,
         }
     }
@@ -450,11 +441,19 @@ impl BoxLsqSolver {
     }
 }
 
-/// 4·sym(B) = 2(B + Bᵀ) of an n×n row-major block.
-fn symmetrised(b: &[f64], n: usize) -> Vec<f64> {
-    (0..n * n)
-        .map(|k| 2.0 * (b[k] + b[(k % n) * n + k / n]))
-        .collect()
+/// 4·sym(B) = 2(B + Bᵀ) of every n×n row-major block B of `blocks`, in place (entry (r, c) and
+/// (c, r) get the same sum: addition commutes).
+fn symmetrised_blocks(mut blocks: Vec<f64>, n: usize) -> Vec<f64> {
+    for b in blocks.chunks_exact_mut(n * n) {
+        for r in 0..n {
+            for c in r..n {
+                let v = 2.0 * (b[r * n + c] + b[c * n + r]);
+                b[r * n + c] = v;
+                b[c * n + r] = v;
+            }
+        }
+    }
+    blocks
 }
 
 #[cfg(test)]
