@@ -40,31 +40,14 @@
 /// n ≤ 6, the sizes of the shipped systems, `Dyn` beyond; the same generic code either way.
 macro_rules! with_block_dim {
     ($n:expr, $d:ident => $body:expr) => {
+        with_block_dim!(@arms $n, $d, $body; 1 2 3 4 5 6)
+    };
+    (@arms $n:expr, $d:ident, $body:expr; $($k:literal)*) => {
         match $n {
-            1 => {
-                let $d = nalgebra::Const::<1>;
+            $($k => {
+                let $d = nalgebra::Const::<$k>;
                 $body
-            }
-            2 => {
-                let $d = nalgebra::Const::<2>;
-                $body
-            }
-            3 => {
-                let $d = nalgebra::Const::<3>;
-                $body
-            }
-            4 => {
-                let $d = nalgebra::Const::<4>;
-                $body
-            }
-            5 => {
-                let $d = nalgebra::Const::<5>;
-                $body
-            }
-            6 => {
-                let $d = nalgebra::Const::<6>;
-                $body
-            }
+            })*
             n => {
                 let $d = nalgebra::Dyn(n);
                 $body
