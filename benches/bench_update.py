@@ -16,8 +16,9 @@
    runs twice: with the per-point KnownModel (one Python call per window point and callable) and
    with the vectorised one (`vectorized=True`, one call per window evaluation and callable).
    Then a time split of the default Rust solver: the one Rust call per update against the
-   Python around it, and the time of one full window evaluation (every point new), timed
-   interleaved with filterpy's EKF step: the floor of an update that moves the window.
+   Python around it, and the time of one full window evaluation (every point new): the floor
+   of an update that moves the window. Each is timed interleaved with filterpy's EKF step as
+   in the table (`--block` calls each in turn), the two alone.
 2. Scaling in the horizon M (Rust solver, same GPs): times after the window is full (t ≥ M),
    window evaluations per update and the time per evaluation and window node (total time over
    total evaluations: the per-iteration cost, which should not grow with M).
@@ -93,56 +94,60 @@ def row(name, ts, ekf_median, extra=""):
 
 
 class _TimedCore:
-    """Wraps an estimator's Rust core to time its one call per update (`update`)."""
+    """Wraps an estimator's Rust core to time its one call per update (`update`) and count its
+    window evaluations."""
 
     def __init__(self, core):
-        self.core, self.times = core, []
+        self.core, self.times, self.nfev = core, [], []
 
     def update(self, *args):
         t0 = time.perf_counter()
         out = self.core.update(*args)
         self.times.append(time.perf_counter() - t0)
+        self.nfev.append(self.core.nfev)
         return out
 
     def __getattr__(self, name):
         return getattr(self.core, name)
 
 
-def time_split(model, kw, y, steps):
+def time_split(model, kw, y, steps, block):
     """Where a default update's time goes: the Rust call vs the Python around it, and the cost of
-    one full window evaluation (all M+1 points new: the window states moved by 1e-9), timed
-    interleaved with filterpy's EKF step (predict + update) on the same outputs."""
+    one full window evaluation (all M+1 points new: the window states moved by 1e-9). Each is
+    timed interleaved with filterpy's EKF step (predict + update) on the same outputs, `block`
+    calls each in turn as in the table, the two alone."""
+    Q, R = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1)
+
+    def new_ekf():
+        return ekf_step(ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_PRIOR0,
+                                 np.eye(2), Q, R))
     est = GPMHE(model, br.X_PRIOR0, **kw)
-    est.update(None, y[0])
     timed = _TimedCore(est._core)
     est._core = timed
-    total, evals = [], []
-    for t in range(1, steps):
-        t0 = time.perf_counter()
-        est.update(None, y[t])
-        total.append(time.perf_counter() - t0)
-        evals.append(est.nfev)
-    total, rust = np.array(total), np.array(timed.times)
+    runs = interleaved_runs([("ekf", new_ekf(), steps),
+                             ("mhe", lambda yt: est.update(None, yt), steps)], y, block)
+    total, rust = runs["mhe"][1][1:], np.array(timed.times)[1:]  # (the first builds the window)
+    evals = timed.nfev[1:]
+    update_ekf = np.median(runs["ekf"][1])
     win, z = timed.core, est.x_window.reshape(-1).copy()
-    Q, R = br.SIGMA_W ** 2 * np.eye(2), br.SIGMA_V ** 2 * np.eye(1)
-    ekf = ekf_step(ExactEKF(br.f, br.f_jacobian, br.h, br.h_jacobian, br.X_PRIOR0, np.eye(2), Q, R))
-    ev, ekf_times = [], []
-    for i in range(400):
-        z += 1e-9 if i % 2 else -1e-9  # every stage point changes: no reuse of GP values
-        t0 = time.perf_counter()
+    flip, nothing = iter(np.tile([1e-9, -1e-9], 200)), np.zeros(2)
+
+    def evaluation(_):
+        z[:] += next(flip)  # every stage point changes: no reuse of GP values
         win.cost_grad(z)
-        t1 = time.perf_counter()
-        ekf(y[i % len(y)])
-        ekf_times.append(time.perf_counter() - t1)
-        ev.append(t1 - t0)
-    full, ekf_med = np.median(ev), np.median(ekf_times)
-    print(f"Time split of the default Rust solver (same GPs, {steps - 1} updates): median update "
-          f"{np.median(total) * 1e3:.3f} ms, of which the one Rust call (MovingHorizon.update) "
+        return nothing
+    yy = np.resize(y, (400,) + y.shape[1:])
+    runs = interleaved_runs([("ekf", new_ekf(), 400), ("eval", evaluation, 400)], yy, block)
+    full, ekf_med = np.median(runs["eval"][1]), np.median(runs["ekf"][1])
+    print(f"Time split of the default Rust solver (same GPs, {steps - 1} updates, each timed "
+          f"interleaved with filterpy's EKF step alone, {block} steps each in turn): median "
+          f"update {np.median(total) * 1e3:.3f} ms, {np.median(total) / update_ekf:.1f}× the EKF "
+          f"step ({update_ekf * 1e3:.3f} ms), of which the one Rust call (MovingHorizon.update) "
           f"{np.median(rust) * 1e3:.3f} ms and Python {np.median(total - rust) * 1e6:.0f} µs; "
           f"median {np.median(evals):.0f} window evaluations (the first, of the warm start, "
           f"recomputes one point); one full window evaluation ({len(z) // 2} nodes, i.e. "
           f"{len(z) // 2 - 1} stage points x 3 GPs, with derivatives) {full * 1e3:.3f} ms, "
-          f"{full / ekf_med:.1f}× filterpy's EKF step timed with it ({ekf_med * 1e3:.3f} ms)")
+          f"{full / ekf_med:.1f}× the EKF step ({ekf_med * 1e3:.3f} ms)")
 
 
 def gps_with_n_points(model, n_points, rng):
@@ -314,7 +319,7 @@ def main(argv=None):
     x, y = br.simulate(br.X_TRUE0, steps, rng)
     kw = dict(x_bounds=br.X_BOUNDS, **br.MHE_SETTINGS)
     time_table(models, kw, x, y, steps, tc_steps, args.block, args.seed)
-    time_split(gp5, kw, y, steps)
+    time_split(gp5, kw, y, steps, args.block)
     scaling_in_m(gp5, kw, args.seed, args.quick)
     scaling_in_n(gp5, kw, args.seed, args.quick)
     print(f"\ntotal benchmark time {time.perf_counter() - t0:.0f} s")
