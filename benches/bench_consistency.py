@@ -42,7 +42,7 @@ from gpmhe import GPMHE, KnownModel, LearnedModel
 from gpmhe.baselines import ExactEKF
 from gpmhe.consistency import chi2_test, nees
 from gpmhe.systems import batch_reactor as br
-from bench_learning import f_k1
+from bench_learning import reactor_run as reactor_run_with_drift
 
 TRANSIENT = 20
 A = np.array([[1.0, 0.1], [-0.05, 0.95]])
@@ -79,12 +79,7 @@ def reactor_run(rng, steps):
 
 def drifting_reactor_run(rng, steps):
     """The reactor with k1 falling by 40 % over the first 100 steps (constant after)."""
-    x = np.empty((steps, 2))
-    x[0] = br.X_TRUE0 + 0.1 * rng.standard_normal(2)
-    for t in range(1, steps):
-        k1 = br.K1 * (1.0 - 0.4 * min((t - 1) / 100.0, 1.0))
-        x[t] = f_k1(x[t - 1], k1) + br.SIGMA_W * rng.standard_normal(2)
-    return x, x.sum(axis=1, keepdims=True) + br.SIGMA_V * rng.standard_normal((steps, 1))
+    return reactor_run_with_drift(br.X_TRUE0 + 0.1 * rng.standard_normal(2), steps, rng)
 
 
 def mhe_rows(model, x0, P0, Q, R, horizon, bounds=None, etas=(1.0,), rows=None):

@@ -43,13 +43,18 @@ X0 = np.array([3.0, 1.0])
 
 def simulate(seed, drift):
     """The reactor with k1 falling by 40 % over 100 steps (``drift``), or nominal."""
-    rng = np.random.default_rng(1000 + seed)
-    x = np.empty((STEPS + 1, 2))
-    x[0] = br.X_TRUE0
-    for t in range(STEPS):
+    return reactor_run(br.X_TRUE0, STEPS + 1, np.random.default_rng(1000 + seed), drift)
+
+
+def reactor_run(x0, rows, rng, drift=True):
+    """`rows` states from x0 and their outputs, with k1 falling by 40 % over the first 100 steps
+    and constant after (``drift``), or nominal."""
+    x = np.empty((rows, 2))
+    x[0] = x0
+    for t in range(rows - 1):
         k1 = br.K1 * (1.0 - 0.4 * min(t / 100.0, 1.0)) if drift else br.K1
         x[t + 1] = f_k1(x[t], k1) + br.SIGMA_W * rng.standard_normal(2)
-    y = x.sum(axis=1, keepdims=True) + br.SIGMA_V * rng.standard_normal((STEPS + 1, 1))
+    y = x.sum(axis=1, keepdims=True) + br.SIGMA_V * rng.standard_normal((rows, 1))
     return x, y
 
 
